@@ -1,0 +1,89 @@
+// DGCNN edge tensor out[b, :, n, j] = [x_idx - x_n ; x_n] and its scatter-add backward.
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <torch/library.h>
+
+#include "common/common.h"
+
+namespace vrnet {
+namespace {
+
+void check_graph(const at::Tensor& x, const at::Tensor& idx, const char* x_name) {
+  check_float(x, x_name);
+  check_index(idx, "idx");
+  check_dim(x, 3, x_name, "(B, C, N)");
+  check_dim(idx, 3, "idx", "(B, N, k)");
+  TORCH_CHECK_VALUE(idx.size(0) == x.size(0), "idx batch (", idx.size(0), ") must match ", x_name, " batch (",
+                    x.size(0), ")");
+  TORCH_CHECK_VALUE(idx.size(2) >= 1, "idx must have k >= 1 neighbours");
+}
+
+at::Tensor edge_features_cpu(const at::Tensor& x_in, const at::Tensor& idx_in) {
+  check_graph(x_in, idx_in, "x");
+  TORCH_CHECK_VALUE(idx_in.size(1) == x_in.size(2), "idx must have shape (B, N, k) with N = ", x_in.size(2),
+                    ", got ", idx_in.sizes());
+  const at::Tensor x = x_in.contiguous(), idx = idx_in.contiguous();
+  const int64_t B = x.size(0), C = x.size(1), N = x.size(2), k = idx.size(2);
+  check_index_range(idx, N, "idx");
+  at::Tensor out = at::empty({B, 2 * C, N, k}, x.options());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "edge_features_cpu", [&] {
+    const scalar_t* xp = x.const_data_ptr<scalar_t>();
+    const int64_t* ip = idx.const_data_ptr<int64_t>();
+    scalar_t* op = out.mutable_data_ptr<scalar_t>();
+    at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
+      for (int64_t bc = begin; bc < end; ++bc) {
+        const int64_t b = bc / C, c = bc % C;
+        const scalar_t* row = xp + bc * N;
+        const int64_t* ib = ip + b * N * k;
+        scalar_t* diff = op + (b * 2 * C + c) * N * k;
+        scalar_t* centre = op + (b * 2 * C + C + c) * N * k;
+        for (int64_t n = 0; n < N; ++n)
+          for (int64_t j = 0; j < k; ++j) {
+            diff[n * k + j] = row[ib[n * k + j]] - row[n];
+            centre[n * k + j] = row[n];
+          }
+      }
+    });
+  });
+  return out;
+}
+
+// grad_x[c, m] = sum_{(n,j): idx=m} g_diff[c,n,j] + sum_j (g_centre[c,m,j] - g_diff[c,m,j]).
+at::Tensor edge_features_backward_cpu(const at::Tensor& grad_in, const at::Tensor& idx_in, int64_t num_points) {
+  const at::Tensor grad = grad_in.contiguous(), idx = idx_in.contiguous();
+  const int64_t B = grad.size(0), C = grad.size(1) / 2, N = num_points, k = idx.size(2);
+  at::Tensor grad_x = at::zeros({B, C, N}, grad.options());
+  AT_DISPATCH_FLOATING_TYPES(grad.scalar_type(), "edge_features_backward_cpu", [&] {
+    const scalar_t* gp = grad.const_data_ptr<scalar_t>();
+    const int64_t* ip = idx.const_data_ptr<int64_t>();
+    scalar_t* gx = grad_x.mutable_data_ptr<scalar_t>();
+    at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
+      for (int64_t bc = begin; bc < end; ++bc) {
+        const int64_t b = bc / C, c = bc % C;
+        const int64_t* ib = ip + b * N * k;
+        const scalar_t* g_diff = gp + (b * 2 * C + c) * N * k;
+        const scalar_t* g_centre = gp + (b * 2 * C + C + c) * N * k;
+        scalar_t* row = gx + bc * N;
+        for (int64_t n = 0; n < N; ++n) {
+          scalar_t self = 0;
+          for (int64_t j = 0; j < k; ++j) {
+            const scalar_t gd = g_diff[n * k + j];
+            row[ib[n * k + j]] += gd;
+            self += g_centre[n * k + j] - gd;
+          }
+          row[n] += self;
+        }
+      }
+    });
+  });
+  return grad_x;
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(vrnet_ext, CPU, m) {
+  m.impl("edge_features", &edge_features_cpu);
+  m.impl("edge_features_backward", &edge_features_backward_cpu);
+}
+
+}  // namespace vrnet

@@ -1,0 +1,113 @@
+// Fused neighbour gather + reduction: out[b, c, n] = reduce_j values[b, c, idx[b, n, j]].
+// For max/min the winning neighbour slot j is kept so backward routes the gradient to it.
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <torch/library.h>
+
+#include <string>
+
+#include "common/common.h"
+
+namespace vrnet {
+namespace {
+
+enum class Reduce { kMax, kMin, kSum, kMean };
+
+Reduce parse_reduce(c10::string_view name) {
+  if (name == "max") return Reduce::kMax;
+  if (name == "min") return Reduce::kMin;
+  if (name == "sum") return Reduce::kSum;
+  if (name == "mean") return Reduce::kMean;
+  TORCH_CHECK_VALUE(false, "reduce must be one of 'max', 'min', 'sum', 'mean', got '", std::string(name), "'");
+}
+
+std::tuple<at::Tensor, at::Tensor> gather_reduce_cpu(const at::Tensor& values_in, const at::Tensor& idx_in,
+                                                     c10::string_view reduce_name) {
+  const Reduce reduce = parse_reduce(reduce_name);
+  check_float(values_in, "values");
+  check_index(idx_in, "idx");
+  check_dim(values_in, 3, "values", "(B, C, M)");
+  check_dim(idx_in, 3, "idx", "(B, N, k)");
+  TORCH_CHECK_VALUE(idx_in.size(0) == values_in.size(0), "idx batch (", idx_in.size(0),
+                    ") must match values batch (", values_in.size(0), ")");
+  TORCH_CHECK_VALUE(idx_in.size(2) >= 1, "idx must have k >= 1 neighbours");
+  const at::Tensor values = values_in.contiguous(), idx = idx_in.contiguous();
+  const int64_t B = values.size(0), C = values.size(1), M = values.size(2);
+  const int64_t N = idx.size(1), k = idx.size(2);
+  check_index_range(idx, M, "idx");
+  const bool keep_arg = reduce == Reduce::kMax || reduce == Reduce::kMin;
+  at::Tensor out = at::empty({B, C, N}, values.options());
+  at::Tensor arg = at::empty({keep_arg ? B : 0, C, N}, values.options().dtype(at::kLong));
+  AT_DISPATCH_FLOATING_TYPES(values.scalar_type(), "gather_reduce_cpu", [&] {
+    const scalar_t* vp = values.const_data_ptr<scalar_t>();
+    const int64_t* ip = idx.const_data_ptr<int64_t>();
+    scalar_t* op = out.mutable_data_ptr<scalar_t>();
+    int64_t* ap = keep_arg ? arg.mutable_data_ptr<int64_t>() : nullptr;
+    at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
+      for (int64_t bc = begin; bc < end; ++bc) {
+        const scalar_t* row = vp + bc * M;
+        const int64_t* ib = ip + (bc / C) * N * k;
+        for (int64_t n = 0; n < N; ++n) {
+          const int64_t* nb = ib + n * k;
+          if (keep_arg) {
+            int64_t best = 0;
+            scalar_t best_v = row[nb[0]];
+            for (int64_t j = 1; j < k; ++j) {
+              const scalar_t v = row[nb[j]];
+              // First occurrence wins ties; NaN propagates like torch.max.
+              const bool better = reduce == Reduce::kMax ? (v > best_v) : (v < best_v);
+              if (better || (std::isnan(v) && !std::isnan(best_v))) { best_v = v; best = j; }
+            }
+            op[bc * N + n] = best_v;
+            ap[bc * N + n] = best;
+          } else {
+            scalar_t acc = 0;
+            for (int64_t j = 0; j < k; ++j) acc += row[nb[j]];
+            op[bc * N + n] = reduce == Reduce::kMean ? acc / static_cast<scalar_t>(k) : acc;
+          }
+        }
+      }
+    });
+  });
+  return {out, arg};
+}
+
+at::Tensor gather_reduce_backward_cpu(const at::Tensor& grad_in, const at::Tensor& idx_in, const at::Tensor& arg_in,
+                                      c10::string_view reduce_name, int64_t num_values) {
+  const Reduce reduce = parse_reduce(reduce_name);
+  const at::Tensor grad = grad_in.contiguous(), idx = idx_in.contiguous(), arg = arg_in.contiguous();
+  const int64_t B = grad.size(0), C = grad.size(1), N = grad.size(2), M = num_values, k = idx.size(2);
+  at::Tensor grad_values = at::zeros({B, C, M}, grad.options());
+  AT_DISPATCH_FLOATING_TYPES(grad.scalar_type(), "gather_reduce_backward_cpu", [&] {
+    const scalar_t* gp = grad.const_data_ptr<scalar_t>();
+    const int64_t* ip = idx.const_data_ptr<int64_t>();
+    const int64_t* ap = arg.numel() ? arg.const_data_ptr<int64_t>() : nullptr;
+    scalar_t* gv = grad_values.mutable_data_ptr<scalar_t>();
+    const scalar_t scale = reduce == Reduce::kMean ? scalar_t(1) / static_cast<scalar_t>(k) : scalar_t(1);
+    // One task per (batch, channel) row: the scatter has no races and a fixed order.
+    at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
+      for (int64_t bc = begin; bc < end; ++bc) {
+        const int64_t* ib = ip + (bc / C) * N * k;
+        scalar_t* row = gv + bc * M;
+        for (int64_t n = 0; n < N; ++n) {
+          const scalar_t g = gp[bc * N + n];
+          if (ap) {
+            row[ib[n * k + ap[bc * N + n]]] += g;
+          } else {
+            for (int64_t j = 0; j < k; ++j) row[ib[n * k + j]] += g * scale;
+          }
+        }
+      }
+    });
+  });
+  return grad_values;
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(vrnet_ext, CPU, m) {
+  m.impl("gather_reduce", &gather_reduce_cpu);
+  m.impl("gather_reduce_backward", &gather_reduce_backward_cpu);
+}
+
+}  // namespace vrnet

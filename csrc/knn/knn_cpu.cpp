@@ -1,0 +1,274 @@
+// CPU kNN: a uniform-grid search for 3-D points and a GEMM-tiled scan with fused top-k for
+// features. Neither materialises the N x M distance matrix.
+#include <ATen/ops/empty.h>
+#include <ATen/ops/mm.h>
+#include <ATen/ops/zeros.h>
+#include <ATen/ops/zeros_like.h>
+#include <torch/library.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <vector>
+
+#include "common/common.h"
+#include "knn/knn.h"
+
+namespace vrnet {
+namespace {
+
+// Grid over one reference cloud: points sorted by cell (counting sort) with cell offsets.
+template <typename scalar_t>
+struct Grid {
+  std::array<double, 3> lo{};
+  double cell = 1.0;
+  std::array<int64_t, 3> dims{1, 1, 1};
+  std::vector<int64_t> start;      // (cells + 1) offsets into the sorted arrays
+  std::vector<int64_t> order;      // original index of each sorted point
+  std::vector<scalar_t> xyz;       // sorted coordinates, 3 per point
+
+  int64_t cell_coord(double v, int a) const {
+    const int64_t c = static_cast<int64_t>(std::floor((v - lo[a]) / cell));
+    return std::min(std::max<int64_t>(c, 0), dims[a] - 1);
+  }
+  int64_t cell_id(int64_t cx, int64_t cy, int64_t cz) const { return (cz * dims[1] + cy) * dims[0] + cx; }
+
+  // Chooses the finest grid (up to 1024 cells per axis) with at most ~2 cells per point.
+  void build(const scalar_t* pts, int64_t m) {
+    std::array<double, 3> hi{};
+    for (int a = 0; a < 3; ++a) { lo[a] = pts[a]; hi[a] = pts[a]; }
+    for (int64_t i = 0; i < m; ++i)
+      for (int a = 0; a < 3; ++a) {
+        lo[a] = std::min(lo[a], static_cast<double>(pts[3 * i + a]));
+        hi[a] = std::max(hi[a], static_cast<double>(pts[3 * i + a]));
+      }
+    double extent_max = 0.0;
+    for (int a = 0; a < 3; ++a) extent_max = std::max(extent_max, hi[a] - lo[a]);
+    if (!(extent_max > 0.0)) extent_max = 1.0;
+    const double budget = 2.0 * static_cast<double>(m) + 1.0;
+    int64_t best = 1;
+    for (int64_t lo_d = 1, hi_d = 1024; lo_d <= hi_d;) {  // largest divisions within budget
+      const int64_t d = (lo_d + hi_d) / 2;
+      double total = 1.0;
+      for (int a = 0; a < 3; ++a)
+        total *= std::max(1.0, std::ceil((hi[a] - lo[a]) / (extent_max / d)));
+      if (total <= budget) { best = d; lo_d = d + 1; } else { hi_d = d - 1; }
+    }
+    cell = extent_max / best * (1.0 + 1e-9);
+    for (int a = 0; a < 3; ++a)
+      dims[a] = std::max<int64_t>(1, static_cast<int64_t>(std::ceil((hi[a] - lo[a]) / cell)));
+    const int64_t cells = dims[0] * dims[1] * dims[2];
+    std::vector<int64_t> cid(m);
+    start.assign(cells + 1, 0);
+    for (int64_t i = 0; i < m; ++i) {
+      cid[i] = cell_id(cell_coord(pts[3 * i], 0), cell_coord(pts[3 * i + 1], 1), cell_coord(pts[3 * i + 2], 2));
+      ++start[cid[i] + 1];
+    }
+    for (int64_t c = 0; c < cells; ++c) start[c + 1] += start[c];
+    std::vector<int64_t> fill(start.begin(), start.end() - 1);
+    order.resize(m);
+    xyz.resize(3 * m);
+    for (int64_t i = 0; i < m; ++i) {
+      const int64_t pos = fill[cid[i]]++;
+      order[pos] = i;
+      for (int a = 0; a < 3; ++a) xyz[3 * pos + a] = pts[3 * i + a];
+    }
+  }
+
+  // Exact kNN of one query by visiting cube shells of cells around the query's cell until no
+  // unvisited cell can hold a point closer than the current k-th candidate.
+  void search(const scalar_t* q, int64_t self, TopK<scalar_t>& top) const {
+    const int64_t c[3] = {cell_coord(q[0], 0), cell_coord(q[1], 1), cell_coord(q[2], 2)};
+    for (int64_t r = 0;; ++r) {
+      const int64_t z0 = std::max<int64_t>(c[2] - r, 0), z1 = std::min(c[2] + r, dims[2] - 1);
+      const int64_t y0 = std::max<int64_t>(c[1] - r, 0), y1 = std::min(c[1] + r, dims[1] - 1);
+      const int64_t x0 = std::max<int64_t>(c[0] - r, 0), x1 = std::min(c[0] + r, dims[0] - 1);
+      for (int64_t z = z0; z <= z1; ++z) {
+        const bool z_shell = std::abs(z - c[2]) == r;
+        for (int64_t y = y0; y <= y1; ++y) {
+          const bool zy_shell = z_shell || std::abs(y - c[1]) == r;
+          // Interior rows only contribute their two shell cells (x = c-r and x = c+r).
+          const int64_t step = zy_shell ? 1 : std::max<int64_t>(2 * r, 1);
+          for (int64_t x = zy_shell ? x0 : c[0] - r; x <= x1; x += step) {
+            if (x < x0) continue;
+            const int64_t id = cell_id(x, y, z);
+            for (int64_t p = start[id]; p < start[id + 1]; ++p) {
+              const int64_t j = order[p];
+              if (j == self) continue;
+              const scalar_t dx = q[0] - xyz[3 * p], dy = q[1] - xyz[3 * p + 1], dz = q[2] - xyz[3 * p + 2];
+              top.push(dx * dx + dy * dy + dz * dz, j);
+            }
+          }
+        }
+      }
+      // Lower bound on the distance from q to any cell outside the visited box.
+      double bound = std::numeric_limits<double>::infinity();
+      bool more = false;
+      for (int a = 0; a < 3; ++a) {
+        if (c[a] - r > 0) {
+          more = true;
+          bound = std::min(bound, std::max(0.0, q[a] - (lo[a] + (c[a] - r) * cell)));
+        }
+        if (c[a] + r < dims[a] - 1) {
+          more = true;
+          bound = std::min(bound, std::max(0.0, lo[a] + (c[a] + r + 1) * cell - q[a]));
+        }
+      }
+      if (!more) return;
+      if (static_cast<double>(top.worst()) < bound * bound * (1.0 - 1e-5)) return;
+    }
+  }
+};
+
+template <typename scalar_t>
+void knn_grid(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self,
+              at::Tensor& dist, at::Tensor& idx) {
+  const int64_t B = query.size(0), N = query.size(1), M = ref.size(1);
+  for (int64_t b = 0; b < B; ++b) {
+    const scalar_t* q = query.const_data_ptr<scalar_t>() + b * N * 3;
+    Grid<scalar_t> grid;
+    grid.build(ref.const_data_ptr<scalar_t>() + b * M * 3, M);
+    // Visit queries in grid order so that neighbouring queries share cached cells.
+    Grid<scalar_t> query_order;
+    query_order.build(q, N);
+    scalar_t* d_out = dist.mutable_data_ptr<scalar_t>() + b * N * k;
+    int64_t* i_out = idx.mutable_data_ptr<int64_t>() + b * N * k;
+    at::parallel_for(0, N, 64, [&](int64_t begin, int64_t end) {
+      for (int64_t s = begin; s < end; ++s) {
+        const int64_t n = query_order.order[s];
+        TopK<scalar_t> top{d_out + n * k, i_out + n * k, k};
+        top.reset(M);
+        grid.search(q + 3 * n, exclude_self ? n : -1, top);
+      }
+    });
+  }
+}
+
+constexpr int64_t kQueryBlock = 256;
+constexpr int64_t kRefBlock = 1024;
+
+template <typename scalar_t>
+void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self,
+               at::Tensor& dist, at::Tensor& idx) {
+  const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2);
+  std::vector<scalar_t> qn(N), rn(M);
+  for (int64_t b = 0; b < B; ++b) {
+    const at::Tensor qb = query.select(0, b), rb = ref.select(0, b);
+    const scalar_t* qp = qb.const_data_ptr<scalar_t>();
+    const scalar_t* rp = rb.const_data_ptr<scalar_t>();
+    auto sq_norms = [C](const scalar_t* p, int64_t count, std::vector<scalar_t>& out) {
+      at::parallel_for(0, count, 256, [&](int64_t begin, int64_t end) {
+        for (int64_t i = begin; i < end; ++i) {
+          scalar_t acc = 0;
+          for (int64_t c = 0; c < C; ++c) acc += p[i * C + c] * p[i * C + c];
+          out[i] = acc;
+        }
+      });
+    };
+    sq_norms(qp, N, qn);
+    sq_norms(rp, M, rn);
+    scalar_t* d_out = dist.mutable_data_ptr<scalar_t>() + b * N * k;
+    int64_t* i_out = idx.mutable_data_ptr<int64_t>() + b * N * k;
+    at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
+      for (int64_t n = begin; n < end; ++n) TopK<scalar_t>{d_out + n * k, i_out + n * k, k}.reset(M);
+    });
+    for (int64_t q0 = 0; q0 < N; q0 += kQueryBlock) {
+      const int64_t q1 = std::min(N, q0 + kQueryBlock);
+      const at::Tensor q_tile = qb.narrow(0, q0, q1 - q0);
+      for (int64_t r0 = 0; r0 < M; r0 += kRefBlock) {
+        const int64_t r1 = std::min(M, r0 + kRefBlock);
+        const at::Tensor dots = at::mm(q_tile, rb.narrow(0, r0, r1 - r0).t());  // (q1-q0, r1-r0)
+        const scalar_t* dp = dots.const_data_ptr<scalar_t>();
+        const int64_t width = r1 - r0;
+        at::parallel_for(q0, q1, 16, [&](int64_t begin, int64_t end) {
+          for (int64_t n = begin; n < end; ++n) {
+            TopK<scalar_t> top{d_out + n * k, i_out + n * k, k};
+            const scalar_t* row = dp + (n - q0) * width;
+            for (int64_t j = 0; j < width; ++j) {
+              const int64_t m = r0 + j;
+              const scalar_t d = std::max<scalar_t>(qn[n] + rn[m] - 2 * row[j], 0);
+              if (d <= top.worst() && !(exclude_self && m == n)) top.push(d, m);
+            }
+          }
+        });
+      }
+    }
+  }
+}
+
+std::tuple<at::Tensor, at::Tensor> knn_cpu(const at::Tensor& query_in, const at::Tensor& ref_in,
+                                           int64_t k, bool exclude_self) {
+  check_float(query_in, "query");
+  check_float(ref_in, "ref");
+  check_dim(query_in, 3, "query", "(B, N, C)");
+  check_dim(ref_in, 3, "ref", "(B, M, C)");
+  TORCH_CHECK_TYPE(query_in.scalar_type() == ref_in.scalar_type(), "query and ref must share a dtype");
+  const int64_t B = query_in.size(0), N = query_in.size(1), M = ref_in.size(1), C = query_in.size(2);
+  TORCH_CHECK_VALUE(ref_in.size(0) == B && ref_in.size(2) == C, "ref must have shape (B, M, C) = (", B,
+                    ", M, ", C, "), got ", ref_in.sizes());
+  const int64_t available = exclude_self ? M - 1 : M;
+  TORCH_CHECK_VALUE(k >= 1 && k <= available, "k must be in [1, ", available, "], got ", k);
+  TORCH_CHECK_VALUE(!exclude_self || N == M, "exclude_self=True needs query and ref to be the same cloud");
+  const at::Tensor query = query_in.contiguous(), ref = ref_in.contiguous();
+  check_finite(query, "query");
+  check_finite(ref, "ref");
+  at::Tensor dist = at::empty({B, N, k}, query.options());
+  at::Tensor idx = at::empty({B, N, k}, query.options().dtype(at::kLong));
+  if (N == 0) return {dist, idx};
+  AT_DISPATCH_FLOATING_TYPES(query.scalar_type(), "knn_cpu", [&] {
+    if (C == 3) knn_grid<scalar_t>(query, ref, k, exclude_self, dist, idx);
+    else knn_tiled<scalar_t>(query, ref, k, exclude_self, dist, idx);
+  });
+  return {dist, idx};
+}
+
+// d dist2[n, j] / d query[n] = 2 (q_n - r_idx), / d ref[idx] = -2 (q_n - r_idx).
+std::tuple<at::Tensor, at::Tensor> knn_backward_cpu(const at::Tensor& grad_in, const at::Tensor& query_in,
+                                                    const at::Tensor& ref_in, const at::Tensor& idx_in) {
+  const at::Tensor grad = grad_in.contiguous(), query = query_in.contiguous();
+  const at::Tensor ref = ref_in.contiguous(), idx = idx_in.contiguous();
+  const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2), k = idx.size(2);
+  at::Tensor grad_q = at::zeros_like(query);
+  at::Tensor grad_r = at::zeros_like(ref);
+  AT_DISPATCH_FLOATING_TYPES(query.scalar_type(), "knn_backward_cpu", [&] {
+    const scalar_t* g = grad.const_data_ptr<scalar_t>();
+    const scalar_t* q = query.const_data_ptr<scalar_t>();
+    const scalar_t* r = ref.const_data_ptr<scalar_t>();
+    const int64_t* ix = idx.const_data_ptr<int64_t>();
+    scalar_t* gq = grad_q.mutable_data_ptr<scalar_t>();
+    scalar_t* gr = grad_r.mutable_data_ptr<scalar_t>();
+    at::parallel_for(0, B * N, 64, [&](int64_t begin, int64_t end) {
+      for (int64_t bn = begin; bn < end; ++bn) {
+        const int64_t b = bn / N;
+        for (int64_t j = 0; j < k; ++j) {
+          const scalar_t w = 2 * g[bn * k + j];
+          const scalar_t* rj = r + (b * M + ix[bn * k + j]) * C;
+          for (int64_t c = 0; c < C; ++c) gq[bn * C + c] += w * (q[bn * C + c] - rj[c]);
+        }
+      }
+    });
+    // Each task owns one (batch, channel) column of grad_r: no races, deterministic order.
+    at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
+      for (int64_t bc = begin; bc < end; ++bc) {
+        const int64_t b = bc / C, c = bc % C;
+        for (int64_t n = 0; n < N; ++n) {
+          const int64_t bn = b * N + n;
+          for (int64_t j = 0; j < k; ++j) {
+            const int64_t m = ix[bn * k + j];
+            gr[(b * M + m) * C + c] -= 2 * g[bn * k + j] * (q[bn * C + c] - r[(b * M + m) * C + c]);
+          }
+        }
+      }
+    });
+  });
+  return {grad_q, grad_r};
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(vrnet_ext, CPU, m) {
+  m.impl("knn", &knn_cpu);
+  m.impl("knn_backward", &knn_backward_cpu);
+}
+
+}  // namespace vrnet

@@ -1,0 +1,50 @@
+"""Build the compiled module ``vrnet_ext._C`` against the torch that is already installed.
+
+CUDA sources (``csrc/*/*.cu``) are compiled only when the installed torch is a CUDA build and a
+toolkit is found (``torch.utils.cpp_extension.CUDA_HOME``), or when ``FORCE_CUDA=1``.
+``VRNET_FORCE_CPU=1`` always builds the CPU-only module.
+"""
+import glob
+import os
+
+from setuptools import setup
+from torch.utils import cpp_extension
+
+ROOT = os.path.dirname(os.path.abspath(__file__))
+
+
+def _want_cuda() -> bool:
+    if os.environ.get("VRNET_FORCE_CPU", "0") == "1":
+        return False
+    if os.environ.get("FORCE_CUDA", "0") == "1":
+        return True
+    import torch
+
+    return torch.version.cuda is not None and cpp_extension.CUDA_HOME is not None
+
+
+def _extension():
+    cpp_sources = sorted(glob.glob(os.path.join("csrc", "**", "*.cpp"), recursive=True))
+    cuda_sources = sorted(glob.glob(os.path.join("csrc", "**", "*.cu"), recursive=True))
+    cxx_flags = ["-O3", "-fopenmp", "-std=c++17", "-DTORCH_ASSERT_ONLY_METHOD_OPERATORS"]
+    common = dict(
+        name="vrnet_ext._C",
+        include_dirs=[os.path.join(ROOT, "csrc")],
+        extra_link_args=["-fopenmp"],
+    )
+    if _want_cuda() and cuda_sources:
+        return cpp_extension.CUDAExtension(
+            sources=cpp_sources + cuda_sources,
+            define_macros=[("VRNET_WITH_CUDA", None)],
+            extra_compile_args={"cxx": cxx_flags, "nvcc": ["-O3", "--use_fast_math", "-std=c++17"]},
+            **common,
+        )
+    return cpp_extension.CppExtension(
+        sources=cpp_sources, extra_compile_args={"cxx": cxx_flags}, **common
+    )
+
+
+setup(
+    ext_modules=[_extension()],
+    cmdclass={"build_ext": cpp_extension.BuildExtension.with_options(use_ninja=True)},
+)

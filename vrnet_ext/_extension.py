@@ -1,0 +1,47 @@
+"""Loads the compiled kernels (``vrnet_ext._C``) and tells which devices they serve.
+
+If the module is missing or fails to load, the package still imports: every op falls back to
+its pure-PyTorch reference and one warning says why.
+"""
+from __future__ import annotations
+
+import warnings
+
+import torch
+
+try:
+    from vrnet_ext import _C  # noqa: F401  (importing registers torch.ops.vrnet_ext.*)
+
+    LOAD_ERROR: Exception | None = None
+except ImportError as exc:  # pragma: no cover - exercised only on broken installs
+    LOAD_ERROR = exc
+    warnings.warn(
+        f"vrnet_ext: compiled kernels unavailable ({exc}); every op falls back to its "
+        "pure-PyTorch reference. Reinstall with `pip install --no-build-isolation .`.",
+        RuntimeWarning,
+        stacklevel=2,
+    )
+
+BACKENDS = ("ext", "torch")
+
+
+def has_extension() -> bool:
+    """True when the compiled module loaded."""
+    return LOAD_ERROR is None
+
+
+def has_kernel(device: torch.device) -> bool:
+    """True when the compiled module has kernels for ``device``."""
+    if not has_extension():
+        return False
+    key = torch._C.DispatchKey.CUDA if device.type == "cuda" else torch._C.DispatchKey.CPU
+    if device.type not in ("cpu", "cuda"):
+        return False
+    return torch._C._dispatch_has_kernel_for_dispatch_key("vrnet_ext::knn", key)
+
+
+def use_extension(backend: str, device: torch.device) -> bool:
+    """Whether an op call should run the compiled kernel (``backend="ext"``) or the reference."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    return backend == "ext" and has_kernel(device)

@@ -1,0 +1,56 @@
+"""Argument checks shared by every op and its reference: errors name the argument."""
+from __future__ import annotations
+
+import torch
+
+FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+def check_tensor(value: object, name: str) -> torch.Tensor:
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    return value
+
+
+def check_float(t: torch.Tensor, name: str) -> None:
+    check_tensor(t, name)
+    if t.dtype not in FLOAT_DTYPES:
+        raise TypeError(f"{name} must be float32 or float64, got {t.dtype}")
+
+
+def check_index(t: torch.Tensor, name: str) -> None:
+    check_tensor(t, name)
+    if t.dtype != torch.int64:
+        raise TypeError(f"{name} must be int64, got {t.dtype}")
+
+
+def check_shape(t: torch.Tensor, name: str, rank: int, shape: str, last: int | None = None) -> None:
+    if t.dim() != rank or (last is not None and t.shape[-1] != last):
+        raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+
+
+def check_same(tensors: dict[str, torch.Tensor]) -> None:
+    """All tensors on one device; floating ones share a dtype."""
+    names = list(tensors)
+    first = tensors[names[0]]
+    for name in names[1:]:
+        t = tensors[name]
+        if t.device != first.device:
+            raise ValueError(f"{name} is on {t.device} but {names[0]} is on {first.device}")
+        if t.is_floating_point() and first.is_floating_point() and t.dtype != first.dtype:
+            raise TypeError(f"{name} has dtype {t.dtype} but {names[0]} has {first.dtype}")
+
+
+def check_finite(t: torch.Tensor, name: str) -> None:
+    """Eager-mode NaN/Inf check for the references (the compiled kernels check in C++)."""
+    if torch.compiler.is_compiling():
+        return
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name} contains NaN or Inf values")
+
+
+def check_index_range(idx: torch.Tensor, upper: int, name: str) -> None:
+    if torch.compiler.is_compiling() or idx.numel() == 0:
+        return
+    if int(idx.min()) < 0 or int(idx.max()) >= upper:
+        raise ValueError(f"{name} holds indices outside [0, {upper})")

@@ -1,0 +1,93 @@
+"""k-nearest neighbours: ``dist2, idx = knn(query, ref, k)``.
+
+Compiled kernel: a uniform-grid search for C = 3 and a GEMM-tiled scan with a fused top-k for
+other C; neither builds the N x M distance matrix. Reference: ``torch.cdist`` + ``topk``.
+"""
+from __future__ import annotations
+
+import torch
+
+from vrnet_ext._extension import has_extension, use_extension
+from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
+
+
+def _validate(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool) -> None:
+    check_float(query, "query")
+    check_float(ref, "ref")
+    check_shape(query, "query", 3, "(B, N, C)")
+    check_shape(ref, "ref", 3, "(B, M, C)")
+    check_same({"query": query, "ref": ref})
+    if ref.shape[0] != query.shape[0] or ref.shape[2] != query.shape[2]:
+        raise ValueError(f"ref must have shape (B, M, C) = ({query.shape[0]}, M, {query.shape[2]}), "
+                         f"got {tuple(ref.shape)}")
+    if not isinstance(k, int) or isinstance(k, bool):
+        raise TypeError(f"k must be an int, got {type(k).__name__}")
+    if exclude_self and query.shape[1] != ref.shape[1]:
+        raise ValueError("exclude_self=True needs query and ref to be the same cloud (N == M)")
+    available = ref.shape[1] - (1 if exclude_self else 0)
+    if k < 1 or k > available:
+        raise ValueError(f"k must be in [1, {available}] for a ref cloud of {ref.shape[1]} points"
+                         f"{' (self excluded)' if exclude_self else ''}, got {k}")
+
+
+def knn_reference(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool = False):
+    """Pure-PyTorch kNN: the full (B, N, M) distance matrix, then ``topk``; ties by lower index."""
+    check_finite(query, "query")
+    check_finite(ref, "ref")
+    dist2 = torch.cdist(query, ref).square()
+    if exclude_self:
+        eye = torch.eye(ref.shape[1], dtype=torch.bool, device=ref.device)
+        dist2 = dist2.masked_fill(eye, float("inf"))
+    values, idx = dist2.detach().topk(k, dim=-1, largest=False, sorted=True)
+    # Deterministic ties: order equal distances by index, and where more points tie with the
+    # k-th distance than fit, keep the lowest indices (stable sort of those rows).
+    idx = idx.sort(dim=-1).values
+    idx = idx.gather(-1, dist2.detach().gather(-1, idx).sort(dim=-1, stable=True).indices)
+    crowded = (dist2.detach() <= values[..., -1:]).sum(-1) > k
+    if bool(crowded.any()):
+        idx[crowded] = dist2.detach()[crowded].sort(dim=-1, stable=True).indices[..., :k]
+    return dist2.gather(-1, idx), idx
+
+
+def knn(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool = False, backend: str = "ext"):
+    """k nearest neighbours of every query point among the ref points.
+
+    Args:
+        query: (B, N, C) float32/float64 points or features.
+        ref: (B, M, C), same dtype and device.
+        k: neighbours per query, 1 <= k <= M (M - 1 with ``exclude_self``).
+        exclude_self: drop ref index n for query n (query and ref are the same cloud).
+        backend: ``"ext"`` (compiled kernel when available) or ``"torch"`` (reference).
+
+    Returns:
+        dist2 (B, N, k): squared Euclidean distances, ascending, ties by lower index;
+        differentiable with respect to query and ref.
+        idx (B, N, k) int64 indices into ref.
+    """
+    _validate(query, ref, k, exclude_self)
+    if use_extension(backend, query.device):
+        return torch.ops.vrnet_ext.knn(query, ref, k, exclude_self)
+    return knn_reference(query, ref, k, exclude_self)
+
+
+if has_extension():
+
+    @torch.library.register_fake("vrnet_ext::knn")
+    def _knn_fake(query, ref, k, exclude_self):
+        shape = (query.shape[0], query.shape[1], k)
+        return query.new_empty(shape), query.new_empty(shape, dtype=torch.int64)
+
+    @torch.library.register_fake("vrnet_ext::knn_backward")
+    def _knn_backward_fake(grad_dist2, query, ref, idx):
+        return torch.empty_like(query), torch.empty_like(ref)
+
+    def _knn_setup_context(ctx, inputs, output):
+        query, ref, _, _ = inputs
+        ctx.save_for_backward(query, ref, output[1])
+
+    def _knn_backward(ctx, grad_dist2, _grad_idx):
+        query, ref, idx = ctx.saved_tensors
+        grad_query, grad_ref = torch.ops.vrnet_ext.knn_backward(grad_dist2, query, ref, idx)
+        return grad_query, grad_ref, None, None
+
+    torch.library.register_autograd("vrnet_ext::knn", _knn_backward, setup_context=_knn_setup_context)
