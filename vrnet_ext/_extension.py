@@ -30,14 +30,22 @@ def has_extension() -> bool:
     return LOAD_ERROR is None
 
 
+def _kernel_device_types() -> frozenset[str]:
+    if LOAD_ERROR is not None:
+        return frozenset()
+    keys = {"cpu": torch._C.DispatchKey.CPU, "cuda": torch._C.DispatchKey.CUDA}
+    return frozenset(
+        name for name, key in keys.items()
+        if torch._C._dispatch_has_kernel_for_dispatch_key("vrnet_ext::knn", key)
+    )
+
+
+KERNEL_DEVICE_TYPES = _kernel_device_types()
+
+
 def has_kernel(device: torch.device) -> bool:
-    """True when the compiled module has kernels for ``device``."""
-    if not has_extension():
-        return False
-    key = torch._C.DispatchKey.CUDA if device.type == "cuda" else torch._C.DispatchKey.CPU
-    if device.type not in ("cpu", "cuda"):
-        return False
-    return torch._C._dispatch_has_kernel_for_dispatch_key("vrnet_ext::knn", key)
+    """True when the compiled module has kernels for ``device`` (fixed at import: traceable)."""
+    return device.type in KERNEL_DEVICE_TYPES
 
 
 def use_extension(backend: str, device: torch.device) -> bool:

@@ -20,6 +20,8 @@ def _validate(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool
     if ref.shape[0] != query.shape[0] or ref.shape[2] != query.shape[2]:
         raise ValueError(f"ref must have shape (B, M, C) = ({query.shape[0]}, M, {query.shape[2]}), "
                          f"got {tuple(ref.shape)}")
+    if query.shape[1] == 0:
+        raise ValueError("query is empty: it needs at least one point")
     if not isinstance(k, int) or isinstance(k, bool):
         raise TypeError(f"k must be an int, got {type(k).__name__}")
     if exclude_self and query.shape[1] != ref.shape[1]:

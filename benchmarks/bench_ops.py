@@ -1,0 +1,241 @@
+"""Speed and peak memory of every vrnet_ext op against its pure-PyTorch reference.
+
+    python benchmarks/bench_ops.py [--quick] [--json PATH] [--threads 2] [--only knn,kabsch]
+
+Times are medians of repeated forward(+backward) calls after a warm-up, both implementations
+timed in this process. Peak memory is the extra resident memory (VmHWM above the RSS once the
+inputs exist) of one call, measured in a fresh subprocess per case and implementation, so that
+allocator caches of earlier cases do not hide it. Prints a table of ratios and writes JSON
+records ``{"op", "case", "impl", "median_s", "peak_mb"}``. Optional tools found installed
+(roma) are added as extra implementations.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import platform
+import re
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from vrnet_ext import ops
+from vrnet_ext.nn import EdgeConv
+
+
+@dataclass
+class Case:
+    op: str
+    name: str
+    make_inputs: Callable[[], tuple]
+    impls: dict[str, Callable[..., object]]
+    quick: bool = True          # part of --quick
+    skip: dict[str, str] | None = None  # impl -> reason it is not run
+
+
+def _fwd_bwd(fn):
+    """Runs fn(*inputs) and backpropagates the sum of its (first) float output."""
+    def run(*inputs):
+        out = fn(*inputs)
+        out = out[0] if isinstance(out, tuple) else out
+        out.sum().backward()
+    return run
+
+
+def _grad(*tensors):
+    return tuple(t.requires_grad_() if t.is_floating_point() else t for t in tensors)
+
+
+def _clouds(B, N, C, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(B, N, C, generator=g)
+
+
+def _knn_case(B, N, C, k, quick=True, skip_torch=None):
+    def make():
+        return (_clouds(B, N, C),)
+    impls = {b: (lambda x, b=b: ops.knn(x, x, k, backend=b)) for b in ("ext", "torch")}
+    skip = {"torch": skip_torch} if skip_torch else None
+    return Case("knn", f"C={C} B={B} N=M={N} k={k}", make, impls, quick, skip)
+
+
+def _edge_conv_case(B, C, O, N, k):
+    def make():
+        layer = EdgeConv(C, O).train()
+        x = _clouds(B, C, N).requires_grad_()
+        idx = ops.knn(x.detach().mT, x.detach().mT, k)[1]
+        return layer, x, idx
+    impls = {b: _fwd_bwd(lambda layer, x, idx, b=b: layer(x, idx, backend=b)) for b in ("ext", "torch")}
+    return Case("EdgeConv", f"{C}->{O} train fwd+bwd B={B} N={N} k={k}", make, impls)
+
+
+def _graph_case(op, fn, B, C, N, k):
+    def make():
+        x = _clouds(B, C, N).requires_grad_()
+        return x, torch.randint(0, N, (B, N, k), generator=torch.Generator().manual_seed(1))
+    impls = {b: _fwd_bwd(lambda x, idx, b=b: fn(x, idx, b)) for b in ("ext", "torch")}
+    return Case(op, f"fwd+bwd B={B} C={C} N={N} k={k}", make, impls)
+
+
+def _roma_procrustes(src, tgt):
+    import roma
+
+    w = torch.full(src.shape[:2], 1.0 / src.shape[1])
+    src_c, tgt_c = (w.unsqueeze(-1) * src).sum(1), (w.unsqueeze(-1) * tgt).sum(1)
+    H = ((src - src_c.unsqueeze(1)) * w.unsqueeze(-1)).mT @ (tgt - tgt_c.unsqueeze(1))
+    R = roma.special_procrustes(H.mT)
+    return R, tgt_c - (R @ src_c.unsqueeze(-1)).squeeze(-1)
+
+
+def _kabsch_case(B, N):
+    def make():
+        src = _clouds(B, N, 3)
+        return _grad(src, src + 0.1 * _clouds(B, N, 3, seed=1))
+    impls = {b: _fwd_bwd(lambda s, t, b=b: ops.kabsch(s, t, backend=b)) for b in ("ext", "torch")}
+    if importlib.util.find_spec("roma"):
+        impls["roma"] = _fwd_bwd(_roma_procrustes)
+    return Case("kabsch", f"fwd+bwd B={B} N={N}", make, impls)
+
+
+def _svd_case(B):
+    def make():
+        return _grad(_clouds(B, 3, 3))
+    impls = {b: _fwd_bwd(lambda A, b=b: ops.svd3x3(A, backend=b)[1]) for b in ("ext", "torch")}
+    return Case("svd3x3", f"fwd+bwd (S) B={B}", make, impls)
+
+
+def _pdl_case(N, quick=True, skip_torch=None):
+    def make():
+        x = _clouds(1, N, 3)
+        return _grad(x, 1.1 * x + 0.01 * _clouds(1, N, 3, seed=1))
+    impls = {b: _fwd_bwd(lambda x, y, b=b: ops.pairwise_distance_loss(x, y, backend=b)) for b in ("ext", "torch")}
+    skip = {"torch": skip_torch} if skip_torch else None
+    return Case("pairwise_distance_loss", f"fwd+bwd B=1 N={N}", make, impls, quick, skip)
+
+
+def all_cases() -> list[Case]:
+    return [
+        _knn_case(1, 16384, 3, 20),
+        _knn_case(1, 50000, 3, 20, skip_torch="the reference needs ~20 GB (two 50k x 50k matrices)"),
+        _knn_case(8, 1024, 64, 20),
+        _knn_case(8, 4096, 64, 20, quick=False),
+        _graph_case("edge_features", lambda x, i, b: ops.edge_features(x, i, backend=b), 8, 64, 1024, 20),
+        _graph_case("gather_reduce", lambda x, i, b: ops.gather_reduce(x, i, "max", backend=b), 8, 64, 1024, 20),
+        _edge_conv_case(8, 64, 64, 1024, 20),
+        _svd_case(65536),
+        _kabsch_case(65536, 16),
+        _pdl_case(4096),
+        _pdl_case(16384, quick=False, skip_torch="the reference needs ~7 GB of N x N matrices"),
+    ]
+
+
+def _time(fn, inputs, repeats: int) -> float:
+    fn(*inputs)  # warm-up
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn(*inputs)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def _rss_mb(field: str) -> float:
+    status = open("/proc/self/status").read()
+    return int(re.search(rf"{field}:\s+(\d+)", status).group(1)) / 1024.0
+
+
+def measure_peak_mb(case: Case, impl: str) -> float:
+    """Extra peak resident memory of one call (run in a fresh process: see main)."""
+    inputs = case.make_inputs()
+    baseline = _rss_mb("VmRSS")
+    with open("/proc/self/clear_refs", "w") as f:  # reset VmHWM to the current RSS
+        f.write("5")
+    case.impls[impl](*inputs)
+    return max(0.0, _rss_mb("VmHWM") - baseline)
+
+
+def _peak_in_subprocess(op: str, name: str, impl: str, threads: int) -> float | None:
+    cmd = [sys.executable, __file__, "--measure-memory", op, name, impl, "--threads", str(threads)]
+    result = subprocess.run(cmd, capture_output=True, text=True)
+    if result.returncode != 0:
+        print(f"  memory run failed for {op} [{name}] {impl}: {result.stderr.strip()[-300:]}", file=sys.stderr)
+        return None
+    return float(result.stdout.strip().splitlines()[-1])
+
+
+def _format_table(records: list[dict]) -> str:
+    rows = {}
+    for r in records:
+        rows.setdefault((r["op"], r["case"]), {})[r["impl"]] = r
+    header = f"{'op':<24} {'case':<34} {'ext s':>9} {'torch s':>9} {'speedup':>8} {'ext MB':>8} {'torch MB':>9} {'mem ratio':>9}  other"
+    lines = [header, "-" * len(header)]
+    for (op, case), impls in rows.items():
+        ext, ref = impls.get("ext", {}), impls.get("torch", {})
+        def fmt(v, spec):
+            return format(v, spec) if isinstance(v, (int, float)) else "-"
+        speed = ref["median_s"] / ext["median_s"] if ext.get("median_s") and ref.get("median_s") else None
+        mem = (ref["peak_mb"] / max(ext["peak_mb"], 0.1)) if ext.get("peak_mb") is not None and ref.get("peak_mb") is not None else None
+        others = ", ".join(f"{k} {v['median_s']:.4f}s" for k, v in impls.items() if k not in ("ext", "torch") and v.get("median_s"))
+        if ref.get("skipped"):
+            others = (others + "; " if others else "") + "torch skipped: " + ref["skipped"]
+        lines.append(f"{op:<24} {case:<34} {fmt(ext.get('median_s'), '9.4f')} {fmt(ref.get('median_s'), '9.4f')} "
+                     f"{fmt(speed, '7.1f') + 'x' if speed else '       -'} {fmt(ext.get('peak_mb'), '8.1f')} "
+                     f"{fmt(ref.get('peak_mb'), '9.1f')} {fmt(mem, '8.1f') + 'x' if mem else '        -'}  {others}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer repeats, skip the largest cases")
+    parser.add_argument("--json", default=None, help="write the records to this JSON file")
+    parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
+    parser.add_argument("--only", default=None, help="comma-separated op names to run")
+    parser.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocesses")
+    parser.add_argument("--measure-memory", nargs=3, metavar=("OP", "CASE", "IMPL"), help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    cases = all_cases()
+    if args.measure_memory:
+        op, name, impl = args.measure_memory
+        case = next(c for c in cases if c.op == op and c.name == name)
+        print(measure_peak_mb(case, impl))
+        return
+    selected = [c for c in cases if (c.quick or not args.quick)
+                and (args.only is None or c.op in args.only.split(","))]
+    repeats = 3 if args.quick else 7
+    records = []
+    for case in selected:
+        inputs = case.make_inputs()
+        for impl, fn in case.impls.items():
+            reason = (case.skip or {}).get(impl)
+            record = {"op": case.op, "case": case.name, "impl": impl, "median_s": None, "peak_mb": None}
+            if reason:
+                record["skipped"] = reason
+            else:
+                record["median_s"] = _time(fn, inputs, repeats)
+                if not args.no_memory:
+                    record["peak_mb"] = _peak_in_subprocess(case.op, case.name, impl, args.threads)
+            records.append(record)
+            print(f"{case.op:<24} {case.name:<34} {impl:<6} "
+                  + (f"{record['median_s']:.4f} s  {record['peak_mb'] or 0:.1f} MB" if not reason else f"skipped ({reason})"),
+                  flush=True)
+    print()
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, torch {torch.__version__}, "
+          f"threads {args.threads}, repeats {repeats}")
+    print(_format_table(records))
+    if args.json:
+        meta = {"torch": torch.__version__, "threads": args.threads, "repeats": repeats, "cpu_count": os.cpu_count()}
+        with open(args.json, "w") as f:
+            json.dump([dict(r, **meta) for r in records], f, indent=1)
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,47 @@
+"""Shared test helpers: dtype tolerances, opcheck / torch.compile wrappers, data paths."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from vrnet_ext import has_extension
+
+DTYPES = [torch.float32, torch.float64]
+requires_ext = pytest.mark.skipif(not has_extension(), reason="compiled module vrnet_ext._C is not built")
+
+DATA_DIR = Path(os.environ.get("VRNET_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+MODELNET_DIR = DATA_DIR / "modelnet40"
+requires_modelnet = pytest.mark.skipif(
+    not (MODELNET_DIR / "modelnet40_1024_train.h5").exists(),
+    reason=f"ModelNet40 HDF5 files not found under {MODELNET_DIR} (set VRNET_DATA)",
+)
+
+
+def tolerances(dtype: torch.dtype) -> dict:
+    return dict(rtol=1e-4, atol=1e-5) if dtype == torch.float32 else dict(rtol=1e-9, atol=1e-10)
+
+
+def opcheck(op, args) -> None:
+    """torch.library.opcheck: schema, autograd registration, fake kernel, AOT dispatch."""
+    torch.library.opcheck(op, args)
+
+
+def compile_fullgraph(fn, backend: str = "aot_eager"):
+    """torch.compile with fullgraph=True: any graph break raises."""
+    torch._dynamo.reset()
+    return torch.compile(fn, fullgraph=True, backend=backend)
+
+
+def non_contiguous(t: torch.Tensor) -> torch.Tensor:
+    """Same values, transposed storage (last two dims stored swapped)."""
+    out = t.mT.contiguous().mT
+    assert not out.is_contiguous() or t.shape[-1] == 1 or t.shape[-2] == 1
+    return out
+
+
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)

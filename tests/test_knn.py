@@ -1,0 +1,148 @@
+import pytest
+import torch
+
+from conftest import DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext, tolerances
+from vrnet_ext import ops
+
+
+def assert_knn_matches(dist, idx, query, ref, k, exclude_self=False):
+    """Compare with the reference, tolerating swaps between neighbours at (nearly) equal distance."""
+    ref_dist, ref_idx = ops.knn(query, ref, k, exclude_self=exclude_self, backend="torch")
+    tol = tolerances(query.dtype)
+    torch.testing.assert_close(dist, ref_dist, rtol=tol["rtol"], atol=tol["atol"] * 10)
+    exact = ((query.unsqueeze(2) - ref.gather(1, idx.flatten(1).unsqueeze(-1).expand(-1, -1, ref.shape[2]))
+              .view(*idx.shape, -1)) ** 2).sum(-1)
+    torch.testing.assert_close(dist, exact, rtol=tol["rtol"], atol=tol["atol"] * 10)
+    mismatch = idx != ref_idx
+    if mismatch.any():  # only near-ties may differ
+        gap = (ref_dist - dist).abs()[mismatch]
+        assert gap.max() <= 1e-4 * (1 + ref_dist.abs().max()), "index differs beyond near-ties"
+    assert bool((idx >= 0).all()) and bool((idx < ref.shape[1]).all())
+    if exclude_self:
+        assert not bool((idx == torch.arange(query.shape[1]).view(1, -1, 1)).any())
+
+
+@requires_ext
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("C", [1, 3, 5, 64, 512])
+@pytest.mark.parametrize("B,N,M,k", [(1, 1, 1, 1), (1, 37, 53, 53), (3, 301, 257, 20), (2, 1029, 1100, 7)])
+def test_parity_with_reference(dtype, C, B, N, M, k):
+    query = torch.randn(B, N, C, dtype=dtype)
+    ref = torch.randn(B, M, C, dtype=dtype)
+    dist, idx = ops.knn(query, ref, k)
+    assert dist.shape == idx.shape == (B, N, k) and idx.dtype == torch.int64 and dist.dtype == dtype
+    assert bool((dist[..., 1:] >= dist[..., :-1]).all()), "distances must be ascending"
+    assert_knn_matches(dist, idx, query, ref, k)
+
+
+@requires_ext
+@pytest.mark.parametrize("C", [3, 64])
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_exclude_self_and_non_contiguous(C, dtype):
+    points = non_contiguous(torch.randn(2, 333, C, dtype=dtype))
+    dist, idx = ops.knn(points, points, 332, exclude_self=True)
+    assert_knn_matches(dist, idx, points, points, 332, exclude_self=True)
+
+
+@requires_ext
+@pytest.mark.parametrize("name", ["sphere_surface", "plane", "clusters", "far_queries", "duplicates"])
+def test_grid_on_awkward_distributions(name):
+    g = torch.Generator().manual_seed(1)
+    ref = torch.randn(1, 3001, 3, generator=g)
+    query = torch.randn(1, 777, 3, generator=g)
+    if name == "sphere_surface":
+        ref = ref / ref.norm(dim=-1, keepdim=True)
+    elif name == "plane":
+        ref[..., 2] = 0.0
+        query[..., 2] = 0.0
+    elif name == "clusters":
+        ref = ref * 1e-3 + torch.randint(0, 2, (1, 3001, 1), generator=g) * 100.0
+    elif name == "far_queries":
+        query = query + 50.0
+    else:
+        ref = ref[:, :10].repeat(1, 300, 1)
+    dist, idx = ops.knn(query, ref, 16)
+    assert_knn_matches(dist, idx, query, ref, 16)
+
+
+@requires_ext
+@pytest.mark.parametrize("C", [3, 64])
+def test_ties_broken_by_lower_index(C):
+    base = torch.randn(1, 5, C, dtype=torch.float64)
+    ref = base.repeat(1, 4, 1)  # every point present 4 times: indices j, j+5, j+10, j+15
+    query = base[:, :2]
+    for backend in ("ext", "torch"):
+        dist, idx = ops.knn(query, ref, 6, backend=backend)
+        expected = torch.sort(torch.cdist(query, ref).square(), dim=-1, stable=True).indices[..., :6]
+        assert torch.equal(idx[..., :4], expected[..., :4]), backend
+        assert torch.equal(idx[0, 0, :4], torch.tensor([0, 5, 10, 15])), backend
+
+
+@requires_ext
+@pytest.mark.parametrize("C", [3, 5])
+def test_gradcheck(C):
+    query = torch.rand(2, 9, C, dtype=torch.float64, requires_grad=True)
+    ref = torch.rand(2, 11, C, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda q, r: ops.knn(q, r, 4)[0], (query, ref))
+
+
+@requires_ext
+@pytest.mark.parametrize("C", [3, 64])
+def test_gradient_matches_reference(C):
+    query = torch.randn(2, 100, C, dtype=torch.float64, requires_grad=True)
+    ref = torch.randn(2, 120, C, dtype=torch.float64, requires_grad=True)
+    weights = torch.randn(2, 100, 8, dtype=torch.float64)
+    grads = []
+    for backend in ("ext", "torch"):
+        (ops.knn(query, ref, 8, backend=backend)[0] * weights).sum().backward()
+        grads.append((query.grad.clone(), ref.grad.clone()))
+        query.grad = ref.grad = None
+    torch.testing.assert_close(grads[0], grads[1])
+
+
+@requires_ext
+@pytest.mark.parametrize("C", [3, 7])
+def test_opcheck(C):
+    query = torch.randn(2, 20, C, requires_grad=True)
+    ref = torch.randn(2, 25, C, requires_grad=True)
+    opcheck(torch.ops.vrnet_ext.knn.default, (query, ref, 5, False))
+    opcheck(torch.ops.vrnet_ext.knn.default, (ref, ref, 5, True))
+
+
+@requires_ext
+def test_torch_compile_fullgraph():
+    query, ref = torch.randn(2, 50, 3), torch.randn(2, 60, 3)
+    fn = compile_fullgraph(lambda q, r: ops.knn(q, r, 6))
+    torch.testing.assert_close(fn(query, ref), ops.knn(query, ref, 6))
+
+
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_bad_input(backend):
+    good = torch.randn(2, 10, 3)
+    cases = [
+        ((torch.randn(10, 3), good, 3), ValueError, "query"),
+        ((good, torch.randn(2, 10, 4), 3), ValueError, "ref"),
+        ((good, torch.randn(3, 10, 3), 3), ValueError, "ref"),
+        ((good, good, 0), ValueError, "k"),
+        ((good, good, 11), ValueError, "k"),
+        ((good.int(), good, 3), TypeError, "query"),
+        ((good.half(), good.half(), 3), TypeError, "query"),
+        ((good, good.double(), 3), TypeError, "ref"),
+        ((good, good.to("meta"), 3), ValueError, "ref"),
+        ((good, torch.randn(2, 0, 3), 1), ValueError, "k"),
+        ((torch.randn(2, 0, 3), good, 1), ValueError, "query"),
+    ]
+    for args, error, name in cases:
+        with pytest.raises(error, match=name):
+            ops.knn(*args, backend=backend)
+    with pytest.raises(ValueError, match="k"):
+        ops.knn(good, good, 10, exclude_self=True, backend=backend)
+    for bad in (float("nan"), float("inf")):
+        poisoned = good.clone()
+        poisoned[1, 3, 2] = bad
+        with pytest.raises(ValueError, match="NaN or Inf"):
+            ops.knn(poisoned, good, 3, backend=backend)
+        with pytest.raises(ValueError, match="NaN or Inf"):
+            ops.knn(good, poisoned, 3, backend=backend)
+    with pytest.raises(ValueError, match="backend"):
+        ops.knn(good, good, 3, backend="cuda-magic")
