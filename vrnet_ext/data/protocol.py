@@ -1,0 +1,99 @@
+"""The DCP / PRNet / VRNet ModelNet40 pair protocol on numpy arrays.
+
+* Rigid motion: angles uniform in [0, max_angle] about x, y, z; R = Rx Ry Rz as in DCP, which is
+  scipy's ``Rotation.from_euler('zyx', [az, ay, ax])`` (extrinsic z, then y, then x);
+  translation uniform in [-0.5, 0.5] per axis. ``tgt = R src + t``.
+* Settings (crops are taken in each cloud's own frame, independently):
+  CO all points; PV the ``num_subsampled`` points nearest to a random far point
+  (PRNet: U[0,1]^3 + 500 s (1,1,1), s in {1,-1} for the source and {1,-1,2,-2} for the target);
+  RS ``num_subsampled`` random points per cloud; PV+RS first ``pvrs_presample`` random points,
+  then the PV crop of those.
+* Both clouds are shuffled; ``gt_idx[i]`` is the row of the target holding source point i's
+  counterpart, or -1 when the target crop dropped it.
+* ND: Gaussian noise sigma 0.01 clipped to +-0.05 on every coordinate of both clouds, added to
+  fresh arrays (never to the cached dataset).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+SETTINGS = ("CO", "PV", "RS", "PV+RS")
+
+
+@dataclass
+class PairSpec:
+    setting: str = "PV"
+    noise: bool = False
+    num_points: int = 1024
+    num_subsampled: int = 768
+    pvrs_presample: int = 896
+    max_angle_deg: float = 45.0
+    max_translation: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.setting not in SETTINGS:
+            raise ValueError(f"setting must be one of {SETTINGS}, got {self.setting!r}")
+        if self.setting == "PV+RS" and not self.num_subsampled <= self.pvrs_presample <= self.num_points:
+            raise ValueError("PV+RS needs num_subsampled <= pvrs_presample <= num_points")
+        if self.setting != "CO" and self.num_subsampled > self.num_points:
+            raise ValueError(f"num_subsampled ({self.num_subsampled}) exceeds num_points ({self.num_points})")
+
+
+def random_motion(rng: np.random.Generator, max_angle_deg: float, max_translation: float):
+    """(R (3, 3), t (3,), euler_zyx_deg (3,)) with R = Rx Ry Rz."""
+    ax, ay, az = rng.uniform(0.0, np.deg2rad(max_angle_deg), size=3)
+    rotation = Rotation.from_euler("zyx", [az, ay, ax]).as_matrix()
+    translation = rng.uniform(-max_translation, max_translation, size=3)
+    return rotation, translation, np.rad2deg([az, ay, ax])
+
+
+def nearest_to_far_point(points: np.ndarray, count: int, rng: np.random.Generator, scales) -> np.ndarray:
+    """Indices of the ``count`` points nearest to a random far point (PRNet partial view)."""
+    far = rng.random(3) + 500.0 * rng.choice(scales)
+    d2 = ((points - far) ** 2).sum(axis=1)
+    return np.sort(np.argpartition(d2, count - 1)[:count])
+
+
+def select(points: np.ndarray, spec: PairSpec, rng: np.random.Generator, scales) -> np.ndarray:
+    """Indices kept by the setting's crop, in ascending order."""
+    n = points.shape[0]
+    if spec.setting == "CO":
+        return np.arange(n)
+    if spec.setting == "RS":
+        return np.sort(rng.choice(n, spec.num_subsampled, replace=False))
+    if spec.setting == "PV":
+        return nearest_to_far_point(points, spec.num_subsampled, rng, scales)
+    pre = np.sort(rng.choice(n, spec.pvrs_presample, replace=False))
+    return pre[nearest_to_far_point(points[pre], spec.num_subsampled, rng, scales)]
+
+
+def jitter(points: np.ndarray, rng: np.random.Generator, sigma: float = 0.01, clip: float = 0.05) -> np.ndarray:
+    return points + np.clip(sigma * rng.standard_normal(points.shape), -clip, clip)
+
+
+def make_pair(base: np.ndarray, spec: PairSpec, rng: np.random.Generator) -> dict:
+    """One registration pair from a (num_points, 3) cloud (read-only: nothing is modified)."""
+    if base.shape[0] > spec.num_points:
+        base = base[np.sort(rng.choice(base.shape[0], spec.num_points, replace=False))]
+    rotation, translation, euler = random_motion(rng, spec.max_angle_deg, spec.max_translation)
+    moved = base @ rotation.T + translation
+    src_keep = select(base, spec, rng, scales=(1, -1))
+    tgt_keep = select(moved, spec, rng, scales=(1, -1, 2, -2))
+    src_keep = src_keep[rng.permutation(src_keep.size)]
+    tgt_keep = tgt_keep[rng.permutation(tgt_keep.size)]
+    row_in_tgt = np.full(base.shape[0], -1, dtype=np.int64)
+    row_in_tgt[tgt_keep] = np.arange(tgt_keep.size)
+    src, tgt = base[src_keep], moved[tgt_keep]
+    if spec.noise:
+        src, tgt = jitter(src, rng), jitter(tgt, rng)
+    return {
+        "src": src.astype(np.float32),
+        "tgt": tgt.astype(np.float32),
+        "rotation": rotation.astype(np.float32),
+        "translation": translation.astype(np.float32),
+        "euler": euler.astype(np.float32),
+        "gt_idx": row_in_tgt[src_keep],
+    }

@@ -1,0 +1,88 @@
+"""Evaluation of a VRNet on ModelNet40 pairs: the paper's table plus consistency metrics."""
+from __future__ import annotations
+
+import statistics
+import time
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+from tqdm import tqdm
+
+from vrnet_ext.losses import correspondence_loss
+from vrnet_ext.metrics import chamfer_distance, correct_match_ratio, summarize
+from vrnet_ext.model import VRNet
+from vrnet_ext.ops import kabsch
+
+PAPER_COLUMNS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)")
+
+
+def to_device(batch: dict, device: torch.device) -> dict:
+    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+
+
+@torch.no_grad()
+def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str | torch.device = "cpu",
+             backend: str | None = None, progress: bool = True, use_rcp: bool = True) -> dict:
+    """Runs ``model`` over ``dataset`` and returns the metrics as a flat dict.
+
+    ``use_rcp=False`` solves Kabsch on the VCPs instead (DCP-v2 behaviour, used to select a
+    stage-1 model whose correction walk is still untrained).
+    """
+    device = torch.device(device)
+    model.eval()
+    loader = DataLoader(dataset, batch_size=batch_size, shuffle=False)
+    preds_R, preds_t, gts_R, gts_t = [], [], [], []
+    extra: dict[str, list[float]] = {k: [] for k in ("L0", "CD(src,VCP)", "CD(src,RCP)", "CD(src,tgt)",
+                                                     "match@0.15(VCP)", "match@0.15(RCP)")}
+    for batch in tqdm(loader, desc="eval", disable=not progress, leave=False):
+        batch = to_device(batch, device)
+        src, tgt, R_gt, t_gt = batch["src"], batch["tgt"], batch["rotation"], batch["translation"]
+        out = model(src, tgt, backend=backend)
+        if use_rcp:
+            R, t = out.rotation, out.translation
+        else:
+            R, t = kabsch(src, out.vcp, backend=backend or model.config.backend)
+        preds_R.append(R.cpu()); preds_t.append(t.cpu()); gts_R.append(R_gt.cpu()); gts_t.append(t_gt.cpu())
+        aligned = src @ R_gt.mT + t_gt.unsqueeze(1)
+        n = src.shape[0]
+        extra["L0"] += [float(correspondence_loss(out.matching, batch["gt_idx"]))] * n
+        for name, pts in (("VCP", out.vcp), ("RCP", out.rcp), ("tgt", tgt)):
+            key = f"CD(src,{name})"
+            extra[key] += chamfer_distance(aligned, pts).tolist()
+        extra["match@0.15(VCP)"] += correct_match_ratio(out.vcp, src, R_gt, t_gt).tolist()
+        extra["match@0.15(RCP)"] += correct_match_ratio(out.rcp, src, R_gt, t_gt).tolist()
+    result = summarize(torch.cat(preds_R).numpy(), torch.cat(gts_R).numpy(),
+                       torch.cat(preds_t).numpy(), torch.cat(gts_t).numpy())
+    result.update({k: float(np.mean(v)) for k, v in extra.items()})
+    result["pairs"] = len(dataset)
+    return result
+
+
+@torch.no_grad()
+def time_inference(model: VRNet, dataset: Dataset, device: str | torch.device = "cpu", pairs: int = 5,
+                   warmup: int = 2, backend: str | None = None) -> float:
+    """Median seconds of one forward on a single pair (batch 1) after ``warmup`` runs."""
+    device = torch.device(device)
+    model.eval()
+    times = []
+    for i in range(warmup + pairs):
+        item = dataset[i % len(dataset)]
+        src, tgt = item["src"][None].to(device), item["tgt"][None].to(device)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        start = time.perf_counter()
+        model(src, tgt, backend=backend)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        if i >= warmup:
+            times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def format_table(result: dict, title: str) -> str:
+    """The paper's column layout (RMSE/MAE of Euler angles in degrees and of translation)."""
+    head = f"{'':<28}" + "".join(f"{c:>12}" for c in PAPER_COLUMNS)
+    row = f"{title:<28}" + "".join(f"{result[c]:>12.4f}" for c in PAPER_COLUMNS)
+    rest = "\n".join(f"  {k:<30} {v:.6g}" for k, v in result.items() if k not in PAPER_COLUMNS)
+    return f"{head}\n{row}\n{rest}"

@@ -1,0 +1,84 @@
+"""VRNet's hybrid loss (paper Sec. III-C): L0 for stage 1, L = l1 L1 + l2 L2 + l3 L3 + l4 L4 for stage 2.
+
+``rmse(a, b) = sqrt(mean((a - b)^2))`` per pair, then averaged over the batch. Its square root is
+taken of ``max(mean, 1e-20)`` so the gradient stays finite at a perfect fit.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from vrnet_ext.model.vrnet import VRNetOutput
+from vrnet_ext.ops import kabsch, pairwise_distance_loss
+
+
+def rmse(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(B, ...) pairs -> (B,) root mean squared difference over all but the batch dim."""
+    return (a - b).square().flatten(1).mean(dim=1).clamp_min(1e-20).sqrt()
+
+
+def correspondence_loss(matching: torch.Tensor, gt_idx: torch.Tensor) -> torch.Tensor:
+    """L0 (Eq. 7): -sum_ij m_ij m^gt_ij / sum_ij m^gt_ij, from the index form of the ground truth.
+
+    Args:
+        matching: (B, N, M) soft matching.
+        gt_idx: (B, N) int64 target row of each source point's counterpart, -1 for outliers.
+
+    Returns:
+        scalar: the batch mean (pairs without any inlier contribute 0).
+    """
+    inlier = gt_idx >= 0
+    picked = matching.gather(2, gt_idx.clamp_min(0).unsqueeze(-1)).squeeze(-1)
+    per_pair = -(picked * inlier).sum(dim=1) / inlier.sum(dim=1).clamp_min(1)
+    return per_pair.mean()
+
+
+def local_motion_consensus_loss(src: torch.Tensor, rcp: torch.Tensor, rotation: torch.Tensor,
+                                translation: torch.Tensor, groups: int = 10, subset_size: int = 32,
+                                generator: torch.Generator | None = None, backend: str = "ext") -> torch.Tensor:
+    """L1 (Eq. 8): mean over G random correspondence subsets of rmse(R_g^T R, I) + rmse(t_g, t).
+
+    All B * G subset problems are solved by one batched ``ops.kabsch`` call.
+    """
+    B, N, _ = src.shape
+    size = min(max(3, subset_size), N)
+    scores = torch.rand(B, groups, N, generator=generator, device="cpu").to(src.device)
+    subsets = scores.argsort(dim=-1)[..., :size].reshape(B, groups * size, 1).expand(-1, -1, 3)
+    sub_src = src.gather(1, subsets).reshape(B * groups, size, 3)
+    sub_rcp = rcp.gather(1, subsets).reshape(B * groups, size, 3)
+    R_g, t_g = kabsch(sub_src, sub_rcp, backend=backend)
+    R = rotation.repeat_interleave(groups, dim=0)
+    t = translation.repeat_interleave(groups, dim=0)
+    eye = torch.eye(3, dtype=src.dtype, device=src.device).expand_as(R)
+    return (rmse(R_g.mT @ R, eye) + rmse(t_g, t)).mean()
+
+
+def transform(points: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
+    """(B, N, 3) -> R p + t."""
+    return points @ rotation.mT + translation.unsqueeze(1)
+
+
+@dataclass
+class HybridLossWeights:
+    l1: float = 1.0
+    l2: float = 1.0
+    l3: float = 1.0
+    l4: float = 100.0
+    groups: int = 10
+    subset_size: int = 32
+
+
+def hybrid_loss(out: VRNetOutput, src: torch.Tensor, gt_rotation: torch.Tensor, gt_translation: torch.Tensor,
+                weights: HybridLossWeights | None = None, generator: torch.Generator | None = None,
+                backend: str = "ext") -> tuple[torch.Tensor, dict[str, float]]:
+    """Stage-2 loss L (Eq. 12). Returns (L, {"L1": .., "L2": .., "L3": .., "L4": ..})."""
+    w = weights or HybridLossWeights()
+    l1 = local_motion_consensus_loss(src, out.rcp, out.rotation, out.translation, w.groups, w.subset_size,
+                                     generator, backend)
+    l2 = pairwise_distance_loss(src, out.rcp, backend=backend).mean()
+    l3 = rmse(transform(src, out.rotation, out.translation), out.rcp).mean()
+    l4 = rmse(transform(src, gt_rotation, gt_translation) - out.vcp, out.offset).mean()
+    total = w.l1 * l1 + w.l2 * l2 + w.l3 * l3 + w.l4 * l4
+    parts = {"L1": float(l1.detach()), "L2": float(l2.detach()), "L3": float(l3.detach()), "L4": float(l4.detach())}
+    return total, parts

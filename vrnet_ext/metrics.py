@@ -1,0 +1,60 @@
+"""Registration metrics: the DCP Euler-angle RMSE/MAE and the scan-level RE/TE/recall family."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from vrnet_ext.ops import knn
+
+
+def euler_zyx_deg(rotation: torch.Tensor | np.ndarray) -> np.ndarray:
+    """(B, 3, 3) -> (B, 3) angles (z, y, x) in degrees, scipy 'zyx' as in DCP."""
+    matrices = np.asarray(rotation.detach().cpu() if isinstance(rotation, torch.Tensor) else rotation, dtype=np.float64)
+    return Rotation.from_matrix(matrices).as_euler("zyx", degrees=True)
+
+
+def rotation_error_deg(rotation: torch.Tensor, gt_rotation: torch.Tensor) -> torch.Tensor:
+    """(B,) isotropic error acos((tr(R^T R_gt) - 1) / 2) in degrees, argument clamped to [-1, 1]."""
+    trace = (rotation.double().mT @ gt_rotation.double()).diagonal(dim1=-2, dim2=-1).sum(-1)
+    return torch.rad2deg(torch.acos(((trace - 1) / 2).clamp(-1.0, 1.0)))
+
+
+def translation_error(translation: torch.Tensor, gt_translation: torch.Tensor) -> torch.Tensor:
+    """(B,) Euclidean distance |t - t_gt|."""
+    return (translation.double() - gt_translation.double()).norm(dim=-1)
+
+
+def chamfer_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(B, N, 3), (B, M, 3) -> (B,) mean squared nearest distance a->b plus b->a (paper Eq. 14)."""
+    return knn(a, b, 1)[0].mean(dim=(1, 2)) + knn(b, a, 1)[0].mean(dim=(1, 2))
+
+
+def correct_match_ratio(points: torch.Tensor, src: torch.Tensor, gt_rotation: torch.Tensor,
+                        gt_translation: torch.Tensor, threshold: float = 0.15) -> torch.Tensor:
+    """(B,) share of source points whose predicted correspondent (VCP or RCP) lies within
+    ``threshold`` of the true position R_gt x_i + t_gt."""
+    truth = src @ gt_rotation.mT + gt_translation.unsqueeze(1)
+    return ((points - truth).norm(dim=-1) < threshold).double().mean(dim=1)
+
+
+def summarize(pred_rotation: np.ndarray, gt_rotation: np.ndarray, pred_translation: np.ndarray,
+              gt_translation: np.ndarray, re_thresholds=(1.0, 5.0), te_thresholds=(0.01, 0.1)) -> dict:
+    """Paper-layout metrics over a whole test set (arrays stacked over all pairs)."""
+    euler_err = euler_zyx_deg(pred_rotation) - euler_zyx_deg(gt_rotation)
+    t_err = pred_translation.astype(np.float64) - gt_translation.astype(np.float64)
+    re = rotation_error_deg(torch.as_tensor(pred_rotation), torch.as_tensor(gt_rotation)).numpy()
+    te = translation_error(torch.as_tensor(pred_translation), torch.as_tensor(gt_translation)).numpy()
+    result = {
+        "RMSE(R)": float(np.sqrt((euler_err ** 2).mean())),
+        "MAE(R)": float(np.abs(euler_err).mean()),
+        "RMSE(t)": float(np.sqrt((t_err ** 2).mean())),
+        "MAE(t)": float(np.abs(t_err).mean()),
+        "RE mean (deg)": float(re.mean()),
+        "RE median (deg)": float(np.median(re)),
+        "TE mean": float(te.mean()),
+        "TE median": float(np.median(te)),
+    }
+    for r_thr, t_thr in zip(re_thresholds, te_thresholds):
+        result[f"recall(RE<{r_thr:g},TE<{t_thr:g})"] = float(((re < r_thr) & (te < t_thr)).mean())
+    return result

@@ -1,0 +1,72 @@
+"""VRNet hyper-parameters. Defaults are the paper's configuration (Sec. III-D)."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+
+@dataclass
+class VRNetConfig:
+    """Architecture of :class:`vrnet_ext.VRNet`.
+
+    Choices where the paper is vague (documented here, all configurable):
+
+    * ``dgcnn_channels`` + ``emb_dims``: four EdgeConv layers [64, 64, 128, 256] whose outputs are
+      concatenated (512) and projected to ``emb_dims`` = c = 512 by a 1x1 conv, as in DCP's DGCNN
+      (the paper's "five layers [64, 64, 128, 256, 512]" with the last one the projection).
+    * ``negative_slope``: LeakyReLU(0.2) after each BatchNorm (DGCNN; ReLU is slope 0).
+    * ``walk_coordinates``: the correction walk sees the paper's seeds E = [Phi_X ; M Phi_Y]
+      only (False, the default) or additionally the coordinates [X ; Y'] (True).
+    * ``iterations``: > 1 runs the ICP-like mode of the paper's "VRNet with iteration": the source
+      is moved by the running estimate and the increments are composed.
+    * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.
+    """
+
+    k: int = 20
+    dgcnn_channels: tuple[int, ...] = (64, 64, 128, 256)
+    emb_dims: int = 512
+    negative_slope: float = 0.2
+    heads: int = 4
+    ff_dims: int = 1024
+    encoder_layers: int = 1
+    decoder_layers: int = 1
+    dropout: float = 0.0
+    walk_channels: tuple[int, ...] = (512, 256, 512, 256, 128, 16, 3)
+    walk_coordinates: bool = False
+    correction_walk: bool = True
+    iterations: int = 1
+    backend: str = "ext"
+
+    def __post_init__(self) -> None:
+        self.dgcnn_channels = tuple(int(c) for c in self.dgcnn_channels)
+        self.walk_channels = tuple(int(c) for c in self.walk_channels)
+        if self.walk_channels[-1] != 3:
+            raise ValueError(f"walk_channels must end with 3 (an xyz offset), got {self.walk_channels}")
+        if self.emb_dims % self.heads:
+            raise ValueError(f"emb_dims ({self.emb_dims}) must be divisible by heads ({self.heads})")
+        if self.k < 1 or self.iterations < 1:
+            raise ValueError("k and iterations must be >= 1")
+        if self.backend not in ("ext", "torch"):
+            raise ValueError(f"backend must be 'ext' or 'torch', got {self.backend!r}")
+
+    def to_dict(self) -> dict:
+        """Plain-type dict (lists, not tuples): safe for ``torch.load(weights_only=True)`` and JSON."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "VRNetConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown VRNetConfig fields: {sorted(unknown)}")
+        return cls(**values)
+
+    @classmethod
+    def small(cls, **overrides) -> "VRNetConfig":
+        """A CPU-sized model (about 1/16 of the paper's FLOPs) for quick experiments and tests."""
+        values = dict(k=10, dgcnn_channels=(32, 32, 64, 64), emb_dims=128, ff_dims=256,
+                      walk_channels=(128, 64, 32, 16, 3))
+        values.update(overrides)
+        return cls(**values)
+
+
+__all__ = ["VRNetConfig"]

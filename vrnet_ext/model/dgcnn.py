@@ -1,0 +1,43 @@
+"""DGCNN feature extractor (paper Eq. 1) on fused EdgeConv layers and ``ops.knn``."""
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from vrnet_ext.nn import EdgeConv
+from vrnet_ext.ops import knn
+
+
+class DGCNN(nn.Module):
+    """Dynamic-graph CNN: (B, N, 3) points -> (B, emb_dims, N) features.
+
+    Each EdgeConv layer rebuilds the kNN graph (k neighbours, the point itself included as in
+    DGCNN) in the feature space of its input; the layer outputs are concatenated and projected
+    to ``emb_dims`` by a 1x1 conv + BatchNorm + LeakyReLU.
+    """
+
+    def __init__(self, channels: tuple[int, ...], emb_dims: int, k: int, negative_slope: float) -> None:
+        super().__init__()
+        self.k = k
+        self.negative_slope = negative_slope
+        widths = (3,) + tuple(channels)
+        self.layers = nn.ModuleList(
+            EdgeConv(c_in, c_out, negative_slope=negative_slope) for c_in, c_out in zip(widths[:-1], widths[1:])
+        )
+        self.projection = nn.Conv1d(sum(channels), emb_dims, kernel_size=1, bias=False)
+        self.projection_bn = nn.BatchNorm1d(emb_dims)
+
+    def forward(self, points: torch.Tensor, backend: str = "ext") -> torch.Tensor:
+        """points (B, N, 3) -> features (B, emb_dims, N)."""
+        if points.shape[1] < self.k:
+            raise ValueError(f"DGCNN needs at least k={self.k} points per cloud, got {points.shape[1]}")
+        x = points.transpose(1, 2)
+        outputs = []
+        for layer in self.layers:
+            features = x.transpose(1, 2).detach()
+            idx = knn(features, features, self.k, backend=backend)[1]
+            x = layer(x, idx, backend=backend)
+            outputs.append(x)
+        z = self.projection_bn(self.projection(torch.cat(outputs, dim=1)))
+        return F.leaky_relu(z, self.negative_slope)

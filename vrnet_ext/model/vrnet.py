@@ -1,0 +1,84 @@
+"""VRNet: soft matching -> virtual corresponding points -> correction walk -> weighted Procrustes."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from vrnet_ext.model.config import VRNetConfig
+from vrnet_ext.model.correction_walk import CorrectionWalk
+from vrnet_ext.model.dgcnn import DGCNN
+from vrnet_ext.model.transformer import Transformer
+from vrnet_ext.ops import kabsch
+from vrnet_ext.ops._checks import check_float, check_same, check_shape
+
+
+@dataclass
+class VRNetOutput:
+    """Everything a forward pass produces (shapes for src (B, N, 3), tgt (B, M, 3))."""
+
+    rotation: torch.Tensor     # (B, 3, 3): R src + t ~ tgt
+    translation: torch.Tensor  # (B, 3)
+    matching: torch.Tensor     # (B, N, M) row-stochastic soft matching M
+    vcp: torch.Tensor          # (B, N, 3) virtual corresponding points Y' = M Y
+    rcp: torch.Tensor          # (B, N, 3) rectified points Y'' = Y' + offset
+    offset: torch.Tensor       # (B, N, 3) correction walk (zeros without it)
+    src_embedding: torch.Tensor  # (B, c, N) Phi_X
+    tgt_embedding: torch.Tensor  # (B, c, M) Phi_Y
+
+
+class VRNet(nn.Module):
+    """VRNet (Zhang et al.). ``VRNet()`` is the paper's configuration; see :class:`VRNetConfig`."""
+
+    def __init__(self, config: VRNetConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or VRNetConfig()
+        cfg = self.config
+        self.features = DGCNN(cfg.dgcnn_channels, cfg.emb_dims, cfg.k, cfg.negative_slope)
+        self.transformer = Transformer(cfg.emb_dims, cfg.heads, cfg.ff_dims, cfg.encoder_layers,
+                                       cfg.decoder_layers, cfg.dropout)
+        walk_inputs = 2 * cfg.emb_dims + (6 if cfg.walk_coordinates else 0)
+        self.walk = CorrectionWalk(walk_inputs, cfg.walk_channels) if cfg.correction_walk else None
+
+    def feature_modules(self) -> list[nn.Module]:
+        """The feature extractor (DGCNN + Transformer): trained in stage 1, frozen in stage 2."""
+        return [self.features, self.transformer]
+
+    def forward(self, src: torch.Tensor, tgt: torch.Tensor, backend: str | None = None) -> VRNetOutput:
+        """src (B, N, 3), tgt (B, M, 3) -> :class:`VRNetOutput` with R src + t ~ tgt."""
+        check_float(src, "src")
+        check_float(tgt, "tgt")
+        check_shape(src, "src", 3, "(B, N, 3)", last=3)
+        check_shape(tgt, "tgt", 3, "(B, M, 3)", last=3)
+        check_same({"src": src, "tgt": tgt})
+        if src.shape[0] != tgt.shape[0]:
+            raise ValueError(f"src and tgt batch sizes differ: {src.shape[0]} vs {tgt.shape[0]}")
+        backend = backend or self.config.backend
+        rotation = torch.eye(3, dtype=src.dtype, device=src.device).expand(src.shape[0], 3, 3)
+        translation = src.new_zeros(src.shape[0], 3)
+        moved = src
+        for _ in range(self.config.iterations):
+            out = self._single_pass(moved, tgt, backend)
+            rotation = out.rotation @ rotation
+            translation = (out.rotation @ translation.unsqueeze(-1)).squeeze(-1) + out.translation
+            moved = src @ rotation.mT + translation.unsqueeze(1)
+        out.rotation, out.translation = rotation, translation
+        return out
+
+    def _single_pass(self, src: torch.Tensor, tgt: torch.Tensor, backend: str) -> VRNetOutput:
+        phi_x, phi_y = self.transformer(self.features(src, backend), self.features(tgt, backend))
+        scores = torch.bmm(phi_x.transpose(1, 2), phi_y) / math.sqrt(phi_x.shape[1])
+        matching = torch.softmax(scores, dim=-1)
+        vcp = torch.bmm(matching, tgt)
+        if self.walk is None:
+            offset = torch.zeros_like(vcp)
+        else:
+            seeds = [phi_x, torch.bmm(phi_y, matching.transpose(1, 2))]
+            if self.config.walk_coordinates:
+                seeds += [src.transpose(1, 2), vcp.transpose(1, 2)]
+            offset = self.walk(torch.cat(seeds, dim=1)).transpose(1, 2)
+        rcp = vcp + offset
+        rotation, translation = kabsch(src, rcp, backend=backend)
+        return VRNetOutput(rotation, translation, matching, vcp, rcp, offset, phi_x, phi_y)

@@ -1,0 +1,264 @@
+"""Two-stage VRNet training (paper Sec. III-D), single process or DDP under ``torchrun``.
+
+Stage 1 trains the feature extractor (DGCNN + Transformer) with L0 (Adam, lr 1e-3); stage 2
+freezes it (weights and BatchNorm statistics) and trains the correction walk with the hybrid
+loss L (lr 1e-4). Each epoch ends with a validation pass on a split held out of TRAIN (model
+selection never looks at the test set), a line in ``metrics.jsonl`` / ``metrics.csv`` and the
+checkpoints ``last.pt`` / ``best.pt`` (``torch.load(..., weights_only=True)`` compatible).
+
+Runs are reproducible: the train pairs of an epoch come from (seed, epoch, index), the batch
+order from a seeded sampler and the L1 subsets from (seed, step), so ``--resume`` continues
+bit-exactly.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader
+from torch.utils.data.distributed import DistributedSampler
+from tqdm import tqdm
+
+from vrnet_ext.data import ModelNet40Pairs, PairSpec
+from vrnet_ext.evaluate import evaluate, to_device
+from vrnet_ext.losses import HybridLossWeights, correspondence_loss, hybrid_loss
+from vrnet_ext.model import VRNet, VRNetConfig
+
+PRESETS = {
+    "paper": dict(model=VRNetConfig().to_dict(), batch_size=28, stage1_epochs=100, stage2_epochs=100,
+                  num_points=1024, num_subsampled=768),
+    "small": dict(model=VRNetConfig.small().to_dict(), batch_size=8, stage1_epochs=3, stage2_epochs=2,
+                  num_points=512, num_subsampled=384, max_train_items=480, max_val_items=96),
+    "tiny": dict(model=VRNetConfig.small(k=8, dgcnn_channels=(16, 16), emb_dims=32, heads=2, ff_dims=64,
+                                         walk_channels=(32, 16, 3)).to_dict(),
+                 batch_size=4, stage1_epochs=1, stage2_epochs=1, num_points=96, num_subsampled=64,
+                 max_train_items=16, max_val_items=8),
+}
+
+
+@dataclass
+class TrainConfig:
+    """Everything a run needs; every field is a ``vrnet train`` flag."""
+
+    preset: str = "paper"
+    data_dir: str | None = None
+    out_dir: str = "runs/vrnet"
+    setting: str = "PV"
+    split: str = "UPC"
+    model: dict = field(default_factory=lambda: VRNetConfig().to_dict())
+    batch_size: int = 28
+    stage1_epochs: int = 100
+    stage2_epochs: int = 100
+    lr_stage1: float = 1e-3
+    lr_stage2: float = 1e-4
+    weight_decay: float = 1e-4
+    lr_milestones: list[int] = field(default_factory=lambda: [75])
+    lr_gamma: float = 0.1
+    num_points: int = 1024
+    num_subsampled: int = 768
+    classes: list[int] | None = None
+    max_train_items: int | None = None
+    max_val_items: int | None = None
+    val_fraction: float = 0.1
+    seed: int = 1234
+    device: str = "auto"
+    backend: str = "ext"
+    num_workers: int = 0
+    loss_l4: float = 100.0
+    resume: str | None = None
+    progress: bool = True
+
+    @classmethod
+    def from_preset(cls, preset: str, **overrides) -> "TrainConfig":
+        if preset not in PRESETS:
+            raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
+        values = dict(PRESETS[preset], preset=preset)
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown training options: {sorted(unknown)}")
+        return cls(**values)
+
+
+class _Run:
+    """Distributed context: rank, world size, device."""
+
+    def __init__(self, device: str) -> None:
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = int(os.environ.get("RANK", "0"))
+        local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        self.device = torch.device(f"cuda:{local_rank}" if device == "cuda" and self.world > 1 else device)
+        if self.device.type == "cuda":
+            torch.cuda.set_device(self.device)
+        if self.world > 1 and not dist.is_initialized():
+            dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    def barrier(self) -> None:
+        if self.world > 1:
+            dist.barrier()
+
+
+def _datasets(cfg: TrainConfig):
+    spec = dict(num_points=cfg.num_points, num_subsampled=cfg.num_subsampled,
+                pvrs_presample=max(cfg.num_subsampled, round(cfg.num_points * 896 / 1024)))
+    common = dict(root=cfg.data_dir, setting=cfg.setting, split=cfg.split, val_fraction=cfg.val_fraction,
+                  classes=cfg.classes, seed=cfg.seed)
+    train = ModelNet40Pairs(partition="train", max_items=cfg.max_train_items, spec=PairSpec(**spec), **common)
+    val = ModelNet40Pairs(partition="val", max_items=cfg.max_val_items, spec=PairSpec(**spec), **common)
+    return train, val
+
+
+def _set_stage(model: VRNet, stage: int) -> list[torch.nn.Parameter]:
+    """Trainable parameters of a stage; frozen modules are put in eval mode by :func:`_train_mode`."""
+    walk = [model.walk] if model.walk is not None else []
+    trainable = model.feature_modules() if stage == 1 else walk
+    for module in model.feature_modules() + walk:
+        module.requires_grad_(module in trainable)
+    return [p for m in trainable for p in m.parameters()]
+
+
+def _train_mode(model: VRNet, stage: int) -> None:
+    model.train()
+    if stage == 2:
+        for module in model.feature_modules():
+            module.eval()
+
+
+def _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best) -> dict:
+    return {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+            "config": json.loads(json.dumps(asdict(cfg))), "stage": stage, "epoch": epoch, "step": step,
+            "best": best}
+
+
+def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
+    """A checkpoint written by :func:`train` (weights-only unpickling)."""
+    return torch.load(path, map_location=map_location, weights_only=True)
+
+
+def model_from_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[VRNet, dict]:
+    state = load_checkpoint(path, map_location)
+    model = VRNet(VRNetConfig.from_dict(state["config"]["model"]))
+    model.load_state_dict(state["model"])
+    return model, state
+
+
+def _log(out_dir: Path, record: dict) -> None:
+    """Appends to metrics.jsonl and rewrites metrics.csv over the union of all records' keys."""
+    jsonl = out_dir / "metrics.jsonl"
+    with open(jsonl, "a") as f:
+        f.write(json.dumps(record) + "\n")
+    records = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+    columns = list(dict.fromkeys(key for r in records for key in r))
+    with open(out_dir / "metrics.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(records)
+
+
+def _replica_spread(model: VRNet, run: _Run) -> float:
+    """Max |difference| between this rank's weights and any other rank's (0 when identical)."""
+    if run.world == 1:
+        return 0.0
+    flat = torch.cat([p.detach().flatten().cpu().double() for p in model.parameters()])
+    gathered = [torch.empty_like(flat) for _ in range(run.world)]
+    dist.all_gather(gathered, flat)
+    return float(max((g - flat).abs().max() for g in gathered))
+
+
+def train(cfg: TrainConfig) -> dict:
+    """Trains per ``cfg``; returns the last epoch's record (rank 0 writes files)."""
+    run = _Run(cfg.device)
+    out_dir = Path(cfg.out_dir)
+    if run.main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "config.json").write_text(json.dumps(asdict(cfg), indent=1))
+    torch.manual_seed(cfg.seed)
+    model_cfg = VRNetConfig.from_dict(dict(cfg.model, backend=cfg.backend))
+    model = VRNet(model_cfg).to(run.device)
+    train_set, val_set = _datasets(cfg)
+    sampler = DistributedSampler(train_set, num_replicas=run.world, rank=run.rank, shuffle=True, seed=cfg.seed,
+                                 drop_last=True)
+    loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=sampler, num_workers=cfg.num_workers,
+                        drop_last=True)
+    if len(loader) == 0:
+        raise ValueError(f"batch_size {cfg.batch_size} x {run.world} process(es) exceeds the "
+                         f"{len(train_set)} training pairs")
+    state = load_checkpoint(cfg.resume, run.device) if cfg.resume else None
+    if state is not None:
+        model.load_state_dict(state["model"])
+    loss_weights = HybridLossWeights(l4=cfg.loss_l4)
+    step = state["step"] if state else 0
+    record: dict = {}
+    for stage, epochs, lr in ((1, cfg.stage1_epochs, cfg.lr_stage1), (2, cfg.stage2_epochs, cfg.lr_stage2)):
+        if state is not None and (state["stage"] > stage or (state["stage"] == stage and state["epoch"] + 1 >= epochs)):
+            continue  # this stage is already complete in the checkpoint
+        params = _set_stage(model, stage)
+        optimizer = torch.optim.Adam(params, lr=lr, weight_decay=cfg.weight_decay)
+        scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.lr_milestones, cfg.lr_gamma)
+        first_epoch, best = 0, float("inf")
+        if state is not None and state["stage"] == stage:
+            optimizer.load_state_dict(state["optimizer"])
+            scheduler.load_state_dict(state["scheduler"])
+            first_epoch, best = state["epoch"] + 1, state["best"]
+        wrapped = DistributedDataParallel(model) if run.world > 1 else model
+        for epoch in range(first_epoch, epochs):
+            global_epoch = epoch if stage == 1 else cfg.stage1_epochs + epoch
+            train_set.set_epoch(global_epoch)
+            sampler.set_epoch(global_epoch)
+            _train_mode(model, stage)
+            started, totals, batches = time.time(), {}, 0
+            bar = tqdm(loader, desc=f"stage {stage} epoch {epoch + 1}/{epochs}", disable=not (cfg.progress and run.main))
+            for batch in bar:
+                batch = to_device(batch, run.device)
+                out = wrapped(batch["src"], batch["tgt"])
+                if stage == 1:
+                    loss = correspondence_loss(out.matching, batch["gt_idx"])
+                    parts = {"L0": float(loss.detach())}
+                else:
+                    generator = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+                    loss, parts = hybrid_loss(out, batch["src"], batch["rotation"], batch["translation"],
+                                              loss_weights, generator, cfg.backend)
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(f"non-finite loss at stage {stage}, step {step}: {parts}")
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                step += 1
+                batches += 1
+                for k, v in dict(parts, loss=float(loss.detach())).items():
+                    totals[k] = totals.get(k, 0.0) + v
+                bar.set_postfix(loss=f"{float(loss.detach()):.4f}")
+            scheduler.step()
+            record = {"stage": stage, "epoch": epoch + 1, "step": step, "lr": optimizer.param_groups[0]["lr"],
+                      "epoch_seconds": round(time.time() - started, 2), "world_size": run.world}
+            record.update({f"train_{k}": v / max(batches, 1) for k, v in totals.items()})
+            record["replica_max_abs_diff"] = _replica_spread(model, run)
+            if run.main:
+                val = evaluate(model, val_set, batch_size=cfg.batch_size, device=run.device,
+                               progress=cfg.progress, use_rcp=stage == 2)
+                record.update({f"val_{k}": v for k, v in val.items()})
+                score = val["L0"] if stage == 1 else val["RMSE(R)"]
+                improved = score < best
+                best = min(best, score)
+                ckpt = _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best)
+                torch.save(ckpt, out_dir / "last.pt")
+                if improved:
+                    torch.save(ckpt, out_dir / "best.pt")
+                _log(out_dir, record)
+            run.barrier()
+        state = None
+    return record
