@@ -30,6 +30,7 @@ from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.evaluate import evaluate, to_device
 from vrnet_ext.losses import HybridLossWeights, correspondence_loss, hybrid_loss
 from vrnet_ext.model import VRNet, VRNetConfig
+from vrnet_ext.runtime import set_flush_denormal
 
 PRESETS = {
     "paper": dict(model=VRNetConfig().to_dict(), batch_size=28, stage1_epochs=100, stage2_epochs=100,
@@ -73,6 +74,7 @@ class TrainConfig:
     num_workers: int = 0
     loss_l4: float = 100.0
     resume: str | None = None
+    flush_denormal: bool = True
     progress: bool = True
 
     @classmethod
@@ -182,6 +184,8 @@ def _replica_spread(model: VRNet, run: _Run) -> float:
 def train(cfg: TrainConfig) -> dict:
     """Trains per ``cfg``; returns the last epoch's record (rank 0 writes files)."""
     run = _Run(cfg.device)
+    if cfg.flush_denormal:
+        set_flush_denormal(True)
     out_dir = Path(cfg.out_dir)
     if run.main:
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,95 @@
+"""Time one training step of a VRNet preset with the compiled ops vs ``backend="torch"``.
+
+    python benchmarks/bench_train_step.py [--preset paper] [--steps 2] [--stage 1 2] [--json PATH]
+
+Both backends run in this process on the same random pair batch (settings: the preset's batch
+size and point counts), one warm-up step each, then the median of ``--steps`` timed steps.
+Denormal flushing (``vrnet_ext.set_flush_denormal``) is on for both backends unless
+``--no-flush-denormal``. Stage 1 = full backward through DGCNN + Transformer with L0; stage 2 = frozen features, hybrid
+loss through the correction walk and Kabsch.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+
+import torch
+
+from vrnet_ext.losses import HybridLossWeights, correspondence_loss, hybrid_loss
+from vrnet_ext.model import VRNet, VRNetConfig
+from vrnet_ext.runtime import set_flush_denormal
+from vrnet_ext.train import PRESETS, _set_stage, _train_mode
+
+
+def _batch(batch_size: int, points: int, generator: torch.Generator) -> dict:
+    src = torch.randn(batch_size, points, 3, generator=generator)
+    src = src / src.norm(dim=-1, keepdim=True).amax(dim=1, keepdim=True)
+    q = torch.linalg.qr(torch.randn(batch_size, 3, 3, generator=generator)).Q
+    rotation = q * torch.sign(torch.linalg.det(q)).view(-1, 1, 1)
+    translation = torch.rand(batch_size, 3, generator=generator) - 0.5
+    perm = torch.randperm(points, generator=generator)
+    tgt = (src @ rotation.mT + translation.unsqueeze(1))[:, perm]
+    gt_idx = torch.argsort(perm).expand(batch_size, points).contiguous()
+    return dict(src=src, tgt=tgt, rotation=rotation, translation=translation, gt_idx=gt_idx)
+
+
+def step_seconds(model: VRNet, batch: dict, stage: int, backend: str, steps: int) -> float:
+    params = _set_stage(model, stage)
+    optimizer = torch.optim.Adam(params, lr=1e-4)
+    times = []
+    for i in range(steps + 1):
+        _train_mode(model, stage)
+        start = time.perf_counter()
+        out = model(batch["src"], batch["tgt"], backend=backend)
+        if stage == 1:
+            loss = correspondence_loss(out.matching, batch["gt_idx"])
+        else:
+            loss, _ = hybrid_loss(out, batch["src"], batch["rotation"], batch["translation"], HybridLossWeights(),
+                                  torch.Generator().manual_seed(i), backend)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        if i > 0:
+            times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS))
+    parser.add_argument("--steps", type=int, default=2)
+    parser.add_argument("--stage", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--json", default=None)
+    parser.add_argument("--no-flush-denormal", action="store_true",
+                        help="leave denormal floats on (slow softmax tails; see vrnet_ext.set_flush_denormal)")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    flush = not args.no_flush_denormal and set_flush_denormal(True)
+    preset = PRESETS[args.preset]
+    torch.manual_seed(0)
+    model = VRNet(VRNetConfig.from_dict(preset["model"]))
+    batch = _batch(preset["batch_size"], preset["num_subsampled"], torch.Generator().manual_seed(0))
+    records = []
+    for stage in args.stage:
+        row = {}
+        for backend in ("ext", "torch"):
+            row[backend] = step_seconds(model, batch, stage, backend, args.steps)
+            records.append({"preset": args.preset, "stage": stage, "impl": backend, "median_s": row[backend],
+                            "batch_size": preset["batch_size"], "points": preset["num_subsampled"],
+                            "threads": args.threads, "flush_denormal": flush,
+                            "torch": torch.__version__})
+            print(f"stage {stage} {backend:<5} {row[backend]:.2f} s/step", flush=True)
+        print(f"stage {stage}: ext is {row['torch'] / row['ext']:.2f}x faster than backend='torch'")
+    print(f"machine: {platform.machine()}, threads {args.threads}, preset {args.preset} "
+          f"(batch {preset['batch_size']}, {preset['num_subsampled']} points), flush_denormal={flush}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(records, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

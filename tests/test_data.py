@@ -1,0 +1,106 @@
+import h5py
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from conftest import MODELNET_DIR, requires_modelnet
+from vrnet_ext.data import ModelNet40Pairs, PairSpec, load_h5, make_pair
+from vrnet_ext.data.protocol import random_motion
+
+
+def test_rotation_is_dcp_rx_ry_rz():
+    R, _, euler = random_motion(np.random.default_rng(3), 45.0, 0.5)
+    az, ay, ax = np.deg2rad(euler)
+    Rx = Rotation.from_euler("x", ax).as_matrix()
+    Ry = Rotation.from_euler("y", ay).as_matrix()
+    Rz = Rotation.from_euler("z", az).as_matrix()
+    np.testing.assert_allclose(R, Rx @ Ry @ Rz, atol=1e-12)
+    assert np.all((euler >= 0) & (euler <= 45))
+
+
+@pytest.mark.parametrize("setting,count", [("CO", 1024), ("PV", 768), ("RS", 768), ("PV+RS", 768)])
+def test_settings_counts_and_ground_truth(setting, count):
+    base = np.random.default_rng(0).standard_normal((1024, 3))
+    base.setflags(write=False)
+    pair = make_pair(base, PairSpec(setting=setting), np.random.default_rng(1))
+    assert pair["src"].shape == (count, 3) and pair["tgt"].shape == (count, 3)
+    inliers = pair["gt_idx"] >= 0
+    moved = pair["src"] @ pair["rotation"].T + pair["translation"]
+    np.testing.assert_allclose(moved[inliers], pair["tgt"][pair["gt_idx"][inliers]], atol=1e-5)
+    if setting == "CO":
+        assert inliers.all()
+    else:  # outliers really have no counterpart in the target
+        d = np.linalg.norm(moved[~inliers][:, None] - pair["tgt"][None], axis=-1).min(axis=1)
+        assert (~inliers).any() and (d > 1e-6).all()
+    assert np.abs(pair["translation"]).max() <= 0.5
+
+
+def test_noise_is_bounded_and_never_touches_the_source_array():
+    base = np.random.default_rng(0).standard_normal((1024, 3)).astype(np.float32)
+    before = base.copy()
+    for seed in range(5):
+        pair = make_pair(base, PairSpec(setting="CO", noise=True), np.random.default_rng(seed))
+    np.testing.assert_array_equal(base, before)
+    clean = make_pair(base, PairSpec(setting="CO", noise=False), np.random.default_rng(4))
+    delta = pair["src"] - clean["src"]
+    assert 0 < np.abs(delta).max() <= 0.05 + 1e-6
+
+
+@requires_modelnet
+def test_nd_dataset_does_not_accumulate_noise_across_epochs():
+    ds = ModelNet40Pairs(MODELNET_DIR, partition="train", setting="CO", split="ND", max_items=4)
+    cached = ds.points.copy()
+    first = ds[0]["src"]
+    for epoch in range(3):
+        ds.set_epoch(epoch)
+        for i in range(len(ds)):
+            ds[i]
+    ds.set_epoch(0)
+    np.testing.assert_array_equal(ds.points, cached)
+    torch.testing.assert_close(ds[0]["src"], first, rtol=0, atol=0)
+
+
+@requires_modelnet
+def test_determinism_and_epochs():
+    test_a = ModelNet40Pairs(MODELNET_DIR, partition="test", setting="PV", max_items=5)
+    test_b = ModelNet40Pairs(MODELNET_DIR, partition="test", setting="PV", max_items=5)
+    for key in ("src", "tgt", "rotation", "gt_idx"):
+        assert torch.equal(test_a[3][key], test_b[3][key])
+    train = ModelNet40Pairs(MODELNET_DIR, partition="train", setting="PV", max_items=5)
+    e0 = train[1]["rotation"]
+    train.set_epoch(1)
+    assert not torch.equal(train[1]["rotation"], e0)
+    train.set_epoch(0)
+    assert torch.equal(train[1]["rotation"], e0)
+
+
+@requires_modelnet
+def test_splits():
+    uc_train = ModelNet40Pairs(MODELNET_DIR, partition="train", split="UC")
+    uc_test = ModelNet40Pairs(MODELNET_DIR, partition="test", split="UC")
+    assert uc_train.labels.max() < 20 and uc_test.labels.min() >= 20
+    train = ModelNet40Pairs(MODELNET_DIR, partition="train")
+    val = ModelNet40Pairs(MODELNET_DIR, partition="val")
+    test = ModelNet40Pairs(MODELNET_DIR, partition="test")
+    assert len(train) + len(val) == 9843 and len(test) == 2468
+    train_keys = {p.tobytes() for p in train.points}
+    assert not any(p.tobytes() in train_keys for p in val.points), "val must be disjoint from train"
+    item = test[0]
+    assert item["src"].dtype == torch.float32 and item["gt_idx"].dtype == torch.int64
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        load_h5(tmp_path / "missing.h5")
+    corrupt = tmp_path / "corrupt.h5"
+    corrupt.write_bytes(b"definitely not hdf5")
+    with pytest.raises(ValueError, match="cannot read"):
+        load_h5(corrupt)
+    wrong = tmp_path / "wrong.h5"
+    with h5py.File(wrong, "w") as f:
+        f["points"] = np.zeros((2, 10, 3))
+    with pytest.raises(ValueError, match="lacks"):
+        load_h5(wrong)
+    with pytest.raises(ValueError, match="setting"):
+        PairSpec(setting="XY")

@@ -1,0 +1,82 @@
+import pytest
+import torch
+
+import vrnet_ext.losses as losses
+from vrnet_ext.model.vrnet import VRNetOutput
+
+
+def rigid(B=2, N=40, dtype=torch.float64):
+    q = torch.linalg.qr(torch.randn(B, 3, 3, dtype=dtype)).Q
+    R = q * torch.sign(torch.linalg.det(q)).view(-1, 1, 1)
+    t = torch.randn(B, 3, dtype=dtype)
+    src = torch.randn(B, N, 3, dtype=dtype)
+    return src, R, t, losses.transform(src, R, t)
+
+
+def make_output(src, R, t, vcp, offset):
+    B, N, _ = src.shape
+    return VRNetOutput(R, t, torch.full((B, N, N), 1.0 / N, dtype=src.dtype), vcp, vcp + offset, offset,
+                       torch.zeros(B, 4, N), torch.zeros(B, 4, N))
+
+
+def test_correspondence_loss_hand_cases():
+    gt_idx = torch.tensor([[2, 0, -1, 1]])
+    perfect = torch.zeros(1, 4, 3)
+    perfect[0, torch.tensor([0, 1, 3]), gt_idx[0, torch.tensor([0, 1, 3])]] = 1.0
+    perfect[0, 2, 0] = 1.0  # the outlier's row is ignored
+    assert losses.correspondence_loss(perfect, gt_idx).item() == pytest.approx(-1.0)
+    uniform = torch.full((1, 4, 3), 1 / 3)
+    assert losses.correspondence_loss(uniform, gt_idx).item() == pytest.approx(-1 / 3)
+    assert losses.correspondence_loss(uniform, torch.full((1, 4), -1)).item() == 0.0
+
+
+def test_local_motion_consensus_zero_on_rigid_rcp_and_one_batched_kabsch(monkeypatch):
+    src, R, t, rcp = rigid()
+    calls = []
+    real = losses.kabsch
+
+    def counting(*args, **kwargs):
+        calls.append(args[0].shape)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(losses, "kabsch", counting)
+    value = losses.local_motion_consensus_loss(src, rcp, R, t, groups=10, subset_size=5,
+                                               generator=torch.Generator().manual_seed(0))
+    assert value.item() < 1e-6
+    assert calls == [torch.Size([2 * 10, 5, 3])], "all B*G subsets in one batched kabsch call"
+    noisy = rcp + 0.1 * torch.randn_like(rcp)
+    assert losses.local_motion_consensus_loss(src, noisy, R, t, subset_size=5).item() > 1e-3
+
+
+def test_node_and_offset_losses_with_known_offsets():
+    src, R, t, truth = rigid()
+    shift = torch.tensor([0.3, -0.4, 1.2], dtype=src.dtype)
+    # L3 = rmse(R X + t, Y''): a constant shift d gives sqrt(|d|^2 / 3)
+    value = losses.rmse(losses.transform(src, R, t), truth + shift).mean()
+    assert value.item() == pytest.approx((shift.square().sum() / 3).sqrt().item())
+    out = make_output(src, R, t, vcp=truth - shift, offset=torch.zeros_like(truth))
+    total, parts = losses.hybrid_loss(out, src, R, t, losses.HybridLossWeights(l1=0, l2=0, l3=0, l4=1))
+    assert parts["L4"] == pytest.approx((shift.square().sum() / 3).sqrt().item())
+    assert total.item() == pytest.approx(parts["L4"])
+
+
+def test_identity_transform_gives_zero_hybrid_loss_and_finite_gradients():
+    src, R, t, truth = rigid()
+    vcp = truth - 0.2
+    offset = torch.full_like(truth, 0.2).requires_grad_()
+    out = make_output(src, R, t, vcp, offset)
+    out.rcp = vcp + offset
+    total, parts = losses.hybrid_loss(out, src, R, t, generator=torch.Generator().manual_seed(1))
+    for name, value in parts.items():
+        assert value < 1e-6, name
+    total.backward()
+    assert bool(torch.isfinite(offset.grad).all())
+
+
+def test_geometry_loss_matches_weighting():
+    src, R, t, truth = rigid()
+    scaled = truth * 1.5
+    out = make_output(src, R, t, scaled, torch.zeros_like(scaled))
+    _, parts = losses.hybrid_loss(out, src, R, t)
+    expected = torch.stack([((torch.cdist(s, s) * 0.5) ** 2).mean().sqrt() for s in src]).mean()
+    assert parts["L2"] == pytest.approx(expected.item(), rel=1e-6)

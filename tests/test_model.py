@@ -1,0 +1,99 @@
+import pytest
+import torch
+
+from conftest import compile_fullgraph, requires_ext
+from vrnet_ext import VRNet, VRNetConfig
+
+
+def small_model(**overrides):
+    torch.manual_seed(0)
+    return VRNet(VRNetConfig.small(k=6, dgcnn_channels=(16, 16, 32), emb_dims=32, ff_dims=64,
+                                   walk_channels=(32, 16, 3), **overrides))
+
+
+def clouds(B=2, N=60, M=50):
+    return torch.randn(B, N, 3), torch.randn(B, M, 3)
+
+
+def test_paper_defaults():
+    cfg = VRNetConfig()
+    assert (cfg.k, cfg.dgcnn_channels, cfg.emb_dims, cfg.heads, cfg.ff_dims) == (20, (64, 64, 128, 256), 512, 4, 1024)
+    assert cfg.walk_channels == (512, 256, 512, 256, 128, 16, 3)
+    model = VRNet()
+    assert model.walk.net[0].in_channels == 1024
+
+
+def test_output_shapes_and_invariants():
+    model = small_model().train()
+    src, tgt = clouds()
+    out = model(src, tgt)
+    assert out.rotation.shape == (2, 3, 3) and out.translation.shape == (2, 3)
+    assert out.matching.shape == (2, 60, 50)
+    assert out.vcp.shape == out.rcp.shape == out.offset.shape == (2, 60, 3)
+    torch.testing.assert_close(out.matching.sum(-1), torch.ones(2, 60))
+    torch.testing.assert_close(torch.linalg.det(out.rotation), torch.ones(2), rtol=0, atol=1e-5)
+    torch.testing.assert_close(out.rcp, out.vcp + out.offset)
+    torch.testing.assert_close(out.vcp, out.matching @ tgt)
+
+
+@requires_ext
+@pytest.mark.parametrize("train", [True, False])
+def test_backends_agree(train):
+    model = small_model().train(train)
+    src, tgt = clouds()
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    fast = model(src, tgt, backend="ext")
+    model.load_state_dict(state)
+    slow = model(src, tgt, backend="torch")
+    for name in ("rotation", "translation", "matching", "vcp", "rcp"):
+        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=1e-3, atol=2e-4, msg=name)
+
+
+def test_permutation_equivariance_sanity():
+    model = small_model().eval()
+    src, tgt = clouds()
+    perm_src, perm_tgt = torch.randperm(60), torch.randperm(50)
+    with torch.no_grad():
+        base = model(src, tgt)
+        moved = model(src[:, perm_src], tgt[:, perm_tgt])
+    torch.testing.assert_close(moved.rotation, base.rotation, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(moved.translation, base.translation, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(moved.rcp, base.rcp[:, perm_src], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(moved.matching, base.matching[:, perm_src][:, :, perm_tgt], rtol=1e-4, atol=1e-6)
+
+
+def test_dcp_ablation_and_iterations():
+    src, tgt = clouds()
+    dcp = small_model(correction_walk=False).eval()
+    out = dcp(src, tgt)
+    assert dcp.walk is None and torch.equal(out.rcp, out.vcp) and not out.offset.any()
+    iterative = small_model(iterations=3).eval()
+    with torch.no_grad():
+        out3 = iterative(src, tgt)
+    torch.testing.assert_close(torch.linalg.det(out3.rotation), torch.ones(2), rtol=0, atol=1e-5)
+
+
+@requires_ext
+def test_torch_compile():
+    model = small_model().eval()
+    src, tgt = clouds()
+    compiled = compile_fullgraph(model)
+    with torch.no_grad():
+        torch.testing.assert_close(compiled(src, tgt).rotation, model(src, tgt).rotation, rtol=1e-4, atol=1e-5)
+
+
+def test_bad_input():
+    model = small_model()
+    src, tgt = clouds()
+    with pytest.raises(ValueError, match="src"):
+        model(src[0], tgt)
+    with pytest.raises(ValueError, match="tgt"):
+        model(src, tgt[..., :2])
+    with pytest.raises(TypeError, match="src"):
+        model(src.long(), tgt)
+    with pytest.raises(ValueError, match="batch"):
+        model(src, tgt[:1])
+    with pytest.raises(ValueError, match="at least k"):
+        model(src[:, :4], tgt)
+    with pytest.raises(ValueError, match="walk_channels"):
+        VRNetConfig(walk_channels=(8, 4))

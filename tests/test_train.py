@@ -1,0 +1,80 @@
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from conftest import MODELNET_DIR, requires_modelnet
+from vrnet_ext.train import TrainConfig, load_checkpoint, train
+
+
+def tiny(tmp_path, name, **overrides):
+    values = dict(data_dir=str(MODELNET_DIR), out_dir=str(tmp_path / name), progress=False)
+    values.update(overrides)
+    return TrainConfig.from_preset("tiny", **values)
+
+
+def records(run_dir):
+    return [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+@requires_modelnet
+def test_training_lowers_the_loss(tmp_path):
+    cfg = tiny(tmp_path, "fit", stage1_epochs=6, stage2_epochs=0, max_train_items=8, setting="CO",
+               lr_stage1=3e-3)
+    train(cfg)
+    losses = [r["train_L0"] for r in records(tmp_path / "fit")]
+    assert losses[-1] < losses[0] - 0.01, losses
+
+
+@requires_modelnet
+def test_resume_continues_bit_exactly(tmp_path):
+    train(tiny(tmp_path, "straight", stage1_epochs=2, stage2_epochs=1))
+    train(tiny(tmp_path, "part", stage1_epochs=1, stage2_epochs=0))
+    part = tmp_path / "part" / "last.pt"
+    train(tiny(tmp_path, "part", stage1_epochs=2, stage2_epochs=1, resume=str(part)))
+    straight = load_checkpoint(tmp_path / "straight" / "last.pt")
+    resumed = load_checkpoint(tmp_path / "part" / "last.pt")
+    assert straight["step"] == resumed["step"] and straight["stage"] == resumed["stage"] == 2
+    for key, value in straight["model"].items():
+        assert torch.equal(value, resumed["model"][key]), key
+    assert [r["train_loss"] for r in records(tmp_path / "straight")] == [r["train_loss"] for r in records(tmp_path / "part")]
+
+
+@requires_modelnet
+def test_checkpoint_is_weights_only_and_evaluable(tmp_path):
+    train(tiny(tmp_path, "run"))
+    state = torch.load(tmp_path / "run" / "best.pt", weights_only=True)
+    assert {"model", "optimizer", "config", "step", "stage"} <= set(state)
+    from vrnet_ext.cli import main
+
+    out = tmp_path / "eval.json"
+    assert main(["eval", "--checkpoint", str(tmp_path / "run" / "best.pt"), "--max-items", "4",
+                 "--data-dir", str(MODELNET_DIR), "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["pairs"] == 4 and result["RMSE(R)"] >= 0 and result["inference_seconds_per_pair"] > 0
+
+
+@requires_modelnet
+def test_ddp_two_cpu_processes_keep_identical_replicas(tmp_path):
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+           "-m", "vrnet_ext.cli", "train", "--preset", "tiny", "--data-dir", str(MODELNET_DIR),
+           "--out-dir", str(tmp_path / "ddp"), "--batch-size", "2", "--no-progress"]
+    result = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    logged = records(tmp_path / "ddp")
+    assert len(logged) == 2 and all(r["world_size"] == 2 for r in logged)
+    assert all(r["replica_max_abs_diff"] == 0.0 for r in logged)
+    assert logged[0]["step"] == 16 // (2 * 2)  # 16 pairs split over 2 ranks, batch 2 each
+
+
+def test_cli_errors_are_readable(tmp_path, capsys):
+    from vrnet_ext.cli import main
+
+    assert main(["train", "--preset", "tiny", "--data-dir", str(tmp_path), "--out-dir", str(tmp_path / "o")]) == 2
+    assert "not found" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["eval"])
