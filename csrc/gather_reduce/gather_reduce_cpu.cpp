@@ -4,6 +4,8 @@
 #include <ATen/ops/zeros.h>
 #include <torch/library.h>
 
+#include <algorithm>
+#include <limits>
 #include <string>
 
 #include "common/common.h"
@@ -19,6 +21,46 @@ Reduce parse_reduce(c10::string_view name) {
   if (name == "sum") return Reduce::kSum;
   if (name == "mean") return Reduce::kMean;
   TORCH_CHECK_VALUE(false, "reduce must be one of 'max', 'min', 'sum', 'mean', got '", std::string(name), "'");
+}
+
+// One (batch, channel) row per task; the reduction is a template parameter so every inner loop
+// is specialised.
+template <typename scalar_t, Reduce R>
+void gather_reduce_rows(const scalar_t* vp, const int64_t* ip, scalar_t* op, int64_t* ap, int64_t B, int64_t C,
+                        int64_t M, int64_t N, int64_t k) {
+  at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t bc = begin; bc < end; ++bc) {
+      const scalar_t* row = vp + bc * M;
+      const int64_t* ib = ip + (bc / C) * N * k;
+      for (int64_t n = 0; n < N; ++n) {
+        const int64_t* nb = ib + n * k;
+        if constexpr (R == Reduce::kMax || R == Reduce::kMin) {
+          // max/min compile to maxss/minss (no data-dependent branch); NaN is tracked on the side
+          // and propagates like torch.max.
+          scalar_t best_v = row[nb[0]];
+          bool has_nan = best_v != best_v;
+          for (int64_t j = 1; j < k; ++j) {
+            const scalar_t v = row[nb[j]];
+            best_v = R == Reduce::kMax ? std::max(best_v, v) : std::min(best_v, v);
+            has_nan |= v != v;
+          }
+          int64_t best = 0;  // first neighbour slot holding the extreme (or the first NaN)
+          if (has_nan) {
+            best_v = std::numeric_limits<scalar_t>::quiet_NaN();
+            while (row[nb[best]] == row[nb[best]]) ++best;
+          } else {
+            while (row[nb[best]] != best_v) ++best;
+          }
+          op[bc * N + n] = best_v;
+          ap[bc * N + n] = best;
+        } else {
+          scalar_t acc = 0;
+          for (int64_t j = 0; j < k; ++j) acc += row[nb[j]];
+          op[bc * N + n] = R == Reduce::kMean ? acc / static_cast<scalar_t>(k) : acc;
+        }
+      }
+    }
+  });
 }
 
 std::tuple<at::Tensor, at::Tensor> gather_reduce_cpu(const at::Tensor& values_in, const at::Tensor& idx_in,
@@ -43,31 +85,12 @@ std::tuple<at::Tensor, at::Tensor> gather_reduce_cpu(const at::Tensor& values_in
     const int64_t* ip = idx.const_data_ptr<int64_t>();
     scalar_t* op = out.mutable_data_ptr<scalar_t>();
     int64_t* ap = keep_arg ? arg.mutable_data_ptr<int64_t>() : nullptr;
-    at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
-      for (int64_t bc = begin; bc < end; ++bc) {
-        const scalar_t* row = vp + bc * M;
-        const int64_t* ib = ip + (bc / C) * N * k;
-        for (int64_t n = 0; n < N; ++n) {
-          const int64_t* nb = ib + n * k;
-          if (keep_arg) {
-            int64_t best = 0;
-            scalar_t best_v = row[nb[0]];
-            for (int64_t j = 1; j < k; ++j) {
-              const scalar_t v = row[nb[j]];
-              // First occurrence wins ties; NaN propagates like torch.max.
-              const bool better = reduce == Reduce::kMax ? (v > best_v) : (v < best_v);
-              if (better || (std::isnan(v) && !std::isnan(best_v))) { best_v = v; best = j; }
-            }
-            op[bc * N + n] = best_v;
-            ap[bc * N + n] = best;
-          } else {
-            scalar_t acc = 0;
-            for (int64_t j = 0; j < k; ++j) acc += row[nb[j]];
-            op[bc * N + n] = reduce == Reduce::kMean ? acc / static_cast<scalar_t>(k) : acc;
-          }
-        }
-      }
-    });
+    switch (reduce) {
+      case Reduce::kMax: gather_reduce_rows<scalar_t, Reduce::kMax>(vp, ip, op, ap, B, C, M, N, k); break;
+      case Reduce::kMin: gather_reduce_rows<scalar_t, Reduce::kMin>(vp, ip, op, ap, B, C, M, N, k); break;
+      case Reduce::kSum: gather_reduce_rows<scalar_t, Reduce::kSum>(vp, ip, op, ap, B, C, M, N, k); break;
+      case Reduce::kMean: gather_reduce_rows<scalar_t, Reduce::kMean>(vp, ip, op, ap, B, C, M, N, k); break;
+    }
   });
   return {out, arg};
 }
