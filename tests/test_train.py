@@ -46,6 +46,7 @@ def test_resume_continues_bit_exactly(tmp_path):
 @requires_modelnet
 def test_checkpoint_is_weights_only_and_evaluable(tmp_path):
     train(tiny(tmp_path, "run"))
+    assert (tmp_path / "run" / "curves.png").stat().st_size > 10_000
     state = torch.load(tmp_path / "run" / "best.pt", weights_only=True)
     assert {"model", "optimizer", "config", "step", "stage"} <= set(state)
     from vrnet_ext.cli import main

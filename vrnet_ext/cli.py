@@ -1,4 +1,4 @@
-"""The ``vrnet`` command line: ``vrnet train``, ``vrnet eval``."""
+"""The ``vrnet`` command line: ``vrnet train``, ``vrnet eval``, ``vrnet plot``."""
 from __future__ import annotations
 
 import argparse
@@ -99,14 +99,27 @@ def _run_eval(args) -> int:
     return 0
 
 
+def _plot_parser(sub) -> None:
+    p = sub.add_parser("plot", help="plot a training run's curves to RUN_DIR/curves.png")
+    p.add_argument("run_dir", help="the --out-dir of `vrnet train`")
+
+
+def _run_plot(args) -> int:
+    from vrnet_ext.plots import plot_metrics
+
+    print(f"wrote {plot_metrics(args.run_dir)}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="vrnet", description="VRNet point-cloud registration (vrnet_ext).")
     sub = parser.add_subparsers(dest="command", required=True)
     _train_parser(sub)
     _eval_parser(sub)
+    _plot_parser(sub)
     args = parser.parse_args(argv)
     try:
-        return {"train": _run_train, "eval": _run_eval}[args.command](args)
+        return {"train": _run_train, "eval": _run_eval, "plot": _run_plot}[args.command](args)
     except (FileNotFoundError, ValueError) as exc:
         print(f"vrnet {args.command}: error: {exc}", file=sys.stderr)
         return 2

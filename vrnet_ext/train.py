@@ -30,6 +30,7 @@ from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.evaluate import evaluate, to_device
 from vrnet_ext.losses import HybridLossWeights, correspondence_loss, hybrid_loss
 from vrnet_ext.model import VRNet, VRNetConfig
+from vrnet_ext.plots import plot_metrics
 from vrnet_ext.runtime import set_flush_denormal
 
 PRESETS = {
@@ -265,4 +266,6 @@ def train(cfg: TrainConfig) -> dict:
                 _log(out_dir, record)
             run.barrier()
         state = None
+    if run.main and record:
+        plot_metrics(out_dir)
     return record

@@ -152,6 +152,7 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
                at::Tensor& dist, at::Tensor& idx) {
   const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2);
   std::vector<scalar_t> qn(N), rn(M);
+  std::vector<Reservoir<scalar_t>> reservoirs(std::min(N, kQueryBlock));
   for (int64_t b = 0; b < B; ++b) {
     const at::Tensor qb = query.select(0, b), rb = ref.select(0, b);
     const scalar_t* qp = qb.const_data_ptr<scalar_t>();
@@ -169,29 +170,35 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
     sq_norms(rp, M, rn);
     scalar_t* d_out = dist.mutable_data_ptr<scalar_t>() + b * N * k;
     int64_t* i_out = idx.mutable_data_ptr<int64_t>() + b * N * k;
-    at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
-      for (int64_t n = begin; n < end; ++n) TopK<scalar_t>{d_out + n * k, i_out + n * k, k}.reset(M);
-    });
     for (int64_t q0 = 0; q0 < N; q0 += kQueryBlock) {
       const int64_t q1 = std::min(N, q0 + kQueryBlock);
       const at::Tensor q_tile = qb.narrow(0, q0, q1 - q0);
+      for (auto& r : reservoirs) r.reset(k);
       for (int64_t r0 = 0; r0 < M; r0 += kRefBlock) {
         const int64_t r1 = std::min(M, r0 + kRefBlock);
-        const at::Tensor dots = at::mm(q_tile, rb.narrow(0, r0, r1 - r0).t());  // (q1-q0, r1-r0)
+        // dots[n, j] = q_n . r_j; then d = |q|^2 + |r|^2 - 2 q.r, clamped at 0.
+        const at::Tensor dots = at::mm(q_tile, rb.narrow(0, r0, r1 - r0).t());
         const scalar_t* dp = dots.const_data_ptr<scalar_t>();
         const int64_t width = r1 - r0;
         at::parallel_for(q0, q1, 16, [&](int64_t begin, int64_t end) {
+          std::vector<scalar_t> row_dist(width);
           for (int64_t n = begin; n < end; ++n) {
-            TopK<scalar_t> top{d_out + n * k, i_out + n * k, k};
             const scalar_t* row = dp + (n - q0) * width;
-            for (int64_t j = 0; j < width; ++j) {
-              const int64_t m = r0 + j;
-              const scalar_t d = std::max<scalar_t>(qn[n] + rn[m] - 2 * row[j], 0);
-              if (d <= top.worst() && !(exclude_self && m == n)) top.push(d, m);
-            }
+            const scalar_t* rn_block = rn.data() + r0;
+            const scalar_t qn_n = qn[n];
+            scalar_t* dst = row_dist.data();
+            for (int64_t j = 0; j < width; ++j) dst[j] = std::max<scalar_t>(qn_n + rn_block[j] - 2 * row[j], 0);
+            // NaN never passes `<= threshold`: the query itself is skipped without a per-candidate test.
+            if (exclude_self && n >= r0 && n < r1) dst[n - r0] = std::numeric_limits<scalar_t>::quiet_NaN();
+            Reservoir<scalar_t>& res = reservoirs[n - q0];
+            for (int64_t j = 0; j < width; ++j)
+              if (dst[j] <= res.threshold) res.add(dst[j], r0 + j);
           }
         });
       }
+      at::parallel_for(q0, q1, 16, [&](int64_t begin, int64_t end) {
+        for (int64_t n = begin; n < end; ++n) reservoirs[n - q0].finish(d_out + n * k, i_out + n * k);
+      });
     }
   }
 }
