@@ -1,5 +1,5 @@
-// CPU kNN: a uniform-grid search for 3-D points and a GEMM-tiled scan with fused top-k for
-// features. Neither materialises the N x M distance matrix.
+// CPU kNN: a uniform-grid search for 3-D points and, for features, GEMM tiles scanned by a
+// per-query reservoir. Neither materialises the N x M distance matrix.
 #include <ATen/ops/empty.h>
 #include <ATen/ops/mm.h>
 #include <ATen/ops/zeros.h>
