@@ -21,7 +21,7 @@ import torch
 from vrnet_ext.losses import HybridLossWeights, correspondence_loss, hybrid_loss
 from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.runtime import set_flush_denormal
-from vrnet_ext.train import PRESETS, _set_stage, _train_mode
+from vrnet_ext.train import PRESETS, set_stage, stage_train_mode
 
 
 def _batch(batch_size: int, points: int, generator: torch.Generator) -> dict:
@@ -37,11 +37,11 @@ def _batch(batch_size: int, points: int, generator: torch.Generator) -> dict:
 
 
 def step_seconds(model: VRNet, batch: dict, stage: int, backend: str, steps: int) -> float:
-    params = _set_stage(model, stage)
+    params = set_stage(model, stage)
     optimizer = torch.optim.Adam(params, lr=1e-4)
     times = []
     for i in range(steps + 1):
-        _train_mode(model, stage)
+        stage_train_mode(model, stage)
         start = time.perf_counter()
         out = model(batch["src"], batch["tgt"], backend=backend)
         if stage == 1:

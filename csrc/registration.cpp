@@ -14,7 +14,7 @@ TORCH_LIBRARY(vrnet_ext, m) {
   m.def("svd3x3(Tensor A) -> (Tensor, Tensor, Tensor)");
   m.def("svd3x3_backward(Tensor grad_U, Tensor grad_S, Tensor grad_V, Tensor U, Tensor S, Tensor V) -> Tensor");
   m.def("kabsch(Tensor src, Tensor tgt, Tensor weights) -> (Tensor, Tensor)");
-  m.def("kabsch_backward(Tensor grad_R, Tensor grad_t, Tensor src, Tensor tgt, Tensor weights, Tensor R) -> (Tensor, Tensor, Tensor)");
+  m.def("kabsch_backward(Tensor grad_R, Tensor grad_t, Tensor src, Tensor tgt, Tensor weights) -> (Tensor, Tensor, Tensor)");
   m.def("pairwise_distance_loss(Tensor x, Tensor y) -> Tensor");
   m.def("pairwise_distance_loss_backward(Tensor grad_loss, Tensor x, Tensor y, Tensor loss) -> (Tensor, Tensor)");
 }

@@ -125,8 +125,8 @@ def _datasets(cfg: TrainConfig):
     return train, val
 
 
-def _set_stage(model: VRNet, stage: int) -> list[torch.nn.Parameter]:
-    """Trainable parameters of a stage; frozen modules are put in eval mode by :func:`_train_mode`."""
+def set_stage(model: VRNet, stage: int) -> list[torch.nn.Parameter]:
+    """Trainable parameters of a stage; frozen modules are put in eval mode by :func:`stage_train_mode`."""
     walk = [model.walk] if model.walk is not None else []
     trainable = model.feature_modules() if stage == 1 else walk
     for module in model.feature_modules() + walk:
@@ -134,7 +134,7 @@ def _set_stage(model: VRNet, stage: int) -> list[torch.nn.Parameter]:
     return [p for m in trainable for p in m.parameters()]
 
 
-def _train_mode(model: VRNet, stage: int) -> None:
+def stage_train_mode(model: VRNet, stage: int) -> None:
     model.train()
     if stage == 2:
         for module in model.feature_modules():
@@ -211,7 +211,7 @@ def train(cfg: TrainConfig) -> dict:
     for stage, epochs, lr in ((1, cfg.stage1_epochs, cfg.lr_stage1), (2, cfg.stage2_epochs, cfg.lr_stage2)):
         if state is not None and (state["stage"] > stage or (state["stage"] == stage and state["epoch"] + 1 >= epochs)):
             continue  # this stage is already complete in the checkpoint
-        params = _set_stage(model, stage)
+        params = set_stage(model, stage)
         optimizer = torch.optim.Adam(params, lr=lr, weight_decay=cfg.weight_decay)
         scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.lr_milestones, cfg.lr_gamma)
         first_epoch, best = 0, float("inf")
@@ -224,7 +224,7 @@ def train(cfg: TrainConfig) -> dict:
             global_epoch = epoch if stage == 1 else cfg.stage1_epochs + epoch
             train_set.set_epoch(global_epoch)
             sampler.set_epoch(global_epoch)
-            _train_mode(model, stage)
+            stage_train_mode(model, stage)
             started, totals, batches = time.time(), {}, 0
             bar = tqdm(loader, desc=f"stage {stage} epoch {epoch + 1}/{epochs}", disable=not (cfg.progress and run.main))
             for batch in bar:

@@ -83,15 +83,14 @@ if has_extension():
         return src.new_empty((src.shape[0], 3, 3)), src.new_empty((src.shape[0], 3))
 
     @torch.library.register_fake("vrnet_ext::kabsch_backward")
-    def _kabsch_backward_fake(grad_R, grad_t, src, tgt, weights, R):
+    def _kabsch_backward_fake(grad_R, grad_t, src, tgt, weights):
         return torch.empty_like(src), torch.empty_like(tgt), torch.empty_like(weights)
 
     def _kabsch_setup_context(ctx, inputs, output):
-        src, tgt, weights = inputs
-        ctx.save_for_backward(src, tgt, weights, output[0])
+        ctx.save_for_backward(*inputs)
 
     def _kabsch_backward(ctx, grad_R, grad_t):
-        src, tgt, weights, R = ctx.saved_tensors
-        return torch.ops.vrnet_ext.kabsch_backward(grad_R, grad_t, src, tgt, weights, R)
+        src, tgt, weights = ctx.saved_tensors
+        return torch.ops.vrnet_ext.kabsch_backward(grad_R, grad_t, src, tgt, weights)
 
     torch.library.register_autograd("vrnet_ext::kabsch", _kabsch_backward, setup_context=_kabsch_setup_context)
