@@ -56,6 +56,7 @@ def test_bad_input(backend):
         ((x, idx + 10), ValueError, "outside"),
         ((x, idx - 11), ValueError, "outside"),
         ((x, idx.to("meta")), ValueError, "idx"),
+        ((x[..., :0], idx[:, :0]), ValueError, "empty"),
     ]
     for args, error, name in cases:
         with pytest.raises(error, match=name):

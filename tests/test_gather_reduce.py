@@ -63,6 +63,7 @@ def test_bad_input(backend):
         ((values, idx[:1]), ValueError, "batch"),
         ((values, idx + 10), ValueError, "outside"),
         ((values, idx[..., :0]), ValueError, "k >= 1"),
+        ((values[..., :0], idx[:, :0]), ValueError, "empty"),
     ]
     for args, error, name in cases:
         with pytest.raises(error, match=name):

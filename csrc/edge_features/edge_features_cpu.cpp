@@ -16,6 +16,7 @@ void check_graph(const at::Tensor& x, const at::Tensor& idx, const char* x_name)
   TORCH_CHECK_VALUE(idx.size(0) == x.size(0), "idx batch (", idx.size(0), ") must match ", x_name, " batch (",
                     x.size(0), ")");
   TORCH_CHECK_VALUE(idx.size(2) >= 1, "idx must have k >= 1 neighbours");
+  TORCH_CHECK_VALUE(x.size(2) > 0 && idx.size(1) > 0, "empty cloud: ", x_name, " has ", x.size(2), " points");
 }
 
 at::Tensor edge_features_cpu(const at::Tensor& x_in, const at::Tensor& idx_in) {

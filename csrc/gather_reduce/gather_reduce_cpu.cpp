@@ -73,6 +73,7 @@ std::tuple<at::Tensor, at::Tensor> gather_reduce_cpu(const at::Tensor& values_in
   TORCH_CHECK_VALUE(idx_in.size(0) == values_in.size(0), "idx batch (", idx_in.size(0),
                     ") must match values batch (", values_in.size(0), ")");
   TORCH_CHECK_VALUE(idx_in.size(2) >= 1, "idx must have k >= 1 neighbours");
+  TORCH_CHECK_VALUE(values_in.size(2) > 0 && idx_in.size(1) > 0, "empty cloud: values has ", values_in.size(2), " points");
   const at::Tensor values = values_in.contiguous(), idx = idx_in.contiguous();
   const int64_t B = values.size(0), C = values.size(1), M = values.size(2);
   const int64_t N = idx.size(1), k = idx.size(2);

@@ -18,6 +18,8 @@ def validate_graph(values: torch.Tensor, idx: torch.Tensor, values_name: str) ->
         raise ValueError(f"idx batch ({idx.shape[0]}) must match {values_name} batch ({values.shape[0]})")
     if idx.shape[2] < 1:
         raise ValueError("idx must have k >= 1 neighbours")
+    if values.shape[2] == 0 or idx.shape[1] == 0:
+        raise ValueError(f"empty cloud: {values_name} has {values.shape[2]} points and idx {idx.shape[1]} rows")
     check_index_range(idx, values.shape[2], "idx")
 
 
