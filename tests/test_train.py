@@ -72,6 +72,18 @@ def test_ddp_two_cpu_processes_keep_identical_replicas(tmp_path):
     assert logged[0]["step"] == 16 // (2 * 2)  # 16 pairs split over 2 ranks, batch 2 each
 
 
+def test_cli_flags_override_the_preset():
+    from vrnet_ext.cli import build_parser, build_train_config
+
+    args = build_parser().parse_args(["train", "--preset", "small", "--flush-denormal", "0", "--batch-size", "3",
+                                      "--classes", "1", "2", "--setting", "PV+RS", "--emb-dims", "64"])
+    cfg = build_train_config(args)
+    assert cfg.flush_denormal is False and cfg.batch_size == 3 and cfg.classes == [1, 2]
+    assert cfg.setting == "PV+RS" and cfg.model["emb_dims"] == 64 and cfg.stage1_epochs == 3
+    default = build_train_config(build_parser().parse_args(["train", "--preset", "small"]))
+    assert default.flush_denormal is True
+
+
 def test_cli_errors_are_readable(tmp_path, capsys):
     from vrnet_ext.cli import main
 

@@ -11,6 +11,15 @@ from pathlib import Path
 from vrnet_ext.data import SETTINGS
 
 
+def _parse_bool(text: str) -> bool:
+    value = text.strip().lower()
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected 1/0/true/false, got {text!r}")
+
+
 def _train_parser(sub) -> None:
     from vrnet_ext.train import PRESETS, TrainConfig
 
@@ -33,6 +42,8 @@ def _train_parser(sub) -> None:
             p.add_argument(flag, choices=("UPC", "UC", "ND"), default=None, help="UPC | UC | ND")
         elif f.name == "backend":
             p.add_argument(flag, choices=("ext", "torch"), default=None, help="compiled ops or pure PyTorch")
+        elif kind is bool:
+            p.add_argument(flag, type=_parse_bool, default=None, help=f"{f.name}: 1/0 (preset default)")
         else:
             base = int if "int" in str(kind) else float if "float" in str(kind) else str
             p.add_argument(flag, type=base, default=None, help=f"{f.name} (preset default)")
@@ -42,8 +53,9 @@ def _train_parser(sub) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
-def _run_train(args) -> int:
-    from vrnet_ext.train import PRESETS, TrainConfig, train
+def build_train_config(args):
+    """TrainConfig from parsed ``vrnet train`` flags: the preset, then every flag given."""
+    from vrnet_ext.train import PRESETS, TrainConfig
 
     overrides = {k: v for k, v in vars(args).items()
                  if k not in ("command", "preset", "emb_dims", "k", "iterations", "no_progress")}
@@ -51,8 +63,13 @@ def _run_train(args) -> int:
     for key in ("emb_dims", "k", "iterations"):
         if getattr(args, key) is not None:
             model[key] = getattr(args, key)
-    cfg = TrainConfig.from_preset(args.preset, model=model, progress=not args.no_progress, **overrides)
-    record = train(cfg)
+    return TrainConfig.from_preset(args.preset, model=model, progress=not args.no_progress, **overrides)
+
+
+def _run_train(args) -> int:
+    from vrnet_ext.train import train
+
+    record = train(build_train_config(args))
     if record:
         print(json.dumps({k: v for k, v in record.items() if k.startswith(("val_RMSE", "val_MAE", "train_loss", "step"))}, indent=1))
     return 0
@@ -111,13 +128,17 @@ def _run_plot(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vrnet", description="VRNet point-cloud registration (vrnet_ext).")
     sub = parser.add_subparsers(dest="command", required=True)
     _train_parser(sub)
     _eval_parser(sub)
     _plot_parser(sub)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     try:
         return {"train": _run_train, "eval": _run_eval, "plot": _run_plot}[args.command](args)
     except (FileNotFoundError, ValueError) as exc:
