@@ -101,8 +101,7 @@ def _run_eval(args) -> int:
     if args.iterations:
         model.config.iterations = args.iterations
     setting, split = args.setting or cfg["setting"], args.split or cfg["split"]
-    spec = PairSpec(num_points=cfg["num_points"], num_subsampled=cfg["num_subsampled"],
-                    pvrs_presample=max(cfg["num_subsampled"], round(cfg["num_points"] * 896 / 1024)))
+    spec = PairSpec(num_points=cfg["num_points"], num_subsampled=cfg["num_subsampled"])
     data = ModelNet40Pairs(args.data_dir or cfg["data_dir"], partition="test", setting=setting, split=split,
                            max_items=args.max_items, seed=cfg["seed"], spec=spec)
     model.to(args.device)

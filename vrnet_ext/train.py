@@ -116,8 +116,7 @@ class _Run:
 
 
 def _datasets(cfg: TrainConfig):
-    spec = dict(num_points=cfg.num_points, num_subsampled=cfg.num_subsampled,
-                pvrs_presample=max(cfg.num_subsampled, round(cfg.num_points * 896 / 1024)))
+    spec = dict(num_points=cfg.num_points, num_subsampled=cfg.num_subsampled)
     common = dict(root=cfg.data_dir, setting=cfg.setting, split=cfg.split, val_fraction=cfg.val_fraction,
                   classes=cfg.classes, seed=cfg.seed)
     train = ModelNet40Pairs(partition="train", max_items=cfg.max_train_items, spec=PairSpec(**spec), **common)

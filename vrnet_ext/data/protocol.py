@@ -29,11 +29,13 @@ class PairSpec:
     noise: bool = False
     num_points: int = 1024
     num_subsampled: int = 768
-    pvrs_presample: int = 896
+    pvrs_presample: int | None = None  # PV+RS random pre-sample; default 896/1024 of num_points
     max_angle_deg: float = 45.0
     max_translation: float = 0.5
 
     def __post_init__(self) -> None:
+        if self.pvrs_presample is None:
+            self.pvrs_presample = max(self.num_subsampled, round(self.num_points * 896 / 1024))
         if self.setting not in SETTINGS:
             raise ValueError(f"setting must be one of {SETTINGS}, got {self.setting!r}")
         if self.setting == "PV+RS" and not self.num_subsampled <= self.pvrs_presample <= self.num_points:

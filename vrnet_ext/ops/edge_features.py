@@ -20,11 +20,14 @@ def validate_graph(values: torch.Tensor, idx: torch.Tensor, values_name: str) ->
         raise ValueError("idx must have k >= 1 neighbours")
     if values.shape[2] == 0 or idx.shape[1] == 0:
         raise ValueError(f"empty cloud: {values_name} has {values.shape[2]} points and idx {idx.shape[1]} rows")
-    check_index_range(idx, values.shape[2], "idx")
 
 
 def gather_neighbours(values: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """(B, C, M), (B, N, k) -> (B, C, N, k) with out[b, c, n, j] = values[b, c, idx[b, n, j]]."""
+    """(B, C, M), (B, N, k) -> (B, C, N, k) with out[b, c, n, j] = values[b, c, idx[b, n, j]].
+
+    The references' gather; it checks the index range itself (the compiled kernels do so in C++).
+    """
+    check_index_range(idx, values.shape[2], "idx")
     B, C, _ = values.shape
     N, k = idx.shape[1:]
     flat = idx.reshape(B, 1, N * k).expand(B, C, N * k)
