@@ -1,13 +1,15 @@
 """Speed and peak memory of every vrnet_ext op against its pure-PyTorch reference.
 
-    python benchmarks/bench_ops.py [--quick] [--json PATH] [--threads 2] [--only knn,kabsch]
+    python benchmarks/bench_ops.py [--quick] [--json PATH] [--threads 2] [--only knn,kabsch] [--device cuda]
 
 Times are medians of repeated forward(+backward) calls after a warm-up, both implementations
-timed in this process. Peak memory is the extra resident memory (VmHWM above the RSS once the
-inputs exist) of one call, measured in a fresh subprocess per case and implementation, so that
-allocator caches of earlier cases do not hide it. Prints a table of ratios and writes JSON
+timed in this process (on CUDA with CUDA events around each call). On CPU, peak memory is the
+extra resident memory (VmHWM above the RSS once the inputs exist) of one call, measured in a fresh
+subprocess per case and implementation, so that allocator caches of earlier cases do not hide it;
+on CUDA it is the peak of the caching allocator above the inputs (torch.cuda.max_memory_allocated).
+The CUDA cases are the sizes of the GPU floors (issue 4). Prints a table of ratios and writes JSON
 records ``{"op", "case", "impl", "median_s", "peak_mb"}``. Optional tools found installed
-(roma) are added as extra implementations.
+(roma, torch_cluster) are added as extra implementations.
 """
 from __future__ import annotations
 
@@ -58,10 +60,22 @@ def _clouds(B, N, C, seed=0):
     return torch.randn(B, N, C, generator=g)
 
 
+def _torch_cluster_knn(k):
+    import torch_cluster
+
+    def run(x):
+        B, N, C = x.shape
+        batch = torch.arange(B, device=x.device).repeat_interleave(N)
+        return torch_cluster.knn(x.reshape(-1, C), x.reshape(-1, C), k, batch, batch)
+    return run
+
+
 def _knn_case(B, N, C, k, quick=True, skip_torch=None):
     def make():
         return (_clouds(B, N, C),)
     impls = {b: (lambda x, b=b: ops.knn(x, x, k, backend=b)) for b in ("ext", "torch")}
+    if importlib.util.find_spec("torch_cluster"):
+        impls["torch_cluster"] = _torch_cluster_knn(k)
     skip = {"torch": skip_torch} if skip_torch else None
     return Case("knn", f"C={C} B={B} N=M={N} k={k}", make, impls, quick, skip)
 
@@ -120,7 +134,25 @@ def _pdl_case(N, quick=True, skip_torch=None):
     return Case("pairwise_distance_loss", f"fwd+bwd B=1 N={N}", make, impls, quick, skip)
 
 
-def all_cases() -> list[Case]:
+def cuda_cases() -> list[Case]:
+    return [
+        _knn_case(8, 16384, 3, 20),
+        _knn_case(1, 100000, 3, 20, skip_torch="the reference needs ~80 GB (two 100k x 100k matrices)"),
+        _knn_case(28, 1024, 64, 20),
+        _knn_case(8, 4096, 64, 20),
+        _graph_case("edge_features", lambda x, i, b: ops.edge_features(x, i, backend=b), 28, 64, 1024, 20),
+        _graph_case("gather_reduce", lambda x, i, b: ops.gather_reduce(x, i, "max", backend=b), 28, 64, 1024, 20),
+        _edge_conv_case(28, 64, 64, 1024, 20),
+        _svd_case(1 << 20),
+        _kabsch_case(1 << 20, 16),
+        _pdl_case(4096),
+        _pdl_case(65536, skip_torch="the reference needs ~70 GB of N x N matrices"),
+    ]
+
+
+def all_cases(device: str = "cpu") -> list[Case]:
+    if device != "cpu":
+        return cuda_cases()
     return [
         _knn_case(1, 16384, 3, 20),
         _knn_case(1, 50000, 3, 20, skip_torch="the reference needs ~20 GB (two 50k x 50k matrices)"),
@@ -136,14 +168,44 @@ def all_cases() -> list[Case]:
     ]
 
 
-def _time(fn, inputs, repeats: int) -> float:
+def to_device(inputs: tuple, device: str) -> tuple:
+    """The case's inputs on ``device`` as leaves (requires_grad kept), modules moved."""
+    moved = []
+    for item in inputs:
+        if isinstance(item, torch.Tensor):
+            item = item.detach().to(device).requires_grad_(item.requires_grad)
+        elif isinstance(item, torch.nn.Module):
+            item = item.to(device)
+        moved.append(item)
+    return tuple(moved)
+
+
+def _time(fn, inputs, repeats: int, device: str) -> float:
     fn(*inputs)  # warm-up
     times = []
     for _ in range(repeats):
-        start = time.perf_counter()
-        fn(*inputs)
-        times.append(time.perf_counter() - start)
+        if device == "cpu":
+            start = time.perf_counter()
+            fn(*inputs)
+            times.append(time.perf_counter() - start)
+        else:
+            begin, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            begin.record()
+            fn(*inputs)
+            end.record()
+            end.synchronize()
+            times.append(begin.elapsed_time(end) / 1000.0)
     return statistics.median(times)
+
+
+def cuda_peak_mb(fn, inputs) -> float:
+    """Peak CUDA memory of one call above what is allocated before it."""
+    torch.cuda.synchronize()
+    torch.cuda.reset_peak_memory_stats()
+    baseline = torch.cuda.memory_allocated()
+    fn(*inputs)
+    torch.cuda.synchronize()
+    return max(0.0, (torch.cuda.max_memory_allocated() - baseline) / 2**20)
 
 
 def _rss_mb(field: str) -> float:
@@ -197,11 +259,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--json", default=None, help="write the records to this JSON file")
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     parser.add_argument("--only", default=None, help="comma-separated op names to run")
-    parser.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocesses")
+    parser.add_argument("--no-memory", action="store_true", help="skip the peak-memory measurements")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where inputs live (default cpu)")
     parser.add_argument("--measure-memory", nargs=3, metavar=("OP", "CASE", "IMPL"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    cases = all_cases()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: no CUDA device is available")
+    cases = all_cases(args.device)
     if args.measure_memory:
         op, name, impl = args.measure_memory
         case = next(c for c in cases if c.op == op and c.name == name)
@@ -212,26 +277,29 @@ def main(argv: list[str] | None = None) -> None:
     repeats = 3 if args.quick else 7
     records = []
     for case in selected:
-        inputs = case.make_inputs()
+        inputs = to_device(case.make_inputs(), args.device)
         for impl, fn in case.impls.items():
             reason = (case.skip or {}).get(impl)
             record = {"op": case.op, "case": case.name, "impl": impl, "median_s": None, "peak_mb": None}
             if reason:
                 record["skipped"] = reason
             else:
-                record["median_s"] = _time(fn, inputs, repeats)
+                record["median_s"] = _time(fn, inputs, repeats, args.device)
                 if not args.no_memory:
-                    record["peak_mb"] = _peak_in_subprocess(case.op, case.name, impl, args.threads)
+                    record["peak_mb"] = (cuda_peak_mb(fn, inputs) if args.device == "cuda"
+                                         else _peak_in_subprocess(case.op, case.name, impl, args.threads))
             records.append(record)
             print(f"{case.op:<24} {case.name:<34} {impl:<6} "
                   + (f"{record['median_s']:.4f} s  {record['peak_mb'] or 0:.1f} MB" if not reason else f"skipped ({reason})"),
                   flush=True)
     print()
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, torch {torch.__version__}, "
-          f"threads {args.threads}, repeats {repeats}")
+    gpu = f", GPU {torch.cuda.get_device_name()}" if args.device == "cuda" else ""
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus{gpu}, torch {torch.__version__}, "
+          f"device {args.device}, threads {args.threads}, repeats {repeats}")
     print(_format_table(records))
     if args.json:
-        meta = {"torch": torch.__version__, "threads": args.threads, "repeats": repeats, "cpu_count": os.cpu_count()}
+        meta = {"torch": torch.__version__, "threads": args.threads, "repeats": repeats, "cpu_count": os.cpu_count(),
+                "device": torch.cuda.get_device_name() if args.device == "cuda" else platform.machine()}
         with open(args.json, "w") as f:
             json.dump([dict(r, **meta) for r in records], f, indent=1)
         print(f"wrote {args.json}")

@@ -1,9 +1,12 @@
 """Time one training step of a VRNet preset with the compiled ops vs ``backend="torch"``.
 
     python benchmarks/bench_train_step.py [--preset paper] [--steps 2] [--stage 1 2] [--json PATH]
+                                          [--device cuda] [--inference-points 768]
 
 Both backends run in this process on the same random pair batch (settings: the preset's batch
-size and point counts), one warm-up step each, then the median of ``--steps`` timed steps.
+size and point counts), one warm-up step each, then the median of ``--steps`` timed steps (on
+CUDA the clock reads follow a device synchronisation). ``--inference-points N`` also times the
+eval-mode forward of one pair of N points (the paper reports 19.9 ms for 768 on a GTX 1080 Ti).
 Denormal flushing (``vrnet_ext.set_flush_denormal``) is on for both backends unless
 ``--no-flush-denormal``. Stage 1 = full backward through DGCNN + Transformer with L0; stage 2 = frozen features, hybrid
 loss through the correction walk and Kabsch.
@@ -36,13 +39,20 @@ def _batch(batch_size: int, points: int, generator: torch.Generator) -> dict:
     return dict(src=src, tgt=tgt, rotation=rotation, translation=translation, gt_idx=gt_idx)
 
 
+def _now(device: torch.device) -> float:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter()
+
+
 def step_seconds(model: VRNet, batch: dict, stage: int, backend: str, steps: int) -> float:
     params = set_stage(model, stage)
     optimizer = torch.optim.Adam(params, lr=1e-4)
+    device = batch["src"].device
     times = []
     for i in range(steps + 1):
         stage_train_mode(model, stage)
-        start = time.perf_counter()
+        start = _now(device)
         out = model(batch["src"], batch["tgt"], backend=backend)
         if stage == 1:
             loss = correspondence_loss(out.matching, batch["gt_idx"])
@@ -53,7 +63,20 @@ def step_seconds(model: VRNet, batch: dict, stage: int, backend: str, steps: int
         loss.backward()
         optimizer.step()
         if i > 0:
-            times.append(time.perf_counter() - start)
+            times.append(_now(device) - start)
+    return statistics.median(times)
+
+
+@torch.no_grad()
+def inference_seconds(model: VRNet, src: torch.Tensor, tgt: torch.Tensor, backend: str, repeats: int = 20) -> float:
+    """Median eval-mode forward time of one pair src (1, N, 3), tgt (1, N, 3) after 3 warm-ups."""
+    model.eval()
+    times = []
+    for i in range(repeats + 3):
+        start = _now(src.device)
+        model(src, tgt, backend=backend)
+        if i >= 3:
+            times.append(_now(src.device) - start)
     return statistics.median(times)
 
 
@@ -64,6 +87,9 @@ def main() -> None:
     parser.add_argument("--stage", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--json", default=None)
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    parser.add_argument("--inference-points", type=int, default=0,
+                        help="also time the forward of one pair of this many points (0: skip)")
     parser.add_argument("--no-flush-denormal", action="store_true",
                         help="leave denormal floats on (slow softmax tails; see vrnet_ext.set_flush_denormal)")
     args = parser.parse_args()
@@ -71,20 +97,29 @@ def main() -> None:
     flush = not args.no_flush_denormal and set_flush_denormal(True)
     preset = PRESETS[args.preset]
     torch.manual_seed(0)
-    model = VRNet(VRNetConfig.from_dict(preset["model"]))
+    device = torch.device(args.device)
+    model = VRNet(VRNetConfig.from_dict(preset["model"])).to(device)
     batch = _batch(preset["batch_size"], preset["num_subsampled"], torch.Generator().manual_seed(0))
+    batch = {key: value.to(device) for key, value in batch.items()}
+    common = {"preset": args.preset, "device": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
+              "threads": args.threads, "flush_denormal": flush, "torch": torch.__version__}
     records = []
     for stage in args.stage:
         row = {}
         for backend in ("ext", "torch"):
             row[backend] = step_seconds(model, batch, stage, backend, args.steps)
-            records.append({"preset": args.preset, "stage": stage, "impl": backend, "median_s": row[backend],
-                            "batch_size": preset["batch_size"], "points": preset["num_subsampled"],
-                            "threads": args.threads, "flush_denormal": flush,
-                            "torch": torch.__version__})
+            records.append({"stage": stage, "impl": backend, "median_s": row[backend],
+                            "batch_size": preset["batch_size"], "points": preset["num_subsampled"], **common})
             print(f"stage {stage} {backend:<5} {row[backend]:.2f} s/step", flush=True)
         print(f"stage {stage}: ext is {row['torch'] / row['ext']:.2f}x faster than backend='torch'")
-    print(f"machine: {platform.machine()}, threads {args.threads}, preset {args.preset} "
+    if args.inference_points:
+        pair = _batch(1, args.inference_points, torch.Generator().manual_seed(1))
+        for backend in ("ext", "torch"):
+            seconds = inference_seconds(model, pair["src"].to(device), pair["tgt"].to(device), backend)
+            records.append({"stage": "inference", "impl": backend, "median_s": seconds, "batch_size": 1,
+                            "points": args.inference_points, **common})
+            print(f"inference, one pair of {args.inference_points} points, {backend:<5} {seconds * 1e3:.2f} ms")
+    print(f"machine: {platform.machine()}, device {common['device']}, threads {args.threads}, preset {args.preset} "
           f"(batch {preset['batch_size']}, {preset['num_subsampled']} points), flush_denormal={flush}")
     if args.json:
         with open(args.json, "w") as f:

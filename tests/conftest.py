@@ -8,9 +8,24 @@ import pytest
 import torch
 
 from vrnet_ext import has_extension
+from vrnet_ext._extension import has_kernel
 
 DTYPES = [torch.float32, torch.float64]
 requires_ext = pytest.mark.skipif(not has_extension(), reason="compiled module vrnet_ext._C is not built")
+
+CUDA_KERNELS = torch.cuda.is_available() and has_kernel(torch.device("cuda"))
+requires_cuda_kernels = pytest.mark.skipif(
+    not CUDA_KERNELS,
+    reason="no CUDA device" if not torch.cuda.is_available() else "vrnet_ext._C was built without CUDA kernels",
+)
+
+
+@pytest.fixture(params=["cpu", pytest.param("cuda", marks=requires_cuda_kernels)])
+def device(request):
+    """Runs a test once per device; tensors the test creates land there (torch default device)."""
+    torch.set_default_device(request.param)
+    yield torch.device(request.param)
+    torch.set_default_device(None)
 
 DATA_DIR = Path(os.environ.get("VRNET_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 MODELNET_DIR = DATA_DIR / "modelnet40"

@@ -12,7 +12,7 @@ def random_graph(B, N, k, M=None):
 @requires_ext
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("B,C,N,k", [(1, 1, 1, 1), (1, 3, 37, 37), (3, 5, 129, 20), (2, 64, 257, 9)])
-def test_forward_backward_parity(dtype, B, C, N, k):
+def test_forward_backward_parity(device, dtype, B, C, N, k):
     x = non_contiguous(torch.randn(B, C, N, dtype=dtype)).requires_grad_()
     idx = random_graph(B, N, k)
     grad = torch.randn(B, 2 * C, N, k, dtype=dtype)
@@ -29,7 +29,7 @@ def test_forward_backward_parity(dtype, B, C, N, k):
 
 
 @requires_ext
-def test_gradcheck_and_opcheck():
+def test_gradcheck_and_opcheck(device):
     x = torch.randn(2, 4, 13, dtype=torch.float64, requires_grad=True)
     idx = random_graph(2, 13, 5)
     assert torch.autograd.gradcheck(lambda t: ops.edge_features(t, idx), (x,))
@@ -37,14 +37,14 @@ def test_gradcheck_and_opcheck():
 
 
 @requires_ext
-def test_torch_compile_fullgraph():
+def test_torch_compile_fullgraph(device):
     x, idx = torch.randn(2, 4, 30), random_graph(2, 30, 6)
     fn = compile_fullgraph(lambda t, i: ops.edge_features(t, i))
     torch.testing.assert_close(fn(x, idx), ops.edge_features(x, idx))
 
 
 @pytest.mark.parametrize("backend", ["ext", "torch"])
-def test_bad_input(backend):
+def test_bad_input(device, backend):
     x, idx = torch.randn(2, 4, 10), random_graph(2, 10, 3)
     cases = [
         ((torch.randn(4, 10), idx), ValueError, "x"),

@@ -11,7 +11,7 @@ REDUCTIONS = ["max", "min", "sum", "mean"]
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("reduce", REDUCTIONS)
 @pytest.mark.parametrize("B,C,M,N,k", [(1, 1, 1, 1, 1), (1, 3, 37, 37, 37), (3, 64, 129, 100, 20), (2, 5, 50, 257, 3)])
-def test_forward_backward_parity(dtype, reduce, B, C, M, N, k):
+def test_forward_backward_parity(device, dtype, reduce, B, C, M, N, k):
     values = non_contiguous(torch.randn(B, C, M, dtype=dtype)).requires_grad_()
     idx = torch.randint(0, M, (B, N, k))
     grad = torch.randn(B, C, N, dtype=dtype)
@@ -28,7 +28,7 @@ def test_forward_backward_parity(dtype, reduce, B, C, M, N, k):
 
 
 @requires_ext
-def test_max_backward_routes_to_first_winner_on_ties():
+def test_max_backward_routes_to_first_winner_on_ties(device):
     values = torch.tensor([[[1.0, 5.0, 5.0, 2.0]]], requires_grad=True)
     idx = torch.tensor([[[2, 1, 0]]])  # neighbours 2 and 1 tie at 5: slot 0 (point 2) wins
     ops.gather_reduce(values, idx, "max").sum().backward()
@@ -37,7 +37,7 @@ def test_max_backward_routes_to_first_winner_on_ties():
 
 @requires_ext
 @pytest.mark.parametrize("reduce", REDUCTIONS)
-def test_gradcheck_and_opcheck(reduce):
+def test_gradcheck_and_opcheck(device, reduce):
     values = torch.randn(2, 3, 11, dtype=torch.float64, requires_grad=True)
     idx = torch.randint(0, 11, (2, 7, 4))
     assert torch.autograd.gradcheck(lambda v: ops.gather_reduce(v, idx, reduce), (values,))
@@ -45,14 +45,14 @@ def test_gradcheck_and_opcheck(reduce):
 
 
 @requires_ext
-def test_torch_compile_fullgraph():
+def test_torch_compile_fullgraph(device):
     values, idx = torch.randn(2, 8, 40), torch.randint(0, 40, (2, 40, 5))
     fn = compile_fullgraph(lambda v, i: ops.gather_reduce(v, i, "max") + ops.gather_reduce(v, i, "mean"))
     torch.testing.assert_close(fn(values, idx), ops.gather_reduce(values, idx, "max") + ops.gather_reduce(values, idx, "mean"))
 
 
 @pytest.mark.parametrize("backend", ["ext", "torch"])
-def test_bad_input(backend):
+def test_bad_input(device, backend):
     values, idx = torch.randn(2, 4, 10), torch.randint(0, 10, (2, 6, 3))
     with pytest.raises(ValueError, match="reduce"):
         ops.gather_reduce(values, idx, "median", backend=backend)

@@ -22,7 +22,7 @@ def transformed(B, N, dtype, noise=0.0):
 @requires_ext
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("B,N", [(1, 3), (5, 37), (64, 1000)])
-def test_recovers_known_transform(dtype, B, N):
+def test_recovers_known_transform(device, dtype, B, N):
     src, tgt, R, t = transformed(B, N, dtype)
     R_est, t_est = ops.kabsch(non_contiguous(src), tgt)
     atol = 1e-4 if dtype == torch.float32 else 1e-10
@@ -32,7 +32,7 @@ def test_recovers_known_transform(dtype, B, N):
 
 
 @requires_ext
-def test_float32_accuracy_against_float64():
+def test_float32_accuracy_against_float64(device):
     src, tgt, _, _ = transformed(4096, 32, torch.float64, noise=0.3)
     R64 = ops.kabsch(src, tgt, backend="torch")[0]
     R32 = ops.kabsch(src.float(), tgt.float())[0]
@@ -41,7 +41,7 @@ def test_float32_accuracy_against_float64():
 
 @requires_ext
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_weighted_parity_and_outlier_rejection(dtype):
+def test_weighted_parity_and_outlier_rejection(device, dtype):
     src, tgt, R, t = transformed(6, 50, dtype, noise=0.05)
     weights = torch.rand(6, 50, dtype=dtype)
     for got, want in zip(ops.kabsch(src, tgt, weights), ops.kabsch(src, tgt, weights, backend="torch")):
@@ -57,7 +57,7 @@ def test_weighted_parity_and_outlier_rejection(dtype):
 
 
 @requires_ext
-def test_reflection_is_fixed():
+def test_reflection_is_fixed(device):
     src = torch.randn(3, 20, 3, dtype=torch.float64)
     tgt = src * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)  # a mirror image
     R, _ = ops.kabsch(src, tgt)
@@ -66,7 +66,7 @@ def test_reflection_is_fixed():
 
 
 @requires_ext
-def test_gradcheck_src_tgt_weights():
+def test_gradcheck_src_tgt_weights(device):
     src, tgt, _, _ = transformed(3, 8, torch.float64, noise=0.2)
     weights = torch.rand(3, 8, dtype=torch.float64) + 0.1
     args = tuple(a.clone().requires_grad_() for a in (src, tgt, weights))
@@ -74,7 +74,7 @@ def test_gradcheck_src_tgt_weights():
 
 
 @requires_ext
-def test_backward_matches_reference():
+def test_backward_matches_reference(device):
     src, tgt, _, _ = transformed(20, 30, torch.float64, noise=0.3)
     weights = torch.rand(20, 30, dtype=torch.float64)
     grads = []
@@ -89,7 +89,7 @@ def test_backward_matches_reference():
 
 @requires_ext
 @pytest.mark.parametrize("case", ["collinear", "duplicate", "planar_symmetric"])
-def test_degenerate_inputs_stay_finite(case):
+def test_degenerate_inputs_stay_finite(device, case):
     if case == "collinear":
         src = torch.linspace(0, 1, 10, dtype=torch.float64).view(1, 10, 1) * torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
     elif case == "duplicate":
@@ -107,7 +107,7 @@ def test_degenerate_inputs_stay_finite(case):
 
 
 @requires_ext
-def test_opcheck_and_compile():
+def test_opcheck_and_compile(device):
     src, tgt, _, _ = transformed(4, 10, torch.float32, noise=0.1)
     weights = torch.rand(4, 10) + 0.1
     opcheck(torch.ops.vrnet_ext.kabsch.default, (src.requires_grad_(), tgt.requires_grad_(), weights.requires_grad_()))
@@ -116,7 +116,7 @@ def test_opcheck_and_compile():
 
 
 @pytest.mark.parametrize("backend", ["ext", "torch"])
-def test_bad_input(backend):
+def test_bad_input(device, backend):
     src = torch.randn(2, 10, 3)
     cases = [
         ((src[0], src), ValueError, "src"),

@@ -26,7 +26,7 @@ def assert_knn_matches(dist, idx, query, ref, k, exclude_self=False):
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("C", [1, 3, 5, 64, 512])
 @pytest.mark.parametrize("B,N,M,k", [(1, 1, 1, 1), (1, 37, 53, 53), (3, 301, 257, 20), (2, 1029, 1100, 7)])
-def test_parity_with_reference(dtype, C, B, N, M, k):
+def test_parity_with_reference(device, dtype, C, B, N, M, k):
     query = torch.randn(B, N, C, dtype=dtype)
     ref = torch.randn(B, M, C, dtype=dtype)
     dist, idx = ops.knn(query, ref, k)
@@ -38,7 +38,7 @@ def test_parity_with_reference(dtype, C, B, N, M, k):
 @requires_ext
 @pytest.mark.parametrize("C", [3, 64])
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_exclude_self_and_non_contiguous(C, dtype):
+def test_exclude_self_and_non_contiguous(device, C, dtype):
     points = non_contiguous(torch.randn(2, 333, C, dtype=dtype))
     dist, idx = ops.knn(points, points, 332, exclude_self=True)
     assert_knn_matches(dist, idx, points, points, 332, exclude_self=True)
@@ -46,28 +46,29 @@ def test_exclude_self_and_non_contiguous(C, dtype):
 
 @requires_ext
 @pytest.mark.parametrize("name", ["sphere_surface", "plane", "clusters", "far_queries", "duplicates"])
-def test_grid_on_awkward_distributions(name):
+def test_grid_on_awkward_distributions(device, name):
     g = torch.Generator().manual_seed(1)
-    ref = torch.randn(1, 3001, 3, generator=g)
-    query = torch.randn(1, 777, 3, generator=g)
+    ref = torch.randn(1, 3001, 3, generator=g, device="cpu")
+    query = torch.randn(1, 777, 3, generator=g, device="cpu")
     if name == "sphere_surface":
         ref = ref / ref.norm(dim=-1, keepdim=True)
     elif name == "plane":
         ref[..., 2] = 0.0
         query[..., 2] = 0.0
     elif name == "clusters":
-        ref = ref * 1e-3 + torch.randint(0, 2, (1, 3001, 1), generator=g) * 100.0
+        ref = ref * 1e-3 + torch.randint(0, 2, (1, 3001, 1), generator=g, device="cpu") * 100.0
     elif name == "far_queries":
         query = query + 50.0
     else:
         ref = ref[:, :10].repeat(1, 300, 1)
+    query, ref = query.to(device), ref.to(device)
     dist, idx = ops.knn(query, ref, 16)
     assert_knn_matches(dist, idx, query, ref, 16)
 
 
 @requires_ext
 @pytest.mark.parametrize("C", [3, 64])
-def test_ties_broken_by_lower_index(C):
+def test_ties_broken_by_lower_index(device, C):
     base = torch.randn(1, 5, C, dtype=torch.float64)
     ref = base.repeat(1, 4, 1)  # every point present 4 times: indices j, j+5, j+10, j+15
     query = base[:, :2]
@@ -80,7 +81,7 @@ def test_ties_broken_by_lower_index(C):
 
 @requires_ext
 @pytest.mark.parametrize("C", [3, 5])
-def test_gradcheck(C):
+def test_gradcheck(device, C):
     query = torch.rand(2, 9, C, dtype=torch.float64, requires_grad=True)
     ref = torch.rand(2, 11, C, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda q, r: ops.knn(q, r, 4)[0], (query, ref))
@@ -88,7 +89,7 @@ def test_gradcheck(C):
 
 @requires_ext
 @pytest.mark.parametrize("C", [3, 64])
-def test_gradient_matches_reference(C):
+def test_gradient_matches_reference(device, C):
     query = torch.randn(2, 100, C, dtype=torch.float64, requires_grad=True)
     ref = torch.randn(2, 120, C, dtype=torch.float64, requires_grad=True)
     weights = torch.randn(2, 100, 8, dtype=torch.float64)
@@ -102,7 +103,7 @@ def test_gradient_matches_reference(C):
 
 @requires_ext
 @pytest.mark.parametrize("C", [3, 7])
-def test_opcheck(C):
+def test_opcheck(device, C):
     query = torch.randn(2, 20, C, requires_grad=True)
     ref = torch.randn(2, 25, C, requires_grad=True)
     opcheck(torch.ops.vrnet_ext.knn.default, (query, ref, 5, False))
@@ -110,14 +111,14 @@ def test_opcheck(C):
 
 
 @requires_ext
-def test_torch_compile_fullgraph():
+def test_torch_compile_fullgraph(device):
     query, ref = torch.randn(2, 50, 3), torch.randn(2, 60, 3)
     fn = compile_fullgraph(lambda q, r: ops.knn(q, r, 6))
     torch.testing.assert_close(fn(query, ref), ops.knn(query, ref, 6))
 
 
 @pytest.mark.parametrize("backend", ["ext", "torch"])
-def test_bad_input(backend):
+def test_bad_input(device, backend):
     good = torch.randn(2, 10, 3)
     cases = [
         ((torch.randn(10, 3), good, 3), ValueError, "query"),

@@ -8,7 +8,7 @@ from vrnet_ext import ops
 @requires_ext
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("B,N", [(1, 2), (3, 37), (2, 1029)])
-def test_forward_backward_parity(dtype, B, N):
+def test_forward_backward_parity(device, dtype, B, N):
     x = non_contiguous(torch.randn(B, N, 3, dtype=dtype)).requires_grad_()
     y = (torch.randn(B, N, 3, dtype=dtype) * 1.5).requires_grad_()
     outs, grads = [], []
@@ -24,7 +24,7 @@ def test_forward_backward_parity(dtype, B, N):
 
 
 @requires_ext
-def test_rigid_motion_gives_zero_loss_and_finite_gradient():
+def test_rigid_motion_gives_zero_loss_and_finite_gradient(device):
     x = torch.randn(2, 100, 3, dtype=torch.float64)
     R = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64)).Q
     y = (x @ R.T + 3.0).requires_grad_()
@@ -35,7 +35,7 @@ def test_rigid_motion_gives_zero_loss_and_finite_gradient():
 
 
 @requires_ext
-def test_coincident_points_have_finite_gradient():
+def test_coincident_points_have_finite_gradient(device):
     x = torch.randn(1, 20, 3, dtype=torch.float64)
     x[0, 5] = x[0, 6] = x[0, 7]
     y = torch.randn(1, 20, 3, dtype=torch.float64)
@@ -47,7 +47,7 @@ def test_coincident_points_have_finite_gradient():
 
 
 @requires_ext
-def test_hand_checkable_value():
+def test_hand_checkable_value(device):
     x = torch.tensor([[[0.0, 0, 0], [1, 0, 0]]], dtype=torch.float64)
     y = torch.tensor([[[0.0, 0, 0], [3, 0, 0]]], dtype=torch.float64)
     # pairs (0,1) and (1,0) differ by 2, the diagonal by 0: sqrt((4 + 4) / 4)
@@ -55,7 +55,7 @@ def test_hand_checkable_value():
 
 
 @requires_ext
-def test_gradcheck_opcheck_compile():
+def test_gradcheck_opcheck_compile(device):
     x = torch.randn(2, 9, 3, dtype=torch.float64, requires_grad=True)
     y = torch.randn(2, 9, 3, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda a, b: ops.pairwise_distance_loss(a, b), (x, y))
@@ -65,7 +65,7 @@ def test_gradcheck_opcheck_compile():
 
 
 @pytest.mark.parametrize("backend", ["ext", "torch"])
-def test_bad_input(backend):
+def test_bad_input(device, backend):
     x = torch.randn(2, 10, 3)
     cases = [
         ((x[0], x), ValueError, "x"),

@@ -15,7 +15,7 @@ def degenerate_matrices(dtype):
 @requires_ext
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("B", [1, 7, 1000])
-def test_decomposition(dtype, B):
+def test_decomposition(device, dtype, B):
     A = non_contiguous(torch.randn(B, 3, 3, dtype=dtype))
     U, S, V = ops.svd3x3(A)
     tol = tolerances(dtype)
@@ -29,7 +29,7 @@ def test_decomposition(dtype, B):
 
 @requires_ext
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_degenerate_matrices(dtype):
+def test_degenerate_matrices(device, dtype):
     A = degenerate_matrices(dtype).requires_grad_()
     U, S, V = ops.svd3x3(A)
     torch.testing.assert_close(U @ torch.diag_embed(S) @ V.mT, A.detach(), rtol=1e-5, atol=1e-5)
@@ -39,7 +39,7 @@ def test_degenerate_matrices(dtype):
 
 
 @requires_ext
-def test_gradcheck_gauge_invariant_outputs():
+def test_gradcheck_gauge_invariant_outputs(device):
     A = torch.randn(4, 3, 3, dtype=torch.float64, requires_grad=True)
 
     def invariants(M):  # S, U V^T and U diag(S) V^T do not depend on the sign of (u_i, v_i)
@@ -50,7 +50,7 @@ def test_gradcheck_gauge_invariant_outputs():
 
 
 @requires_ext
-def test_backward_matches_reference():
+def test_backward_matches_reference(device):
     A = torch.randn(50, 3, 3, dtype=torch.float64, requires_grad=True)
     grads = []
     for backend in ("ext", "torch"):
@@ -62,7 +62,7 @@ def test_backward_matches_reference():
 
 
 @requires_ext
-def test_opcheck_and_compile():
+def test_opcheck_and_compile(device):
     A = torch.randn(5, 3, 3, requires_grad=True)
     opcheck(torch.ops.vrnet_ext.svd3x3.default, (A,))
     fn = compile_fullgraph(lambda m: ops.svd3x3(m)[1])
@@ -70,7 +70,7 @@ def test_opcheck_and_compile():
 
 
 @pytest.mark.parametrize("backend", ["ext", "torch"])
-def test_bad_input(backend):
+def test_bad_input(device, backend):
     for bad, error in [(torch.randn(3, 3), ValueError), (torch.randn(2, 3, 4), ValueError),
                        (torch.randn(2, 4, 3), ValueError), (torch.ones(2, 3, 3, dtype=torch.int32), TypeError),
                        (torch.randn(2, 3, 3).half(), TypeError)]:

@@ -1,11 +1,20 @@
-// Shared helpers for the vrnet_ext CPU kernels: argument checks that raise Python
-// ValueError/TypeError naming the argument, and a parallel finiteness scan.
+// Shared helpers for the vrnet_ext kernels: argument checks that raise Python ValueError/TypeError
+// naming the argument (one implementation for CPU and CUDA tensors), and the host/device marker
+// for math shared by the CPU and CUDA kernels.
 #pragma once
 
 #include <ATen/core/Tensor.h>
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/aminmax.h>
+#include <ATen/ops/isfinite.h>
 #include <c10/util/Exception.h>
+
+#ifdef __CUDACC__
+#define VRNET_HOST_DEVICE __host__ __device__
+#else
+#define VRNET_HOST_DEVICE
+#endif
 
 #include <atomic>
 #include <cmath>
@@ -14,7 +23,12 @@
 namespace vrnet {
 
 // Raises ValueError (via TORCH_CHECK_VALUE) if any element of a floating tensor is NaN/Inf.
+// On an accelerator this is one reduction and one synchronisation.
 inline void check_finite(const at::Tensor& t, const char* name) {
+  if (!t.is_cpu()) {
+    TORCH_CHECK_VALUE(t.numel() == 0 || at::isfinite(t).all().item<bool>(), name, " contains NaN or Inf values");
+    return;
+  }
   const at::Tensor c = t.contiguous();
   std::atomic<bool> bad{false};
   AT_DISPATCH_FLOATING_TYPES(c.scalar_type(), "check_finite", [&] {
@@ -37,12 +51,26 @@ inline void check_index(const at::Tensor& t, const char* name) {
   TORCH_CHECK_TYPE(t.scalar_type() == at::kLong, name, " must be int64, got ", t.scalar_type());
 }
 
+// Raises ValueError unless `t` lives on the device of `first` (kernels read both directly).
+inline void check_same_device(const at::Tensor& first, const char* first_name, const at::Tensor& t,
+                              const char* name) {
+  TORCH_CHECK_VALUE(t.device() == first.device(), name, " is on ", t.device(), " but ", first_name, " is on ",
+                    first.device());
+}
+
 inline void check_dim(const at::Tensor& t, int64_t dim, const char* name, const char* shape) {
   TORCH_CHECK_VALUE(t.dim() == dim, name, " must have shape ", shape, ", got ", t.sizes());
 }
 
 // Raises ValueError if an index tensor holds values outside [0, upper).
 inline void check_index_range(const at::Tensor& idx, int64_t upper, const char* name) {
+  if (!idx.is_cpu()) {
+    if (idx.numel() == 0) return;
+    const auto [lo, hi] = at::aminmax(idx);
+    TORCH_CHECK_VALUE(lo.item<int64_t>() >= 0 && hi.item<int64_t>() < upper, name, " holds indices outside [0, ",
+                      upper, ")");
+    return;
+  }
   const at::Tensor c = idx.contiguous();
   const int64_t* p = c.const_data_ptr<int64_t>();
   std::atomic<bool> bad{false};

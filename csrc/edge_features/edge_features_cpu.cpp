@@ -3,29 +3,15 @@
 #include <ATen/ops/zeros.h>
 #include <torch/library.h>
 
-#include "common/common.h"
+#include "edge_features/edge_features.h"
 
 namespace vrnet {
 namespace {
 
-void check_graph(const at::Tensor& x, const at::Tensor& idx, const char* x_name) {
-  check_float(x, x_name);
-  check_index(idx, "idx");
-  check_dim(x, 3, x_name, "(B, C, N)");
-  check_dim(idx, 3, "idx", "(B, N, k)");
-  TORCH_CHECK_VALUE(idx.size(0) == x.size(0), "idx batch (", idx.size(0), ") must match ", x_name, " batch (",
-                    x.size(0), ")");
-  TORCH_CHECK_VALUE(idx.size(2) >= 1, "idx must have k >= 1 neighbours");
-  TORCH_CHECK_VALUE(x.size(2) > 0 && idx.size(1) > 0, "empty cloud: ", x_name, " has ", x.size(2), " points");
-}
-
 at::Tensor edge_features_cpu(const at::Tensor& x_in, const at::Tensor& idx_in) {
-  check_graph(x_in, idx_in, "x");
-  TORCH_CHECK_VALUE(idx_in.size(1) == x_in.size(2), "idx must have shape (B, N, k) with N = ", x_in.size(2),
-                    ", got ", idx_in.sizes());
+  check_edge_features_inputs(x_in, idx_in);
   const at::Tensor x = x_in.contiguous(), idx = idx_in.contiguous();
   const int64_t B = x.size(0), C = x.size(1), N = x.size(2), k = idx.size(2);
-  check_index_range(idx, N, "idx");
   at::Tensor out = at::empty({B, 2 * C, N, k}, x.options());
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "edge_features_cpu", [&] {
     const scalar_t* xp = x.const_data_ptr<scalar_t>();

@@ -6,22 +6,11 @@
 
 #include <algorithm>
 #include <limits>
-#include <string>
 
-#include "common/common.h"
+#include "gather_reduce/gather_reduce.h"
 
 namespace vrnet {
 namespace {
-
-enum class Reduce { kMax, kMin, kSum, kMean };
-
-Reduce parse_reduce(c10::string_view name) {
-  if (name == "max") return Reduce::kMax;
-  if (name == "min") return Reduce::kMin;
-  if (name == "sum") return Reduce::kSum;
-  if (name == "mean") return Reduce::kMean;
-  TORCH_CHECK_VALUE(false, "reduce must be one of 'max', 'min', 'sum', 'mean', got '", std::string(name), "'");
-}
 
 // One (batch, channel) row per task; the reduction is a template parameter so every inner loop
 // is specialised.
@@ -66,18 +55,10 @@ void gather_reduce_rows(const scalar_t* vp, const int64_t* ip, scalar_t* op, int
 std::tuple<at::Tensor, at::Tensor> gather_reduce_cpu(const at::Tensor& values_in, const at::Tensor& idx_in,
                                                      c10::string_view reduce_name) {
   const Reduce reduce = parse_reduce(reduce_name);
-  check_float(values_in, "values");
-  check_index(idx_in, "idx");
-  check_dim(values_in, 3, "values", "(B, C, M)");
-  check_dim(idx_in, 3, "idx", "(B, N, k)");
-  TORCH_CHECK_VALUE(idx_in.size(0) == values_in.size(0), "idx batch (", idx_in.size(0),
-                    ") must match values batch (", values_in.size(0), ")");
-  TORCH_CHECK_VALUE(idx_in.size(2) >= 1, "idx must have k >= 1 neighbours");
-  TORCH_CHECK_VALUE(values_in.size(2) > 0 && idx_in.size(1) > 0, "empty cloud: values has ", values_in.size(2), " points");
+  check_gather_reduce_inputs(values_in, idx_in);
   const at::Tensor values = values_in.contiguous(), idx = idx_in.contiguous();
   const int64_t B = values.size(0), C = values.size(1), M = values.size(2);
   const int64_t N = idx.size(1), k = idx.size(2);
-  check_index_range(idx, M, "idx");
   const bool keep_arg = reduce == Reduce::kMax || reduce == Reduce::kMin;
   at::Tensor out = at::empty({B, C, N}, values.options());
   at::Tensor arg = at::empty({keep_arg ? B : 0, C, N}, values.options().dtype(at::kLong));

@@ -205,17 +205,8 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
 
 std::tuple<at::Tensor, at::Tensor> knn_cpu(const at::Tensor& query_in, const at::Tensor& ref_in,
                                            int64_t k, bool exclude_self) {
-  check_float(query_in, "query");
-  check_float(ref_in, "ref");
-  check_dim(query_in, 3, "query", "(B, N, C)");
-  check_dim(ref_in, 3, "ref", "(B, M, C)");
-  TORCH_CHECK_TYPE(query_in.scalar_type() == ref_in.scalar_type(), "query and ref must share a dtype");
-  const int64_t B = query_in.size(0), N = query_in.size(1), M = ref_in.size(1), C = query_in.size(2);
-  TORCH_CHECK_VALUE(ref_in.size(0) == B && ref_in.size(2) == C, "ref must have shape (B, M, C) = (", B,
-                    ", M, ", C, "), got ", ref_in.sizes());
-  const int64_t available = exclude_self ? M - 1 : M;
-  TORCH_CHECK_VALUE(k >= 1 && k <= available, "k must be in [1, ", available, "], got ", k);
-  TORCH_CHECK_VALUE(!exclude_self || N == M, "exclude_self=True needs query and ref to be the same cloud");
+  check_knn_inputs(query_in, ref_in, k, exclude_self);
+  const int64_t B = query_in.size(0), N = query_in.size(1), C = query_in.size(2);
   const at::Tensor query = query_in.contiguous(), ref = ref_in.contiguous();
   check_finite(query, "query");
   check_finite(ref, "ref");

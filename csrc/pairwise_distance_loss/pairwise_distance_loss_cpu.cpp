@@ -6,7 +6,7 @@
 
 #include <vector>
 
-#include "common/common.h"
+#include "pairwise_distance_loss/pairwise_distance_loss.h"
 
 namespace vrnet {
 namespace {
@@ -19,12 +19,7 @@ inline double pair_dist(const scalar_t* p, int64_t i, int64_t j) {
 }
 
 at::Tensor pairwise_distance_loss_cpu(const at::Tensor& x_in, const at::Tensor& y_in) {
-  check_float(x_in, "x");
-  check_float(y_in, "y");
-  TORCH_CHECK_VALUE(x_in.dim() == 3 && x_in.size(2) == 3, "x must have shape (B, N, 3), got ", x_in.sizes());
-  TORCH_CHECK_VALUE(y_in.sizes() == x_in.sizes(), "y must have the shape of x ", x_in.sizes(), ", got ", y_in.sizes());
-  TORCH_CHECK_TYPE(x_in.scalar_type() == y_in.scalar_type(), "x and y must share a dtype");
-  TORCH_CHECK_VALUE(x_in.size(1) >= 2, "x needs at least 2 points per cloud, got ", x_in.size(1));
+  check_pairwise_distance_loss_inputs(x_in, y_in);
   const at::Tensor x = x_in.contiguous(), y = y_in.contiguous();
   check_finite(x, "x");
   check_finite(y, "y");

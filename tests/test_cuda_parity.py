@@ -1,0 +1,112 @@
+"""CUDA kernels against the CPU kernels on the same inputs: outputs, gradients, determinism.
+
+Comparisons against the pure-PyTorch references on CUDA live in each op's own test file (they run
+once per device through the ``device`` fixture)."""
+import pytest
+import torch
+
+from conftest import DTYPES, requires_cuda_kernels, tolerances
+from vrnet_ext import ops
+
+pytestmark = requires_cuda_kernels
+
+
+def run_both(fn, *inputs):
+    """fn's outputs and input gradients (backward of a fixed random projection) on CPU and CUDA."""
+    results = []
+    projection = None
+    for device in ("cpu", "cuda"):
+        args = [t.detach().to(device).requires_grad_(t.is_floating_point()) for t in inputs]
+        outs = fn(*args)
+        outs = outs if isinstance(outs, tuple) else (outs,)
+        floats = [o for o in outs if o.is_floating_point()]
+        if projection is None:
+            projection = [torch.randn(o.shape, dtype=o.dtype, device="cpu") for o in floats]
+        loss = sum((o * p.to(device)).sum() for o, p in zip(floats, projection))
+        grads = torch.autograd.grad(loss, [a for a in args if a.requires_grad])
+        results.append(([o.cpu() for o in outs], [g.cpu() for g in grads]))
+    return results
+
+
+def assert_parity(fn, *inputs, exact_outputs=False):
+    (cpu_out, cpu_grad), (cuda_out, cuda_grad) = run_both(fn, *inputs)
+    tol = tolerances(inputs[0].dtype)
+    for a, b in zip(cpu_out, cuda_out):
+        if exact_outputs or not a.is_floating_point():
+            assert torch.equal(a, b)
+        else:
+            torch.testing.assert_close(b, a, **tol)
+    for a, b in zip(cpu_grad, cuda_grad):
+        torch.testing.assert_close(b, a, rtol=tol["rtol"] * 10, atol=tol["atol"] * 10)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("B,N,M,k", [(1, 1, 1, 1), (2, 301, 257, 20), (1, 700, 650, 64), (3, 97, 130, 129)])
+def test_knn_3d_identical_to_cpu(dtype, B, N, M, k):
+    """C = 3 uses exact differences on both devices: same distances and indices, bit for bit."""
+    query, ref = torch.randn(B, N, 3, dtype=dtype), torch.randn(B, M, 3, dtype=dtype)
+    assert_parity(lambda q, r: ops.knn(q, r, k), query, ref, exact_outputs=True)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("C,B,N,M,k", [(64, 2, 1029, 1100, 20), (5, 1, 37, 53, 53), (512, 3, 100, 300, 16)])
+def test_knn_features_match_cpu(dtype, C, B, N, M, k):
+    query, ref = torch.randn(B, N, C, dtype=dtype), torch.randn(B, M, C, dtype=dtype)
+    cpu = ops.knn(query, ref, k)
+    cuda = ops.knn(query.cuda(), ref.cuda(), k)
+    torch.testing.assert_close(cuda[0].cpu(), cpu[0], **tolerances(dtype))
+    differ = cuda[1].cpu() != cpu[1]
+    if differ.any():  # dot products round differently on the GPU: only near-ties may swap
+        assert (cpu[0][differ] - cuda[0].cpu()[differ]).abs().max() <= 1e-4 * (1 + cpu[0].abs().max())
+
+
+def test_knn_exclude_self_and_chunking():
+    """Many queries and refs: the feature path runs over several dot-product chunks."""
+    points = torch.randn(4, 3000, 8)
+    cpu = ops.knn(points, points, 10, exclude_self=True)
+    cuda = ops.knn(points.cuda(), points.cuda(), 10, exclude_self=True)
+    torch.testing.assert_close(cuda[0].cpu(), cpu[0], **tolerances(torch.float32))
+    assert not bool((cuda[1].cpu() == torch.arange(3000).view(1, -1, 1)).any())
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("B,C,N,k", [(1, 1, 1, 1), (3, 5, 129, 20), (2, 64, 257, 9)])
+def test_edge_features_and_gather_reduce(dtype, B, C, N, k):
+    x = torch.randn(B, C, N, dtype=dtype)
+    idx = torch.randint(0, N, (B, N, k))
+    assert_parity(lambda t, i: ops.edge_features(t, i), x, idx, exact_outputs=True)
+    for reduce in ("max", "min", "sum", "mean"):
+        assert_parity(lambda t, i: ops.gather_reduce(t, i, reduce), x, idx)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_svd3x3_and_kabsch(dtype):
+    A = torch.randn(1001, 3, 3, dtype=dtype)
+    U, S, V = ops.svd3x3(A.cuda())
+    torch.testing.assert_close((U @ torch.diag_embed(S) @ V.mT).cpu(), A, **tolerances(dtype))
+    torch.testing.assert_close(S.cpu(), ops.svd3x3(A)[1], **tolerances(dtype))
+    for B, N in [(1, 3), (257, 37), (2, 5000)]:
+        src, tgt = torch.randn(B, N, 3, dtype=dtype), torch.randn(B, N, 3, dtype=dtype)
+        weights = torch.rand(B, N, dtype=dtype)
+        assert_parity(lambda s, g, w: ops.kabsch(s, g, w), src, tgt, weights)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("B,N", [(1, 2), (3, 37), (2, 1029)])
+def test_pairwise_distance_loss(dtype, B, N):
+    x, y = torch.randn(B, N, 3, dtype=dtype), torch.randn(B, N, 3, dtype=dtype)
+    assert_parity(lambda a, b: ops.pairwise_distance_loss(a, b), x, y)
+
+
+def test_backward_is_deterministic():
+    """No atomics in any backward: two runs give bit-identical gradients."""
+    x = torch.randn(2, 16, 500, device="cuda", requires_grad=True)
+    idx = torch.randint(0, 500, (2, 500, 20), device="cuda")
+    points = torch.randn(2, 500, 3, device="cuda", requires_grad=True)
+    runs = []
+    for _ in range(2):
+        loss = (ops.edge_features(x, idx).sin().sum() + ops.gather_reduce(x, idx, "max").sum()
+                + ops.knn(points, points, 16)[0].sum() + ops.kabsch(points, points.flip(1))[0].sum())
+        runs.append(torch.autograd.grad(loss, (x, points)))
+    for a, b in zip(*runs):
+        assert torch.equal(a, b)
