@@ -10,11 +10,7 @@
 #include <ATen/ops/isfinite.h>
 #include <c10/util/Exception.h>
 
-#ifdef __CUDACC__
-#define VRNET_HOST_DEVICE __host__ __device__
-#else
-#define VRNET_HOST_DEVICE
-#endif
+#include "common/host_device.h"
 
 #include <atomic>
 #include <cmath>

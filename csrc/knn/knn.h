@@ -1,5 +1,5 @@
-// k-nearest-neighbour search shared pieces: argument checks, a bounded sorted top-k buffer (CPU and
-// CUDA), and the CPU candidate reservoir.
+// k-nearest-neighbour search shared pieces: argument checks and the CPU candidate reservoir (the
+// top-k buffers are in knn/topk.h).
 #pragma once
 
 #include <algorithm>
@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "common/common.h"
+#include "knn/topk.h"
 
 namespace vrnet {
 
@@ -30,39 +31,9 @@ inline void check_knn_inputs(const at::Tensor& query, const at::Tensor& ref, int
   TORCH_CHECK_VALUE(!exclude_self || N == M, "exclude_self=True needs query and ref to be the same cloud");
   TORCH_CHECK_VALUE(query.is_cpu() || k <= kCudaMaxK, "k must be at most ", kCudaMaxK, " on ", query.device(),
                     ", got ", k);
+  TORCH_CHECK_VALUE(query.is_cpu() || M < (int64_t(1) << 31), "ref must have fewer than 2^31 points on ",
+                    query.device(), ", got ", M);
 }
-
-// Sorted (ascending by distance, ties by lower index) buffer of the k best candidates,
-// stored in caller-owned arrays of length k. Entries start at (+inf, sentinel).
-template <typename scalar_t>
-struct TopK {
-  scalar_t* dist;
-  int64_t* idx;
-  int64_t k;
-
-  VRNET_HOST_DEVICE void reset(int64_t sentinel) {
-    for (int64_t i = 0; i < k; ++i) {
-      dist[i] = std::numeric_limits<scalar_t>::infinity();
-      idx[i] = sentinel;
-    }
-  }
-  VRNET_HOST_DEVICE static bool less(scalar_t da, int64_t ia, scalar_t db, int64_t ib) {
-    return da < db || (da == db && ia < ib);
-  }
-  VRNET_HOST_DEVICE scalar_t worst() const { return dist[k - 1]; }
-  // Inserts (d, j) if it beats the current k-th entry.
-  VRNET_HOST_DEVICE void push(scalar_t d, int64_t j) {
-    if (!less(d, j, dist[k - 1], idx[k - 1])) return;
-    int64_t pos = k - 1;
-    while (pos > 0 && less(d, j, dist[pos - 1], idx[pos - 1])) {
-      dist[pos] = dist[pos - 1];
-      idx[pos] = idx[pos - 1];
-      --pos;
-    }
-    dist[pos] = d;
-    idx[pos] = j;
-  }
-};
 
 // Candidate buffer for scans over many candidates: anything at or below the threshold is appended;
 // when the buffer fills, nth_element keeps the k best by (distance, index) and the threshold drops

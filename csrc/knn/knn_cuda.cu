@@ -1,5 +1,6 @@
 // CUDA kNN. C = 3: one thread per query scans the reference cloud in shared-memory tiles and keeps
-// its top-k in a per-thread sorted buffer (exact differences, as the CPU grid search). Other C:
+// its top-k in a register-resident sorted buffer (RegisterTopK; exact differences, as the CPU grid
+// search). Other C:
 // cuBLAS dot products over bounded chunks of the reference cloud (never the N x M matrix), each
 // chunk scanned by a kernel that merges it into the running per-query top-k. Same results and
 // tie-breaking (ascending distance, then lower index) as the CPU kernel; the backward gathers
@@ -24,6 +25,17 @@ __device__ inline scalar_t sq_dist3(scalar_t qx, scalar_t qy, scalar_t qz, const
   return add_rn(add_rn(mul_rn(dx, dx), mul_rn(dy, dy)), mul_rn(dz, dz));
 }
 
+// The first k entries of a buffer to global memory (the guard keeps the indices compile-time).
+template <typename scalar_t, int KMAX>
+__device__ inline void store(const RegisterTopK<scalar_t, KMAX>& top, int64_t k, scalar_t* dist, int64_t* idx) {
+  VRNET_UNROLL
+  for (int j = 0; j < KMAX; ++j)
+    if (j < k) {
+      dist[j] = top.dist[j];
+      idx[j] = top.idx[j];
+    }
+}
+
 template <typename scalar_t, int KMAX>
 __global__ void knn3_kernel(const scalar_t* __restrict__ query, const scalar_t* __restrict__ ref, int64_t N,
                             int64_t M, int64_t k, bool exclude_self, scalar_t* __restrict__ dist_out,
@@ -32,10 +44,8 @@ __global__ void knn3_kernel(const scalar_t* __restrict__ query, const scalar_t* 
   const int64_t b = blockIdx.y;
   const int64_t n = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   const bool active = n < N;
-  scalar_t best_dist[KMAX];
-  int64_t best_idx[KMAX];
-  TopK<scalar_t> top{best_dist, best_idx, k};
-  top.reset(M);
+  RegisterTopK<scalar_t, KMAX> top;
+  top.reset(static_cast<int32_t>(M));
   scalar_t worst = top.worst();
   scalar_t qx = 0, qy = 0, qz = 0;
   if (active) {
@@ -54,16 +64,12 @@ __global__ void knn3_kernel(const scalar_t* __restrict__ query, const scalar_t* 
     for (int j = 0; j < count; ++j) {
       const scalar_t d = sq_dist3(qx, qy, qz, tile + 3 * j);
       if (d <= worst && r0 + j != self) {
-        top.push(d, r0 + j);
+        top.push(d, static_cast<int32_t>(r0 + j));
         worst = top.worst();
       }
     }
   }
-  if (!active) return;
-  for (int64_t j = 0; j < k; ++j) {
-    dist_out[(b * N + n) * k + j] = best_dist[j];
-    idx_out[(b * N + n) * k + j] = best_idx[j];
-  }
+  if (active) store(top, k, dist_out + (b * N + n) * k, idx_out + (b * N + n) * k);
 }
 
 // Merges one chunk of dot products dots[b, j, n] = ref[b, r0 + j] . query[b, q0 + n] into the
@@ -77,18 +83,17 @@ __global__ void knn_chunk_kernel(const scalar_t* __restrict__ dots, const scalar
   const int64_t local = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (local >= query_count) return;
   const int64_t n = q0 + local;
-  scalar_t best_dist[KMAX];
-  int64_t best_idx[KMAX];
-  TopK<scalar_t> top{best_dist, best_idx, k};
+  RegisterTopK<scalar_t, KMAX> top;
+  top.reset(static_cast<int32_t>(M));
   scalar_t* d_row = dist_out + (b * N + n) * k;
   int64_t* i_row = idx_out + (b * N + n) * k;
-  if (r0 == 0) {
-    top.reset(M);
-  } else {
-    for (int64_t j = 0; j < k; ++j) {
-      best_dist[j] = d_row[j];
-      best_idx[j] = i_row[j];
-    }
+  if (r0 > 0) {  // the k best of the earlier chunks (the other KMAX - k slots stay empty)
+    VRNET_UNROLL
+    for (int j = 0; j < KMAX; ++j)
+      if (j < k) {
+        top.dist[j] = d_row[j];
+        top.idx[j] = static_cast<int32_t>(i_row[j]);
+      }
   }
   scalar_t worst = top.worst();
   const scalar_t qn = query_norm[b * N + n];
@@ -99,14 +104,11 @@ __global__ void knn_chunk_kernel(const scalar_t* __restrict__ dots, const scalar
     scalar_t d = sub_rn(add_rn(qn, ref_norm[b * M + m]), mul_rn(scalar_t(2), col[j * query_count]));
     d = d > scalar_t(0) ? d : scalar_t(0);
     if (d <= worst && !(exclude_self && m == n)) {
-      top.push(d, m);
+      top.push(d, static_cast<int32_t>(m));
       worst = top.worst();
     }
   }
-  for (int64_t j = 0; j < k; ++j) {
-    d_row[j] = best_dist[j];
-    i_row[j] = best_idx[j];
-  }
+  store(top, k, d_row, i_row);
 }
 
 // Calls fn.template operator()<KMAX>() with the smallest buffer size that holds k.
