@@ -48,3 +48,35 @@ def plot_metrics(run_dir: str | Path) -> Path:
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
+
+
+def plot_registration(src, tgt, transforms: dict, path: str | Path, max_points: int = 20000, seed: int = 0) -> Path:
+    """Top and side views of the target (grey) with the source moved by each named 4x4 transform.
+
+    src (N, 3), tgt (M, 3) numpy arrays; ``transforms`` maps a label ("initial", "final", ...) to a
+    (4, 4) array. Clouds are randomly thinned to ``max_points`` for drawing.
+    """
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+
+    def thin(points):
+        return points[rng.choice(len(points), max_points, replace=False)] if len(points) > max_points else points
+
+    src, tgt = thin(src), thin(tgt)
+    views = (("top view (x, y)", 0, 1), ("side view (x, z)", 0, 2))
+    fig, axes = plt.subplots(len(transforms), 2, figsize=(12, 5.5 * len(transforms)), squeeze=False)
+    for row, (label, T) in enumerate(transforms.items()):
+        moved = src @ T[:3, :3].T + T[:3, 3]
+        for col, (title, a, b) in enumerate(views):
+            ax = axes[row][col]
+            ax.scatter(tgt[:, a], tgt[:, b], s=0.2, c="0.6", label="target", rasterized=True)
+            ax.scatter(moved[:, a], moved[:, b], s=0.2, c="tab:red", label=f"source ({label})", rasterized=True)
+            ax.set_aspect("equal")
+            ax.set_title(f"{label}: {title}")
+            ax.legend(loc="upper right", markerscale=20)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

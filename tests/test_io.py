@@ -1,0 +1,107 @@
+import numpy as np
+import pytest
+
+from conftest import DATA_DIR
+from vrnet_ext.io import PointCloudError, read_points, read_transform, write_ply
+
+SCENES = DATA_DIR / "scenes"
+
+
+@pytest.fixture
+def points():
+    return np.random.default_rng(0).normal(size=(57, 3)).astype(np.float32)
+
+
+def test_ply_binary_round_trip(tmp_path, points):
+    write_ply(tmp_path / "a.ply", points)
+    np.testing.assert_array_equal(read_points(tmp_path / "a.ply"), points)
+
+
+def test_ply_ascii_with_other_elements_and_properties(tmp_path, points):
+    header = ("ply\nformat ascii 1.0\ncomment made by hand\nelement camera 2\nproperty float px\n"
+              f"element vertex {len(points)}\nproperty uchar red\nproperty double z\nproperty float y\n"
+              "property float x\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n")
+    rows = "1.5\n2.5\n" + "".join(f"7 {z!r} {y!r} {x!r}\n" for x, y, z in points.tolist()) + "3 0 1 2\n"
+    (tmp_path / "b.ply").write_text(header + rows)
+    np.testing.assert_allclose(read_points(tmp_path / "b.ply"), points, rtol=1e-6)
+
+
+def test_ply_big_endian_with_extra_properties(tmp_path, points):
+    dtype = np.dtype([("x", ">f8"), ("y", ">f8"), ("z", ">f8"), ("intensity", ">u2")])
+    table = np.zeros(len(points), dtype)
+    for i, a in enumerate("xyz"):
+        table[a] = points[:, i]
+    header = (f"ply\nformat binary_big_endian 1.0\nelement vertex {len(points)}\nproperty double x\n"
+              "property double y\nproperty double z\nproperty ushort intensity\nend_header\n")
+    (tmp_path / "c.ply").write_bytes(header.encode() + table.tobytes())
+    np.testing.assert_array_equal(read_points(tmp_path / "c.ply"), points)
+
+
+@pytest.mark.parametrize("mode", ["ascii", "binary"])
+def test_pcd(tmp_path, points, mode):
+    header = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z normal\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 3\n"
+              f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\nDATA {mode}\n")
+    table = np.concatenate([points, np.ones((len(points), 3), np.float32)], axis=1)
+    body = ("".join(" ".join(repr(v) for v in row) + "\n" for row in table.tolist()).encode()
+            if mode == "ascii" else table.astype("<f4").tobytes())
+    (tmp_path / "d.pcd").write_bytes(header.encode() + body)
+    np.testing.assert_allclose(read_points(tmp_path / "d.pcd"), points, rtol=1e-6)
+
+
+def test_npy_text_csv_and_kitti(tmp_path, points):
+    np.save(tmp_path / "e.npy", np.concatenate([points, points[:, :1]], axis=1).astype(np.float64))
+    np.savetxt(tmp_path / "f.xyz", points, header="x y z")
+    np.savetxt(tmp_path / "g.csv", points, delimiter=",")
+    np.concatenate([points, np.zeros((len(points), 1), np.float32)], axis=1).astype("<f4").tofile(tmp_path / "h.bin")
+    for name in ("e.npy", "f.xyz", "g.csv", "h.bin"):
+        got = read_points(tmp_path / name)
+        assert got.dtype == np.float32 and got.shape == points.shape, name
+        np.testing.assert_allclose(got, points, rtol=1e-6, err_msg=name)
+
+
+def test_bad_files_raise_clear_errors(tmp_path, points):
+    write_ply(tmp_path / "ok.ply", points)
+    data = (tmp_path / "ok.ply").read_bytes()
+    (tmp_path / "truncated.ply").write_bytes(data[:-5])
+    (tmp_path / "noz.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                                      "end_header\n0 0\n1 1\n2 2\n")
+    (tmp_path / "noheader.ply").write_bytes(b"ply\nformat ascii 1.0\n" + b"0 0 0\n" * 10)
+    (tmp_path / "compressed.pcd").write_text("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nPOINTS 3\nDATA binary_compressed\n")
+    bad = points.copy()
+    bad[4, 1] = np.nan
+    np.savetxt(tmp_path / "nan.xyz", bad)
+    np.savetxt(tmp_path / "two.xyz", points[:2])
+    np.savetxt(tmp_path / "words.xyz", [["a", "b", "c"]], fmt="%s")
+    np.save(tmp_path / "flat.npy", points[:, 0])
+    (tmp_path / "odd.bin").write_bytes(b"\0" * 18)
+    cases = {"truncated.ply": "truncated", "noz.ply": "x, y and z", "noheader.ply": "end_header",
+             "compressed.pcd": "binary_compressed", "nan.xyz": "NaN or Inf", "two.xyz": "at least 3",
+             "words.xyz": "numbers", "flat.npy": "(N, >=3)", "odd.bin": "16 bytes", "missing.ply": "no such file",
+             "cloud.obj": "unknown extension"}
+    for name, message in cases.items():
+        with pytest.raises(PointCloudError, match=message) as info:
+            read_points(tmp_path / name)
+        assert name in str(info.value)
+
+
+def test_read_transform(tmp_path):
+    T = np.eye(4)
+    T[:3, 3] = [1, 2, 3]
+    (tmp_path / "t.txt").write_text("# a header line\n" + "\n".join(" ".join(f"{v:.6e}" for v in row) for row in T))
+    np.testing.assert_allclose(read_transform(tmp_path / "t.txt"), T)
+    (tmp_path / "short.txt").write_text("1 0 0 0 1 0 0 0 1")
+    with pytest.raises(PointCloudError, match="16 numbers"):
+        read_transform(tmp_path / "short.txt")
+    (tmp_path / "scaled.txt").write_text("\n".join(" ".join(str(v) for v in row) for row in 2 * np.eye(4)))
+    with pytest.raises(PointCloudError, match="rigid"):
+        read_transform(tmp_path / "scaled.txt")
+
+
+@pytest.mark.skipif(not (SCENES / "lidar_pair" / "source.ply").exists(), reason=f"real scans not found under {SCENES}")
+def test_real_scans():
+    lidar = read_points(SCENES / "lidar_pair" / "source.ply")
+    assert lidar.shape == (69792, 3)
+    kitchen = read_points(SCENES / "3dmatch_redkitchen" / "cloud_bin_0.ply")
+    assert kitchen.shape == (258342, 3) and float(np.abs(kitchen).max()) < 10.0  # metres, indoor
+    T = read_transform(SCENES / "lidar_pair" / "T_target_source.txt")
+    assert abs(np.linalg.det(T[:3, :3]) - 1) < 1e-5

@@ -1,0 +1,125 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from conftest import DATA_DIR, MODELNET_DIR, requires_modelnet
+from vrnet_ext import ops
+from vrnet_ext.cli import main
+from vrnet_ext.io import read_points, read_transform, write_ply
+from vrnet_ext.register import (apply, icp, network_estimate, register, to_homogeneous, transform_errors,
+                                voxel_downsample)
+
+LIDAR = DATA_DIR / "scenes" / "lidar_pair"
+
+
+def room(count=4000, seed=0):
+    """Points on three orthogonal walls of a 4 m room corner plus a box: enough structure for ICP."""
+    rng = np.random.default_rng(seed)
+    walls = rng.uniform(0, 4, size=(count, 3))
+    walls[: count // 3, 0] = 0
+    walls[count // 3: 2 * count // 3, 1] = 0
+    walls[2 * count // 3:, 2] = 0
+    box = rng.uniform(1, 1.6, size=(count // 4, 3))
+    box[:, rng.integers(0, 3, count // 4)] = 1.0
+    return np.concatenate([walls, box]).astype(np.float64)
+
+
+def motion(degrees, translation, seed=1):
+    R = Rotation.from_rotvec(np.radians(degrees) * Rotation.random(random_state=seed).as_rotvec() /
+                             np.linalg.norm(Rotation.random(random_state=seed).as_rotvec())).as_matrix()
+    return to_homogeneous(R, np.asarray(translation, dtype=float))
+
+
+def test_voxel_downsample_averages_each_voxel():
+    points = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [1.5, 0.2, 0.2]])
+    got = voxel_downsample(points, 1.0)
+    np.testing.assert_allclose(sorted(got.tolist()), [[0.2, 0.2, 0.2], [1.5, 0.2, 0.2]])
+    with pytest.raises(ValueError, match="voxel_size"):
+        voxel_downsample(points, 0.0)
+
+
+def test_icp_recovers_a_small_motion():
+    src = room()
+    truth = motion(6.0, [0.1, -0.05, 0.08])
+    T, iterations, fitness, rmse = icp(src, apply(truth, src), np.eye(4), max_distance=0.5)
+    errors = transform_errors(T, truth)
+    assert errors["rotation_error_deg"] < 1e-3 and errors["translation_error"] < 1e-4, errors
+    assert fitness > 0.99 and rmse < 1e-4 and iterations < 50
+
+
+class ExactModel(torch.nn.Module):
+    """Stands in for VRNet: solves the normalised pair exactly (points correspond row by row)."""
+
+    def forward(self, src, tgt, backend=None):
+        R, t = ops.kabsch(src, tgt)
+        return type("Out", (), {"rotation": R, "translation": t})()
+
+
+def test_network_estimate_undoes_the_normalisation():
+    src = room(500) * 30.0 + 200.0  # far from the origin and not unit-sized: a scan in metres
+    truth = motion(40.0, [5.0, -3.0, 2.0])
+    T = network_estimate(ExactModel(), src, apply(truth, src), network_points=10_000, seed=0,
+                         device=torch.device("cpu"))
+    errors = transform_errors(T, truth)
+    assert errors["rotation_error_deg"] < 1e-3 and errors["translation_error"] < 1e-3, errors
+
+
+def test_register_from_identity_and_without_icp():
+    src = room()
+    truth = motion(4.0, [0.05, 0.02, -0.04])
+    result = register(src, apply(truth, src), icp_points=3000)
+    # voxel means of a rotated cloud do not correspond exactly: a small bias remains
+    assert transform_errors(result.transform, truth)["rotation_error_deg"] < 0.2
+    assert result.points["source_icp"] <= len(src)
+    plain = register(src, apply(truth, src), model=ExactModel(), network_points=10_000, icp_iterations=0)
+    assert transform_errors(plain.transform, truth)["rotation_error_deg"] < 1e-3
+    assert plain.icp_iterations == 0
+
+
+def test_cli_register(tmp_path, capsys):
+    src = room()
+    truth = motion(5.0, [0.1, 0.0, 0.05])
+    write_ply(tmp_path / "src.ply", src)
+    np.save(tmp_path / "tgt.npy", apply(truth, src))
+    np.savetxt(tmp_path / "gt.txt", truth)
+    args = ["register", str(tmp_path / "src.ply"), str(tmp_path / "tgt.npy"), "--gt", str(tmp_path / "gt.txt"),
+            "--json", str(tmp_path / "r.json"), "--out", str(tmp_path / "moved.ply"), "--plot", str(tmp_path / "r.png"),
+            "--icp-points", "3000"]
+    assert main(args) == 0
+    record = json.loads((tmp_path / "r.json").read_text())
+    assert record["errors"]["rotation_error_deg"] < 0.2
+    np.testing.assert_allclose(read_points(tmp_path / "moved.ply"), apply(np.array(record["transform"]), src), atol=1e-5)
+    assert (tmp_path / "r.png").stat().st_size > 10_000
+    assert main(["register", str(tmp_path / "src.ply"), str(tmp_path / "missing.ply")]) == 2
+    assert "missing.ply: no such file" in capsys.readouterr().err
+
+
+@requires_modelnet
+def test_cli_register_with_checkpoint(tmp_path):
+    from vrnet_ext.train import TrainConfig, train
+
+    train(TrainConfig.from_preset("tiny", data_dir=str(MODELNET_DIR), out_dir=str(tmp_path / "run"), progress=False,
+                                  stage1_epochs=1, stage2_epochs=0))
+    src = room(800)
+    write_ply(tmp_path / "src.ply", src)
+    write_ply(tmp_path / "tgt.ply", apply(motion(3.0, [0.02, 0, 0]), src))
+    args = ["register", str(tmp_path / "src.ply"), str(tmp_path / "tgt.ply"), "--checkpoint",
+            str(tmp_path / "run" / "last.pt"), "--network-points", "64", "--icp-iterations", "0",
+            "--json", str(tmp_path / "r.json")]
+    assert main(args) == 0
+    record = json.loads((tmp_path / "r.json").read_text())
+    initial = np.array(record["initial"])
+    assert np.isfinite(initial).all() and record["checkpoint"].endswith("last.pt")
+    np.testing.assert_allclose(initial[:3, :3] @ initial[:3, :3].T, np.eye(3), atol=1e-5)
+
+
+@pytest.mark.skipif(not (LIDAR / "source.ply").exists(), reason=f"LiDAR pair not found under {LIDAR}")
+def test_real_lidar_pair_icp_matches_reference():
+    """Measured: 0.20 deg / 7.5 mm from the reference GICP transform (which itself agrees with an
+    independent fast_gicp estimate within 0.23 deg / 1.9 cm)."""
+    result = register(read_points(LIDAR / "source.ply"), read_points(LIDAR / "target.ply"))
+    errors = transform_errors(result.transform, read_transform(LIDAR / "T_target_source.txt"))
+    assert errors["rotation_error_deg"] < 0.5 and errors["translation_error"] < 0.05, errors

@@ -1,0 +1,241 @@
+"""Point-cloud files: ``read_points(path) -> (N, 3) float32`` and ``write_ply(path, points)``.
+
+Formats (by extension): PLY (``ascii``, ``binary_little_endian``, ``binary_big_endian``; the x, y, z
+properties of the ``vertex`` element, whatever else it holds), PCD (``DATA ascii`` and ``binary``),
+NPY (an (N, >=3) array), XYZ / TXT / PTS / CSV (whitespace- or comma-separated rows, first three
+columns, ``#`` comments), KITTI ``.bin`` (float32 rows of x, y, z, reflectance). Every problem - a
+missing or truncated file, a header that does not parse, no x/y/z, NaN/Inf coordinates, fewer than
+3 points - raises ``PointCloudError`` (a ``ValueError``) naming the file and what was expected.
+"""
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+MIN_POINTS = 3
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8",
+              ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
+
+
+class PointCloudError(ValueError):
+    """A point-cloud file that cannot be read; the message names the file."""
+
+
+def _fail(path: Path, message: str) -> PointCloudError:
+    return PointCloudError(f"{path}: {message}")
+
+
+def _read_header(path: Path, data: bytes, terminator: bytes, max_bytes: int = 1 << 16) -> tuple[list[str], int]:
+    """Header lines up to and including the terminator line, and the offset of the body."""
+    end = data.find(terminator, 0, max_bytes)
+    if end < 0:
+        raise _fail(path, f"no {terminator.decode().strip()!r} line in the first {max_bytes} bytes: not a valid header")
+    body = data.find(b"\n", end)
+    body = len(data) if body < 0 else body + 1
+    try:
+        text = data[:body].decode("ascii")
+    except UnicodeDecodeError:
+        raise _fail(path, "the header is not ASCII text") from None
+    return [line.strip() for line in text.splitlines() if line.strip()], body
+
+
+def _parse_ply_vertex(path: Path, header: list[str]) -> tuple[str, int, list[tuple[str, str]], int]:
+    """(format, vertex count, vertex properties [(name, numpy type)], bytes of elements before vertex)."""
+    if header[0] != "ply":
+        raise _fail(path, "a PLY file must start with the line 'ply'")
+    fmt, elements, current = None, [], None
+    for line in header[1:]:
+        words = line.split()
+        if words[0] == "format" and len(words) >= 2:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3:
+            try:
+                current = (words[1], int(words[2]), [])
+            except ValueError:
+                raise _fail(path, f"bad element line {line!r}") from None
+            elements.append(current)
+        elif words[0] == "property" and current is not None:
+            if words[1] == "list":
+                current[2].append((words[-1], "list"))
+            elif len(words) == 3 and words[1] in _PLY_TYPES:
+                current[2].append((words[2], _PLY_TYPES[words[1]]))
+            else:
+                raise _fail(path, f"unknown PLY property type in {line!r}")
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise _fail(path, f"PLY format must be ascii, binary_little_endian or binary_big_endian, got {fmt!r}")
+    skip = 0
+    for name, count, props in elements:
+        if name == "vertex":
+            if any(t == "list" for _, t in props):
+                raise _fail(path, "list properties in the vertex element are not supported")
+            return fmt, count, props, skip
+        if fmt != "ascii" and any(t == "list" for _, t in props):
+            raise _fail(path, f"element {name!r} with list properties comes before 'vertex': not supported")
+        # ascii: one line per element instance; binary: fixed-size records
+        skip += count if fmt == "ascii" else count * sum(np.dtype(t).itemsize for _, t in props)
+    raise _fail(path, "no 'element vertex' in the PLY header")
+
+
+def _read_ply(path: Path, data: bytes) -> np.ndarray:
+    header, body = _read_header(path, data, b"end_header")
+    fmt, count, props, skip = _parse_ply_vertex(path, header)
+    names = [name for name, _ in props]
+    if not {"x", "y", "z"} <= set(names):
+        raise _fail(path, f"the vertex element needs x, y and z properties, has {names}")
+    if fmt == "ascii":
+        lines = data[body:].decode("ascii", errors="replace").splitlines()[skip:skip + count]
+        if len(lines) < count:
+            raise _fail(path, f"truncated: header promises {count} vertices, found {len(lines)} lines")
+        try:
+            table = np.array([line.split()[:len(props)] for line in lines], dtype=np.float64)
+        except ValueError:
+            raise _fail(path, "vertex lines must hold one number per property") from None
+        if table.ndim != 2 or table.shape[1] != len(props):
+            raise _fail(path, f"vertex lines must hold {len(props)} numbers")
+        return table[:, [names.index(a) for a in "xyz"]]
+    order = "<" if fmt == "binary_little_endian" else ">"
+    dtype = np.dtype([(name, order + t) for name, t in props])
+    needed = body + skip + count * dtype.itemsize
+    if len(data) < needed:
+        raise _fail(path, f"truncated: {count} vertices need {needed} bytes, the file has {len(data)}")
+    vertices = np.frombuffer(data, dtype=dtype, count=count, offset=body + skip)
+    return np.stack([vertices[a] for a in "xyz"], axis=1)
+
+
+def _read_pcd(path: Path, data: bytes) -> np.ndarray:
+    header, body = _read_header(path, data, b"DATA")
+    fields: dict[str, list[str]] = {}
+    for line in header:
+        if not line.startswith("#"):
+            key, *values = line.split()
+            fields[key.upper()] = values
+    try:
+        names = fields["FIELDS"]
+        sizes = [int(s) for s in fields["SIZE"]]
+        types = fields["TYPE"]
+        counts = [int(c) for c in fields.get("COUNT", ["1"] * len(names))]
+        points = int(fields["POINTS"][0]) if "POINTS" in fields else int(fields["WIDTH"][0]) * int(fields["HEIGHT"][0])
+        mode = fields["DATA"][0].lower()
+    except (KeyError, IndexError, ValueError) as exc:
+        raise _fail(path, f"PCD header misses or mangles {exc}: needs FIELDS, SIZE, TYPE, POINTS and DATA") from None
+    if not {"x", "y", "z"} <= set(names):
+        raise _fail(path, f"PCD FIELDS must include x y z, has {names}")
+    if not len(names) == len(sizes) == len(types) == len(counts):
+        raise _fail(path, "PCD FIELDS, SIZE, TYPE and COUNT must have one entry per field")
+    if mode == "ascii":
+        rows = data[body:].decode("ascii", errors="replace").split("\n")
+        rows = [r for r in rows if r.strip()][:points]
+        if len(rows) < points:
+            raise _fail(path, f"truncated: header promises {points} points, found {len(rows)} rows")
+        try:
+            table = np.array([r.split() for r in rows], dtype=np.float64)
+        except ValueError:
+            raise _fail(path, "PCD ascii rows must hold one number per field value") from None
+        columns = np.cumsum([0] + counts)
+        return table[:, [columns[names.index(a)] for a in "xyz"]]
+    if mode == "binary":
+        try:
+            dtype = np.dtype([(name, "<" + _PCD_TYPES[(t.upper(), s)], (c,) if c > 1 else ())
+                              for name, s, t, c in zip(names, sizes, types, counts)])
+        except KeyError:
+            raise _fail(path, f"unsupported PCD TYPE/SIZE combination in {list(zip(types, sizes))}") from None
+        if len(data) < body + points * dtype.itemsize:
+            raise _fail(path, f"truncated: {points} points need {points * dtype.itemsize} bytes of data")
+        table = np.frombuffer(data, dtype=dtype, count=points, offset=body)
+        return np.stack([table[a] for a in "xyz"], axis=1)
+    raise _fail(path, f"PCD DATA {mode!r} is not supported (ascii or binary; convert binary_compressed with "
+                      "pcl_convert_pcd_ascii_binary)")
+
+
+def _read_text(path: Path) -> np.ndarray:
+    try:
+        table = np.loadtxt(path, comments="#", delimiter=None if path.suffix.lower() != ".csv" else ",", ndmin=2)
+    except ValueError as exc:
+        raise _fail(path, f"rows must be numbers (x y z ...): {exc}") from None
+    if table.shape[1] < 3:
+        raise _fail(path, f"rows need at least 3 columns (x y z), got {table.shape[1]}")
+    return table[:, :3]
+
+
+def _read_npy(path: Path) -> np.ndarray:
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise _fail(path, f"not a readable .npy array: {exc}") from None
+    if array.ndim != 2 or array.shape[1] < 3 or not np.issubdtype(array.dtype, np.number):
+        raise _fail(path, f"expected a numeric (N, >=3) array, got {array.dtype} {array.shape}")
+    return array[:, :3]
+
+
+def _read_kitti(path: Path, data: bytes) -> np.ndarray:
+    if len(data) % 16:
+        raise _fail(path, f"a KITTI .bin holds float32 (x, y, z, reflectance) rows of 16 bytes; {len(data)} bytes is not a multiple")
+    return np.frombuffer(data, dtype="<f4").reshape(-1, 4)[:, :3]
+
+
+READERS = {".ply": "ply", ".pcd": "pcd", ".npy": "npy", ".xyz": "text", ".txt": "text", ".pts": "text",
+           ".csv": "text", ".bin": "kitti"}
+
+
+def read_points(path: str | os.PathLike) -> np.ndarray:
+    """Reads the x, y, z coordinates of a point-cloud file.
+
+    Returns:
+        (N, 3) float32 array, N >= 3, all values finite.
+    """
+    path = Path(path)
+    kind = READERS.get(path.suffix.lower())
+    if kind is None:
+        raise _fail(path, f"unknown extension {path.suffix!r}; supported: {', '.join(sorted(READERS))}")
+    if not path.is_file():
+        raise PointCloudError(f"{path}: no such file")
+    if kind == "text":
+        points = _read_text(path)
+    elif kind == "npy":
+        points = _read_npy(path)
+    else:
+        data = path.read_bytes()
+        points = {"ply": _read_ply, "pcd": _read_pcd, "kitti": _read_kitti}[kind](path, data)
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    if points.shape[0] < MIN_POINTS:
+        raise _fail(path, f"needs at least {MIN_POINTS} points, has {points.shape[0]}")
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise _fail(path, f"{int(bad.sum())} points have NaN or Inf coordinates (first: row {int(np.argmax(bad))})")
+    return points
+
+
+def write_ply(path: str | os.PathLike, points: np.ndarray) -> None:
+    """Writes (N, 3) points as a binary little-endian PLY with float x, y, z."""
+    points = np.asarray(points, dtype="<f4")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+              "property float x\nproperty float y\nproperty float z\nend_header\n")
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(np.ascontiguousarray(points).tobytes())
+
+
+def read_transform(path: str | os.PathLike) -> np.ndarray:
+    """Reads a 4x4 rigid transform written as 16 numbers (rows; '#' comments ignored) -> (4, 4) float64."""
+    path = Path(path)
+    if not path.is_file():
+        raise PointCloudError(f"{path}: no such file")
+    numbers = [float(v) for v in re.findall(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?",
+                                             "\n".join(l for l in path.read_text().splitlines() if not l.lstrip().startswith("#")))]
+    if len(numbers) != 16:
+        raise _fail(path, f"a 4x4 transform needs 16 numbers, found {len(numbers)}")
+    T = np.array(numbers).reshape(4, 4)
+    if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4):
+        raise _fail(path, "not a rigid transform (last row 0 0 0 1, orthonormal rotation block)")
+    return T
