@@ -26,7 +26,7 @@ def graph(x, k):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("negative_scales", [False, True])
 @pytest.mark.parametrize("B,C,O,N,k", [(1, 3, 8, 33, 33), (4, 16, 24, 101, 10)])
-def test_matches_materialising_layer(dtype, negative_scales, B, C, O, N, k):
+def test_matches_materialising_layer(device, dtype, negative_scales, B, C, O, N, k):
     fused, reference = make_pair(C, O, dtype, negative_scales)
     x = (torch.randn(B, C, N, dtype=dtype) * 3 + 1).requires_grad_()
     idx = graph(x, k)
@@ -49,7 +49,7 @@ def test_matches_materialising_layer(dtype, negative_scales, B, C, O, N, k):
 
 
 @requires_ext
-def test_gradcheck_train_mode():
+def test_gradcheck_train_mode(device):
     layer = EdgeConv(3, 4).double()
     x = torch.randn(2, 3, 12, dtype=torch.float64, requires_grad=True)
     idx = graph(x, 4)
@@ -57,7 +57,7 @@ def test_gradcheck_train_mode():
 
 
 @requires_ext
-def test_torch_compile_fullgraph():
+def test_torch_compile_fullgraph(device):
     layer = EdgeConv(3, 8).eval()
     x = torch.randn(2, 3, 50)
     idx = graph(x, 6)

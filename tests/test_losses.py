@@ -60,7 +60,7 @@ def test_node_and_offset_losses_with_known_offsets():
     assert total.item() == pytest.approx(parts["L4"])
 
 
-def test_identity_transform_gives_zero_hybrid_loss_and_finite_gradients():
+def test_identity_transform_gives_zero_hybrid_loss_and_finite_gradients(device):
     src, R, t, truth = rigid()
     vcp = truth - 0.2
     offset = torch.full_like(truth, 0.2).requires_grad_()
@@ -73,7 +73,7 @@ def test_identity_transform_gives_zero_hybrid_loss_and_finite_gradients():
     assert bool(torch.isfinite(offset.grad).all())
 
 
-def test_geometry_loss_matches_weighting():
+def test_geometry_loss_matches_weighting(device):
     src, R, t, truth = rigid()
     scaled = truth * 1.5
     out = make_output(src, R, t, scaled, torch.zeros_like(scaled))

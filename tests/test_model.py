@@ -23,7 +23,7 @@ def test_paper_defaults():
     assert model.walk.net[0].in_channels == 1024
 
 
-def test_output_shapes_and_invariants():
+def test_output_shapes_and_invariants(device):
     model = small_model().train()
     src, tgt = clouds()
     out = model(src, tgt)
@@ -38,7 +38,7 @@ def test_output_shapes_and_invariants():
 
 @requires_ext
 @pytest.mark.parametrize("train", [True, False])
-def test_backends_agree(train):
+def test_backends_agree(device, train):
     model = small_model().train(train)
     src, tgt = clouds()
     state = {k: v.clone() for k, v in model.state_dict().items()}
@@ -49,7 +49,7 @@ def test_backends_agree(train):
         torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=1e-3, atol=2e-4, msg=name)
 
 
-def test_permutation_equivariance_sanity():
+def test_permutation_equivariance_sanity(device):
     model = small_model().eval()
     src, tgt = clouds()
     perm_src, perm_tgt = torch.randperm(60), torch.randperm(50)
@@ -62,7 +62,7 @@ def test_permutation_equivariance_sanity():
     torch.testing.assert_close(moved.matching, base.matching[:, perm_src][:, :, perm_tgt], rtol=1e-4, atol=1e-6)
 
 
-def test_dcp_ablation_and_iterations():
+def test_dcp_ablation_and_iterations(device):
     src, tgt = clouds()
     dcp = small_model(correction_walk=False).eval()
     out = dcp(src, tgt)
@@ -74,7 +74,7 @@ def test_dcp_ablation_and_iterations():
 
 
 @requires_ext
-def test_torch_compile():
+def test_torch_compile(device):
     model = small_model().eval()
     src, tgt = clouds()
     compiled = compile_fullgraph(model)

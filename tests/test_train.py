@@ -49,6 +49,11 @@ def test_checkpoint_is_weights_only_and_evaluable(tmp_path):
     assert (tmp_path / "run" / "curves.png").stat().st_size > 10_000
     state = torch.load(tmp_path / "run" / "best.pt", weights_only=True)
     assert {"model", "optimizer", "config", "step", "stage"} <= set(state)
+    # best.pt is the epoch with the lowest val RMSE(R) over both stages, whatever stage it came from
+    rmse = [r["val_RMSE(R)"] for r in records(tmp_path / "run")]
+    assert state["best_rmse"] == min(rmse) and state["step"] == records(tmp_path / "run")[rmse.index(min(rmse))]["step"]
+    for stage in (1, 2):
+        assert torch.load(tmp_path / "run" / f"best_stage{stage}.pt", weights_only=True)["stage"] == stage
     from vrnet_ext.cli import main
 
     out = tmp_path / "eval.json"

@@ -4,7 +4,10 @@ Stage 1 trains the feature extractor (DGCNN + Transformer) with L0 (Adam, lr 1e-
 freezes it (weights and BatchNorm statistics) and trains the correction walk with the hybrid
 loss L (lr 1e-4). Each epoch ends with a validation pass on a split held out of TRAIN (model
 selection never looks at the test set), a line in ``metrics.jsonl`` / ``metrics.csv`` and the
-checkpoints ``last.pt`` / ``best.pt`` (``torch.load(..., weights_only=True)`` compatible).
+checkpoints (``torch.load(..., weights_only=True)`` compatible): ``last.pt``; ``best.pt``, the epoch
+with the lowest validation RMSE(R) over both stages (stage 1 measures it with the VCPs, stage 2
+with the RCPs); ``best_stage1.pt`` / ``best_stage2.pt``, each stage's best by its own criterion
+(validation L0 / RMSE(R)).
 
 Runs are reproducible: the train pairs of an epoch come from (seed, epoch, index), the batch
 order from a seeded sampler and the L1 subsets from (seed, step), so ``--resume`` continues
@@ -140,10 +143,12 @@ def stage_train_mode(model: VRNet, stage: int) -> None:
             module.eval()
 
 
-def _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best) -> dict:
+def _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse) -> dict:
+    """``best``: the stage's selection score so far (val L0 in stage 1, val RMSE(R) in stage 2);
+    ``best_rmse``: the lowest val RMSE(R) of the whole run (selects best.pt across stages)."""
     return {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
             "config": json.loads(json.dumps(asdict(cfg))), "stage": stage, "epoch": epoch, "step": step,
-            "best": best}
+            "best": best, "best_rmse": best_rmse}
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
@@ -206,6 +211,7 @@ def train(cfg: TrainConfig) -> dict:
         model.load_state_dict(state["model"])
     loss_weights = HybridLossWeights(l4=cfg.loss_l4)
     step = state["step"] if state else 0
+    best_rmse = state.get("best_rmse", float("inf")) if state else float("inf")
     record: dict = {}
     for stage, epochs, lr in ((1, cfg.stage1_epochs, cfg.lr_stage1), (2, cfg.stage2_epochs, cfg.lr_stage2)):
         if state is not None and (state["stage"] > stage or (state["stage"] == stage and state["epoch"] + 1 >= epochs)):
@@ -256,11 +262,13 @@ def train(cfg: TrainConfig) -> dict:
                                progress=cfg.progress, use_rcp=stage == 2)
                 record.update({f"val_{k}": v for k, v in val.items()})
                 score = val["L0"] if stage == 1 else val["RMSE(R)"]
-                improved = score < best
-                best = min(best, score)
-                ckpt = _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best)
+                improved, improved_rmse = score < best, val["RMSE(R)"] < best_rmse
+                best, best_rmse = min(best, score), min(best_rmse, val["RMSE(R)"])
+                ckpt = _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse)
                 torch.save(ckpt, out_dir / "last.pt")
                 if improved:
+                    torch.save(ckpt, out_dir / f"best_stage{stage}.pt")
+                if improved_rmse:
                     torch.save(ckpt, out_dir / "best.pt")
                 _log(out_dir, record)
             run.barrier()

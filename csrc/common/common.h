@@ -7,6 +7,7 @@
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 #include <ATen/ops/aminmax.h>
+#include <ATen/ops/cat.h>
 #include <ATen/ops/isfinite.h>
 #include <c10/util/Exception.h>
 
@@ -15,14 +16,33 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <string>
+#include <utility>
+#include <vector>
 
 namespace vrnet {
 
+// Conditions computed on an accelerator (one-element bool tensors), fetched with ONE synchronisation;
+// raises ValueError with the message of the first that is false.
+using DeviceCondition = std::pair<at::Tensor, std::string>;
+
+inline void check_on_device(const std::vector<DeviceCondition>& conditions) {
+  std::vector<at::Tensor> flags;
+  for (const auto& condition : conditions) flags.push_back(condition.first.reshape({1}));
+  const at::Tensor host = at::cat(flags).cpu();
+  const bool* ok = host.const_data_ptr<bool>();
+  for (size_t i = 0; i < conditions.size(); ++i) TORCH_CHECK_VALUE(ok[i], conditions[i].second);
+}
+
+// "every element of t is finite", for check_on_device.
+inline DeviceCondition finite_condition(const at::Tensor& t, const char* name) {
+  return {at::isfinite(t).all(), std::string(name) + " contains NaN or Inf values"};
+}
+
 // Raises ValueError (via TORCH_CHECK_VALUE) if any element of a floating tensor is NaN/Inf.
-// On an accelerator this is one reduction and one synchronisation.
 inline void check_finite(const at::Tensor& t, const char* name) {
   if (!t.is_cpu()) {
-    TORCH_CHECK_VALUE(t.numel() == 0 || at::isfinite(t).all().item<bool>(), name, " contains NaN or Inf values");
+    check_on_device({finite_condition(t, name)});
     return;
   }
   const at::Tensor c = t.contiguous();
@@ -63,8 +83,8 @@ inline void check_index_range(const at::Tensor& idx, int64_t upper, const char* 
   if (!idx.is_cpu()) {
     if (idx.numel() == 0) return;
     const auto [lo, hi] = at::aminmax(idx);
-    TORCH_CHECK_VALUE(lo.item<int64_t>() >= 0 && hi.item<int64_t>() < upper, name, " holds indices outside [0, ",
-                      upper, ")");
+    check_on_device({{lo.ge(0).logical_and(hi.lt(upper)),
+                      std::string(name) + " holds indices outside [0, " + std::to_string(upper) + ")"}});
     return;
   }
   const at::Tensor c = idx.contiguous();

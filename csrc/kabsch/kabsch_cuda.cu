@@ -128,13 +128,6 @@ at::Tensor compute_moments(const at::Tensor& src, const at::Tensor& tgt, const a
   return moments;
 }
 
-// Non-negative weights with a positive sum per problem (two reductions, one synchronisation each).
-void check_weights(const at::Tensor& weights) {
-  TORCH_CHECK_VALUE(weights.min().item<double>() >= 0, "weights must be non-negative");
-  TORCH_CHECK_VALUE(weights.sum(1).min().item<double>() > 0,
-                    "weights of some batch sum to zero: at least one point per problem needs a positive weight");
-}
-
 std::tuple<at::Tensor, at::Tensor> kabsch_cuda(const at::Tensor& src_in, const at::Tensor& tgt_in,
                                                const at::Tensor& weights_in) {
   check_kabsch_inputs(src_in, tgt_in, weights_in);
@@ -143,10 +136,10 @@ std::tuple<at::Tensor, at::Tensor> kabsch_cuda(const at::Tensor& src_in, const a
   const int64_t B = src.size(0);
   at::Tensor R = at::empty({B, 3, 3}, src.options()), t = at::empty({B, 3}, src.options());
   if (B == 0) return {R, t};
-  check_finite(src, "src");
-  check_finite(tgt, "tgt");
-  check_finite(weights, "weights");
-  check_weights(weights);
+  check_on_device({finite_condition(src, "src"), finite_condition(tgt, "tgt"), finite_condition(weights, "weights"),
+                   {weights.min().ge(0), "weights must be non-negative"},
+                   {weights.sum(1).min().gt(0),
+                    "weights of some batch sum to zero: at least one point per problem needs a positive weight"}});
   const at::Tensor moments = compute_moments(src, tgt, weights);
   AT_DISPATCH_FLOATING_TYPES(src.scalar_type(), "kabsch_cuda", [&] {
     solve_kernel<scalar_t><<<blocks_for(B, 128), 128, 0, current_stream()>>>(
