@@ -13,8 +13,8 @@
 
 namespace vrnet {
 
-// Largest k the CUDA kernels keep in their per-thread buffers.
-constexpr int64_t kCudaMaxK = 256;
+// Largest k the CUDA kernels keep in per-thread register buffers (larger k: chunked sort).
+constexpr int64_t kCudaRegisterK = 64;
 
 inline void check_knn_inputs(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self) {
   check_float(query, "query");
@@ -29,10 +29,10 @@ inline void check_knn_inputs(const at::Tensor& query, const at::Tensor& ref, int
   const int64_t available = exclude_self ? M - 1 : M;
   TORCH_CHECK_VALUE(k >= 1 && k <= available, "k must be in [1, ", available, "], got ", k);
   TORCH_CHECK_VALUE(!exclude_self || N == M, "exclude_self=True needs query and ref to be the same cloud");
-  TORCH_CHECK_VALUE(query.is_cpu() || k <= kCudaMaxK, "k must be at most ", kCudaMaxK, " on ", query.device(),
-                    ", got ", k);
   TORCH_CHECK_VALUE(query.is_cpu() || M < (int64_t(1) << 31), "ref must have fewer than 2^31 points on ",
                     query.device(), ", got ", M);
+  TORCH_CHECK_VALUE(query.is_cpu() || B <= 65535, "query must have at most 65535 clouds per call on ", query.device(),
+                    ", got ", B);
 }
 
 // Candidate buffer for scans over many candidates: anything at or below the threshold is appended;

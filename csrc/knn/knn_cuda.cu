@@ -2,9 +2,10 @@
 // its top-k in a register-resident sorted buffer (RegisterTopK; exact differences, as the CPU grid
 // search). Other C:
 // cuBLAS dot products over bounded chunks of the reference cloud (never the N x M matrix), each
-// chunk scanned by a kernel that merges it into the running per-query top-k. Same results and
-// tie-breaking (ascending distance, then lower index) as the CPU kernel; the backward gathers
-// through the inverse graph, so it is deterministic.
+// chunk scanned by a kernel that merges it into the running per-query top-k. k > 64: bounded chunks
+// of query rows, their distances sorted (stable). Same results and tie-breaking (ascending distance,
+// then lower index) as the CPU kernel; the backward gathers through the inverse graph, so it is
+// deterministic.
 #include <ATen/ops/bmm.h>
 #include <ATen/ops/empty.h>
 #include <ATen/ops/zeros_like.h>
@@ -111,15 +112,39 @@ __global__ void knn_chunk_kernel(const scalar_t* __restrict__ dots, const scalar
   store(top, k, d_row, i_row);
 }
 
-// Calls fn.template operator()<KMAX>() with the smallest buffer size that holds k.
+// Calls fn(std::integral_constant<int, KMAX>) with the smallest register buffer that holds k <= 64
+// (ptxas: no local memory up to 64 slots).
 template <typename Fn>
 void dispatch_kmax(int64_t k, Fn&& fn) {
+  static_assert(kCudaRegisterK == 64, "the buffer sizes below end at kCudaRegisterK");
   if (k <= 8) fn(std::integral_constant<int, 8>{});
   else if (k <= 16) fn(std::integral_constant<int, 16>{});
   else if (k <= 32) fn(std::integral_constant<int, 32>{});
-  else if (k <= 64) fn(std::integral_constant<int, 64>{});
-  else if (k <= 128) fn(std::integral_constant<int, 128>{});
-  else fn(std::integral_constant<int, static_cast<int>(kCudaMaxK)>{});
+  else fn(std::integral_constant<int, 64>{});
+}
+
+// k > kCudaRegisterK: rows of queries in chunks of at most kChunkElements distances, each row sorted
+// (stable, so equal distances keep index order). C = 3 uses exact differences like the other paths.
+void knn_by_sorting(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self, at::Tensor& dist,
+                    at::Tensor& idx) {
+  const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2);
+  const int64_t rows = std::min<int64_t>(N, std::max<int64_t>(1, kChunkElements / (B * M)));
+  const at::Tensor ref_norm = ref.square().sum(-1).unsqueeze(1);  // (B, 1, M)
+  for (int64_t q0 = 0; q0 < N; q0 += rows) {
+    const int64_t count = std::min(rows, N - q0);
+    const at::Tensor q = query.narrow(1, q0, count);
+    at::Tensor d;
+    if (C == 3) {  // (dx^2 + dy^2) + dz^2 in separate roundings, as the CPU grid search
+      const at::Tensor diff = q.unsqueeze(2).sub(ref.unsqueeze(1));
+      d = diff.select(-1, 0).square().add(diff.select(-1, 1).square()).add(diff.select(-1, 2).square());
+    } else {
+      d = q.square().sum(-1).unsqueeze(2).add(ref_norm).sub(at::bmm(q, ref.transpose(1, 2)).mul(2)).clamp_min(0);
+    }
+    if (exclude_self) d.diagonal(q0, 1, 2).fill_(std::numeric_limits<double>::infinity());
+    const auto [sorted, order] = d.sort(/*stable=*/true, /*dim=*/-1, /*descending=*/false);
+    dist.narrow(1, q0, count).copy_(sorted.narrow(-1, 0, k));
+    idx.narrow(1, q0, count).copy_(order.narrow(-1, 0, k));
+  }
 }
 
 template <typename scalar_t>
@@ -158,6 +183,10 @@ std::tuple<at::Tensor, at::Tensor> knn_cuda(const at::Tensor& query_in, const at
   at::Tensor dist = at::empty({B, N, k}, query.options());
   at::Tensor idx = at::empty({B, N, k}, query.options().dtype(at::kLong));
   if (N == 0 || B == 0) return {dist, idx};
+  if (k > kCudaRegisterK) {
+    knn_by_sorting(query, ref, k, exclude_self, dist, idx);
+    return {dist, idx};
+  }
   AT_DISPATCH_FLOATING_TYPES(query.scalar_type(), "knn_cuda", [&] {
     if (C == 3) {
       dispatch_kmax(k, [&](auto kmax) {
