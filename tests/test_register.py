@@ -90,7 +90,7 @@ def test_cli_register(tmp_path, capsys):
             "--icp-points", "3000"]
     assert main(args) == 0
     record = json.loads((tmp_path / "r.json").read_text())
-    assert record["errors"]["rotation_error_deg"] < 0.2
+    assert record["errors"]["rotation_error_deg"] < 0.2 and record["peak_rss_mb"] > 0
     np.testing.assert_allclose(read_points(tmp_path / "moved.ply"), apply(np.array(record["transform"]), src), atol=1e-5)
     assert (tmp_path / "r.png").stat().st_size > 10_000
     assert main(["register", str(tmp_path / "src.ply"), str(tmp_path / "missing.ply")]) == 2

@@ -1,8 +1,9 @@
-"""The ``vrnet`` command line: ``vrnet train``, ``vrnet eval``, ``vrnet plot``."""
+"""The ``vrnet`` command line: ``vrnet train``, ``vrnet eval``, ``vrnet plot``, ``vrnet register``."""
 from __future__ import annotations
 
 import argparse
 import json
+import resource
 import sys
 import typing
 from dataclasses import fields
@@ -166,10 +167,12 @@ def _run_register(args) -> int:
     result = register(src, tgt, model, args.network_points, args.icp_points, args.voxel_size, args.max_distance,
                       args.icp_iterations, args.seed, args.device, args.backend)
     record = result.to_dict()
-    record.update(source=str(args.source), target=str(args.target), checkpoint=args.checkpoint)
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    record.update(source=str(args.source), target=str(args.target), checkpoint=args.checkpoint, peak_rss_mb=peak_mb)
     print(f"source {len(src)} points, target {len(tgt)} points; "
           f"initial estimate: {'VRNet' if model is not None else 'identity'}; ICP iterations {result.icp_iterations}, "
-          f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}")
+          f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}; "
+          f"{sum(result.seconds.values()):.1f} s, peak memory {peak_mb:.0f} MB")
     print("transform (source -> target):")
     print(np.array2string(result.transform, precision=6, suppress_small=True))
     if truth is not None:
