@@ -62,6 +62,16 @@ def test_permutation_equivariance_sanity(device):
     torch.testing.assert_close(moved.matching, base.matching[:, perm_src][:, :, perm_tgt], rtol=1e-4, atol=1e-6)
 
 
+def test_walk_starts_as_no_correction():
+    model = small_model().train()
+    src, tgt = clouds()
+    out = model(src, tgt)
+    assert not out.offset.any() and torch.equal(out.rcp, out.vcp)
+    out.rcp.square().sum().backward()
+    assert model.walk.net[-1].weight.grad.abs().sum() > 0, "the zero layer must still learn"
+    assert small_model(walk_zero_init=False).walk.net[-1].weight.abs().sum() > 0
+
+
 def test_dcp_ablation_and_iterations(device):
     src, tgt = clouds()
     dcp = small_model(correction_walk=False).eval()

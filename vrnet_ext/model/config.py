@@ -18,6 +18,9 @@ class VRNetConfig:
       only (False, the default) or additionally the coordinates [X ; Y'] (True).
     * ``iterations``: > 1 runs the ICP-like mode of the paper's "VRNet with iteration": the source
       is moved by the running estimate and the increments are composed.
+    * ``walk_zero_init``: the walk's last (linear) layer starts at zero, so the RCPs start equal to
+      the VCPs and stage 2 starts from stage 1's estimate instead of from random offsets of about
+      the objects' size (True, the default; the paper does not say; False: PyTorch's default init).
     * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.
     """
 
@@ -32,6 +35,7 @@ class VRNetConfig:
     dropout: float = 0.0
     walk_channels: tuple[int, ...] = (512, 256, 512, 256, 128, 16, 3)
     walk_coordinates: bool = False
+    walk_zero_init: bool = True
     correction_walk: bool = True
     iterations: int = 1
     backend: str = "ext"

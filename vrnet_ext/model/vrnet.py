@@ -40,7 +40,8 @@ class VRNet(nn.Module):
         self.transformer = Transformer(cfg.emb_dims, cfg.heads, cfg.ff_dims, cfg.encoder_layers,
                                        cfg.decoder_layers, cfg.dropout)
         walk_inputs = 2 * cfg.emb_dims + (6 if cfg.walk_coordinates else 0)
-        self.walk = CorrectionWalk(walk_inputs, cfg.walk_channels) if cfg.correction_walk else None
+        self.walk = (CorrectionWalk(walk_inputs, cfg.walk_channels, cfg.walk_zero_init) if cfg.correction_walk
+                     else None)
 
     def feature_modules(self) -> list[nn.Module]:
         """The feature extractor (DGCNN + Transformer): trained in stage 1, frozen in stage 2."""
