@@ -9,8 +9,8 @@ from conftest import DATA_DIR, MODELNET_DIR, requires_modelnet
 from vrnet_ext import ops
 from vrnet_ext.cli import main
 from vrnet_ext.io import read_points, read_transform, write_ply
-from vrnet_ext.register import (apply, icp, network_estimate, register, to_homogeneous, transform_errors,
-                                voxel_downsample)
+from vrnet_ext.register import (IcpFailure, apply, icp, network_estimate, register, to_homogeneous,
+                                transform_errors, voxel_downsample)
 
 LIDAR = DATA_DIR / "scenes" / "lidar_pair"
 
@@ -77,6 +77,16 @@ def test_register_from_identity_and_without_icp():
     plain = register(src, apply(truth, src), model=ExactModel(), network_points=10_000, icp_iterations=0)
     assert transform_errors(plain.transform, truth)["rotation_error_deg"] < 1e-3
     assert plain.icp_iterations == 0
+
+
+def test_icp_out_of_reach_returns_the_initial_estimate_with_a_warning():
+    src = room(1000)
+    far = to_homogeneous(np.eye(3), np.array([50.0, 0.0, 0.0]))
+    with pytest.raises(IcpFailure, match="fewer than 3 point pairs"):
+        icp(src, src, far, max_distance=0.1)
+    result = register(src, src + np.array([50.0, 0.0, 0.0]), max_distance=0.1)
+    assert result.icp_iterations == 0 and np.array_equal(result.transform, np.eye(4))
+    assert "unrefined initial estimate" in result.warnings[0]
 
 
 def test_cli_register(tmp_path, capsys):

@@ -173,6 +173,8 @@ def _run_register(args) -> int:
           f"initial estimate: {'VRNet' if model is not None else 'identity'}; ICP iterations {result.icp_iterations}, "
           f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}; "
           f"{sum(result.seconds.values()):.1f} s, peak memory {peak_mb:.0f} MB")
+    for warning in result.warnings:
+        print(f"vrnet register: warning: {warning}", file=sys.stderr)
     print("transform (source -> target):")
     print(np.array2string(result.transform, precision=6, suppress_small=True))
     if truth is not None:
@@ -210,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         commands = {"train": _run_train, "eval": _run_eval, "plot": _run_plot, "register": _run_register}
         return commands[args.command](args)
-    except (FileNotFoundError, ValueError, RuntimeError) as exc:
+    except (FileNotFoundError, ValueError) as exc:
         print(f"vrnet {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -19,6 +19,10 @@ from vrnet_ext import ops
 from vrnet_ext.model import VRNet
 
 
+class IcpFailure(RuntimeError):
+    """ICP found too few point pairs within reach of its starting transform."""
+
+
 @dataclass
 class RegistrationResult:
     """transform (4, 4) maps source points into the target frame: y = R x + t."""
@@ -29,6 +33,7 @@ class RegistrationResult:
     inlier_rmse: float      # metres, over those points
     seconds: dict[str, float] = field(default_factory=dict)
     points: dict[str, int] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         out = asdict(self)
@@ -104,7 +109,8 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
     ``max_distance`` get weight 0, weighted Kabsch; stops when the transform changes by less than
     ``tolerance`` (rotation in radians, translation in metres).
 
-    Returns (4x4 transform, iterations run, fitness, inlier RMSE).
+    Returns (4x4 transform, iterations run, fitness, inlier RMSE); raises IcpFailure when fewer
+    than 3 pairs are within reach.
     """
     src_t = torch.as_tensor(src, dtype=torch.float64, device=device).unsqueeze(0)
     tgt_t = torch.as_tensor(tgt, dtype=torch.float64, device=device).unsqueeze(0)
@@ -115,8 +121,8 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
         dist2, idx = ops.knn(moved, tgt_t, 1, backend=backend)
         inliers = (dist2[..., 0] <= max_distance ** 2).to(src_t.dtype)
         if int(inliers.sum()) < 3:
-            raise RuntimeError(f"ICP: fewer than 3 point pairs within max_distance={max_distance:g}; "
-                               "the initial estimate is too far off (raise --max-distance or check the inputs)")
+            raise IcpFailure(f"ICP: fewer than 3 point pairs within max_distance={max_distance:g} of the initial "
+                             "estimate (too far off; raise --max-distance or check the inputs)")
         matched = tgt_t[0, idx[0, :, 0]].unsqueeze(0)
         R, t = ops.kabsch(src_t, matched, inliers, backend=backend)
         step = torch.eye(4, dtype=T.dtype, device=device)
@@ -143,7 +149,8 @@ def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, netwo
     model: a trained VRNet for the initial estimate (None: start ICP from the identity).
     network_points: points per cloud fed to the network. icp_points: ICP works on voxel-downsampled
     clouds of about this many points (``voxel_size`` overrides). max_distance: ICP inlier reach
-    (default 3 voxels). icp_iterations=0 skips ICP.
+    (default 3 voxels). icp_iterations=0 skips ICP. If ICP finds no pairs within reach, the result
+    is the initial estimate with a message in ``warnings``.
     """
     device = torch.device(device)
     seconds, start = {}, time.perf_counter()
@@ -160,8 +167,12 @@ def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, netwo
     seconds["downsample"] = time.perf_counter() - start
     points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))
     start = time.perf_counter()
-    T, iterations, fitness, rmse = icp(src_icp, tgt_icp, initial, max_distance or 3.0 * voxel, icp_iterations,
-                                       device=device, backend=backend)
+    try:
+        T, iterations, fitness, rmse = icp(src_icp, tgt_icp, initial, max_distance or 3.0 * voxel, icp_iterations,
+                                           device=device, backend=backend)
+    except IcpFailure as failure:
+        return RegistrationResult(initial, initial, 0, 0.0, float("nan"), seconds, points,
+                                  [f"{failure}; returning the unrefined initial estimate"])
     seconds["icp"] = time.perf_counter() - start
     return RegistrationResult(T, initial, iterations, fitness, rmse, seconds, points)
 
