@@ -45,7 +45,8 @@ def test_exclude_self_and_non_contiguous(device, C, dtype):
 
 
 @requires_ext
-@pytest.mark.parametrize("name", ["sphere_surface", "plane", "clusters", "far_queries", "duplicates"])
+@pytest.mark.parametrize("name", ["sphere_surface", "plane", "clusters", "far_queries", "beside_on_one_axis",
+                                  "duplicates"])
 def test_grid_on_awkward_distributions(device, name):
     g = torch.Generator().manual_seed(1)
     ref = torch.randn(1, 3001, 3, generator=g, device="cpu")
@@ -59,6 +60,8 @@ def test_grid_on_awkward_distributions(device, name):
         ref = ref * 1e-3 + torch.randint(0, 2, (1, 3001, 1), generator=g, device="cpu") * 100.0
     elif name == "far_queries":
         query = query + 50.0
+    elif name == "beside_on_one_axis":  # outside the grid along x only: the search bound mixes both cases
+        query[..., 0] += 7.0
     else:
         ref = ref[:, :10].repeat(1, 300, 1)
     query, ref = query.to(device), ref.to(device)

@@ -79,6 +79,12 @@ struct Grid {
   // unvisited cell can hold a point closer than the current k-th candidate.
   void search(const scalar_t* q, int64_t self, TopK<scalar_t>& top) const {
     const int64_t c[3] = {cell_coord(q[0], 0), cell_coord(q[1], 1), cell_coord(q[2], 2)};
+    double outside_sq[3], outside_sq_total = 0;  // squared distance from q to the grid's extent, per axis
+    for (int a = 0; a < 3; ++a) {
+      const double gap = std::max({0.0, lo[a] - q[a], q[a] - (lo[a] + dims[a] * cell)});
+      outside_sq[a] = gap * gap;
+      outside_sq_total += outside_sq[a];
+    }
     for (int64_t r = 0;; ++r) {
       const int64_t z0 = std::max<int64_t>(c[2] - r, 0), z1 = std::min(c[2] + r, dims[2] - 1);
       const int64_t y0 = std::max<int64_t>(c[1] - r, 0), y1 = std::min(c[1] + r, dims[1] - 1);
@@ -101,21 +107,27 @@ struct Grid {
           }
         }
       }
-      // Lower bound on the distance from q to any cell outside the visited box.
-      double bound = std::numeric_limits<double>::infinity();
+      // Lower bound on the squared distance from q to any cell outside the visited box: a cell
+      // beyond face (a, side) is at least the face gap away along a and, along every other axis b,
+      // at least q's distance to the grid's extent (this term keeps far-away queries from
+      // scanning ring after ring of cells that are all about equally far).
+      double bound_sq = std::numeric_limits<double>::infinity();
       bool more = false;
       for (int a = 0; a < 3; ++a) {
+        const double others_sq = outside_sq_total - outside_sq[a];
         if (c[a] - r > 0) {
           more = true;
-          bound = std::min(bound, std::max(0.0, q[a] - (lo[a] + (c[a] - r) * cell)));
+          const double gap = std::max(0.0, q[a] - (lo[a] + (c[a] - r) * cell));
+          bound_sq = std::min(bound_sq, gap * gap + others_sq);
         }
         if (c[a] + r < dims[a] - 1) {
           more = true;
-          bound = std::min(bound, std::max(0.0, lo[a] + (c[a] + r + 1) * cell - q[a]));
+          const double gap = std::max(0.0, lo[a] + (c[a] + r + 1) * cell - q[a]);
+          bound_sq = std::min(bound_sq, gap * gap + others_sq);
         }
       }
       if (!more) return;
-      if (static_cast<double>(top.worst()) < bound * bound * (1.0 - 1e-5)) return;
+      if (static_cast<double>(top.worst()) < bound_sq * (1.0 - 1e-5)) return;
     }
   }
 };
