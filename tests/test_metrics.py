@@ -11,7 +11,9 @@ def test_euler_and_isotropic_errors_on_known_transforms():
     np.testing.assert_allclose(metrics.euler_zyx_deg(R), [[10, 20, 30]], atol=1e-9)
     Rz = torch.tensor(Rotation.from_euler("z", 7, degrees=True).as_matrix())[None]
     assert metrics.rotation_error_deg(Rz, torch.eye(3, dtype=torch.float64)[None]).item() == pytest.approx(7.0)
-    assert metrics.rotation_error_deg(Rz, Rz).item() == pytest.approx(0.0, abs=1e-5)  # acos near 1: ~1e-8 rad
+    assert metrics.rotation_error_deg(Rz, Rz).item() == pytest.approx(0.0, abs=1e-12)
+    tiny = torch.tensor(Rotation.from_euler("x", 1e-4, degrees=True).as_matrix(), dtype=torch.float32)[None]
+    assert metrics.rotation_error_deg(tiny, torch.eye(3)[None]).item() == pytest.approx(1e-4, rel=1e-2)
     t = torch.tensor([[3.0, 4.0, 0.0]])
     assert metrics.translation_error(t, torch.zeros(1, 3)).item() == pytest.approx(5.0)
 

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from vrnet_ext import ops
+from vrnet_ext.metrics import rotation_error_deg, translation_error
 from vrnet_ext.model import VRNet
 
 
@@ -178,14 +179,8 @@ def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, netwo
 
 
 def transform_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
-    """Rotation error (degrees, isotropic) and translation error (same unit as the input).
-
-    The angle of R_est^T R_true is atan2(sin, cos) from its skew and trace parts: unlike
-    acos((trace - 1) / 2), it stays accurate for small angles (float32 estimates).
-    """
-    relative = estimate[:3, :3].T @ truth[:3, :3]
-    skew = relative - relative.T
-    sin = 0.5 * np.linalg.norm([skew[2, 1], skew[0, 2], skew[1, 0]])
-    cos = 0.5 * (np.trace(relative) - 1.0)
-    return {"rotation_error_deg": float(np.degrees(np.arctan2(sin, cos))),
-            "translation_error": float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))}
+    """Rotation error (degrees, isotropic; :func:`vrnet_ext.metrics.rotation_error_deg`) and
+    translation error (same unit as the input) of two 4x4 transforms."""
+    est, gt = torch.as_tensor(estimate[None]), torch.as_tensor(truth[None])
+    return {"rotation_error_deg": float(rotation_error_deg(est[:, :3, :3], gt[:, :3, :3])),
+            "translation_error": float(translation_error(est[:, :3, 3], gt[:, :3, 3]))}
