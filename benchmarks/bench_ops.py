@@ -101,7 +101,7 @@ def _graph_case(op, fn, B, C, N, k):
 def _roma_procrustes(src, tgt):
     import roma
 
-    w = torch.full(src.shape[:2], 1.0 / src.shape[1])
+    w = torch.full(src.shape[:2], 1.0 / src.shape[1], dtype=src.dtype, device=src.device)
     src_c, tgt_c = (w.unsqueeze(-1) * src).sum(1), (w.unsqueeze(-1) * tgt).sum(1)
     H = ((src - src_c.unsqueeze(1)) * w.unsqueeze(-1)).mT @ (tgt - tgt_c.unsqueeze(1))
     R = roma.special_procrustes(H.mT)
