@@ -2,7 +2,46 @@
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
+
+
+class MultiHeadAttention(nn.Module):
+    """Batch-first multi-head attention on ``F.scaled_dot_product_attention``.
+
+    The same function and parameters (names, shapes, initialisation) as
+    ``nn.MultiheadAttention(dims, heads, batch_first=True)``, so checkpoints load in either, but
+    without that module's sequence-first transposes: the packed projections are viewed per head
+    and handed to the fused attention kernel as strided tensors.
+    """
+
+    def __init__(self, dims: int, heads: int, dropout: float) -> None:
+        super().__init__()
+        if dims % heads:
+            raise ValueError(f"dims ({dims}) must be divisible by heads ({heads})")
+        self.heads = heads
+        self.dropout = dropout
+        self.in_proj_weight = nn.Parameter(torch.empty(3 * dims, dims))
+        self.in_proj_bias = nn.Parameter(torch.zeros(3 * dims))
+        self.out_proj = nn.Linear(dims, dims)
+        nn.init.xavier_uniform_(self.in_proj_weight)
+        nn.init.zeros_(self.out_proj.bias)
+
+    def _heads(self, projected: torch.Tensor, parts: int) -> tuple[torch.Tensor, ...]:
+        """(B, L, parts * dims) -> ``parts`` views (B, heads, L, dims / heads)."""
+        batch, length, width = projected.shape
+        return projected.view(batch, length, parts, self.heads, width // (parts * self.heads)).permute(2, 0, 3, 1, 4)
+
+    def forward(self, queries: torch.Tensor, memory: torch.Tensor | None = None) -> torch.Tensor:
+        """queries (B, N, dims), memory (B, M, dims) or None (self-attention) -> (B, N, dims)."""
+        if memory is None:
+            q, k, v = self._heads(F.linear(queries, self.in_proj_weight, self.in_proj_bias), 3)
+        else:
+            dims = queries.shape[-1]
+            (q,) = self._heads(F.linear(queries, self.in_proj_weight[:dims], self.in_proj_bias[:dims]), 1)
+            k, v = self._heads(F.linear(memory, self.in_proj_weight[dims:], self.in_proj_bias[dims:]), 2)
+        attended = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        return self.out_proj(attended.transpose(1, 2).flatten(2))
 
 
 class _AttentionBlock(nn.Module):
@@ -11,12 +50,10 @@ class _AttentionBlock(nn.Module):
     def __init__(self, dims: int, heads: int, dropout: float) -> None:
         super().__init__()
         self.norm = nn.LayerNorm(dims)
-        self.attention = nn.MultiheadAttention(dims, heads, dropout=dropout, batch_first=True)
+        self.attention = MultiHeadAttention(dims, heads, dropout)
 
     def forward(self, x: torch.Tensor, memory: torch.Tensor | None = None) -> torch.Tensor:
-        q = self.norm(x)
-        kv = q if memory is None else memory
-        return x + self.attention(q, kv, kv, need_weights=False)[0]
+        return x + self.attention(self.norm(x), memory)
 
 
 class _FeedForward(nn.Module):
@@ -73,8 +110,16 @@ class Transformer(nn.Module):
         return self.decoder_norm(x)
 
     def forward(self, src_features: torch.Tensor, tgt_features: torch.Tensor):
-        """(B, c, N), (B, c, M) -> Phi_X (B, c, N), Phi_Y (B, c, M)."""
+        """(B, c, N), (B, c, M) -> Phi_X (B, c, N), Phi_Y (B, c, M).
+
+        With N == M both directions run as one batch of 2B (larger matrix products, half the
+        kernel calls); the function is the same either way.
+        """
         fx, fy = src_features.transpose(1, 2), tgt_features.transpose(1, 2)
-        phi_x = fx + self._eta(fx, fy)
-        phi_y = fy + self._eta(fy, fx)
+        if fx.shape == fy.shape:
+            both = torch.cat([fx, fy])
+            phi_x, phi_y = (both + self._eta(both, torch.cat([fy, fx]))).chunk(2)
+        else:
+            phi_x = fx + self._eta(fx, fy)
+            phi_y = fy + self._eta(fy, fx)
         return phi_x.transpose(1, 2), phi_y.transpose(1, 2)

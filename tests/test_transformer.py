@@ -1,0 +1,55 @@
+import pytest
+import torch
+from torch import nn
+
+from vrnet_ext.model.transformer import MultiHeadAttention, Transformer
+
+
+def _twin_attention(dims=24, heads=4):
+    torch.manual_seed(0)
+    reference = nn.MultiheadAttention(dims, heads, batch_first=True).double()
+    ours = MultiHeadAttention(dims, heads, dropout=0.0).double()
+    ours.load_state_dict(reference.state_dict())
+    return reference, ours
+
+
+def test_attention_has_the_parameters_of_torch_multihead_attention():
+    reference, ours = _twin_attention()
+    assert {k: v.shape for k, v in ours.state_dict().items()} == {k: v.shape for k, v in reference.state_dict().items()}
+
+
+@pytest.mark.parametrize("cross", [False, True])
+def test_attention_equals_torch_multihead_attention(cross):
+    reference, ours = _twin_attention()
+    queries = torch.randn(3, 17, 24, dtype=torch.float64, requires_grad=True)
+    memory = torch.randn(3, 11, 24, dtype=torch.float64, requires_grad=True) if cross else None
+    kv = queries if memory is None else memory
+    expected = reference(queries, kv, kv, need_weights=False)[0]
+    got = ours(queries, memory)
+    torch.testing.assert_close(got, expected)
+    upstream = torch.randn_like(expected)
+    inputs = [queries] + ([memory] if cross else [])
+    expected_grads = torch.autograd.grad(expected, inputs + list(reference.parameters()), upstream)
+    got_grads = torch.autograd.grad(got, inputs + list(ours.parameters()), upstream)
+    for e, g in zip(expected_grads, got_grads):
+        torch.testing.assert_close(g, e)
+
+
+def test_attention_rejects_dims_not_divisible_by_heads():
+    with pytest.raises(ValueError, match="divisible by heads"):
+        MultiHeadAttention(10, 4, dropout=0.0)
+
+
+@pytest.mark.parametrize("points", [(19, 19), (19, 13)])
+def test_transformer_is_eta_in_both_directions(points):
+    """Equal sizes run both directions as one batch; the result is still
+    Phi_X = F_X + eta(F_X, F_Y), Phi_Y = F_Y + eta(F_Y, F_X)."""
+    torch.manual_seed(0)
+    transformer = Transformer(16, 2, 32, 1, 1, dropout=0.0).double()
+    src = torch.randn(2, 16, points[0], dtype=torch.float64)
+    tgt = torch.randn(2, 16, points[1], dtype=torch.float64)
+    phi_x, phi_y = transformer(src, tgt)
+    fx, fy = src.transpose(1, 2), tgt.transpose(1, 2)
+    torch.testing.assert_close(phi_x, (fx + transformer._eta(fx, fy)).transpose(1, 2))
+    torch.testing.assert_close(phi_y, (fy + transformer._eta(fy, fx)).transpose(1, 2))
+    assert phi_x.shape == src.shape and phi_y.shape == tgt.shape
