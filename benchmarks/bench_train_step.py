@@ -4,7 +4,8 @@
                                           [--device cuda] [--inference-points 768]
 
 Both backends run in this process on the same random pair batch (settings: the preset's batch
-size and point counts), one warm-up step each, then the median of ``--steps`` timed steps (on
+size and point counts), one warm-up step each, then ``--steps`` timed steps with the backends
+taking turns step by step (a slow spell of a shared machine falls on both), median per backend (on
 CUDA the clock reads follow a device synchronisation). ``--inference-points N`` also times the
 eval-mode forward of one pair of N points (the paper reports 19.9 ms for 768 on a GTX 1080 Ti).
 Denormal flushing (``vrnet_ext.set_flush_denormal``) is on for both backends unless
@@ -18,6 +19,7 @@ import json
 import platform
 import statistics
 import time
+from collections.abc import Callable
 
 import torch
 
@@ -25,6 +27,8 @@ from vrnet_ext.losses import HybridLossWeights, correspondence_loss, hybrid_loss
 from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.runtime import set_flush_denormal
 from vrnet_ext.train import PRESETS, set_stage, stage_train_mode
+
+BACKENDS = ("ext", "torch")
 
 
 def _batch(batch_size: int, points: int, generator: torch.Generator) -> dict:
@@ -45,12 +49,13 @@ def _now(device: torch.device) -> float:
     return time.perf_counter()
 
 
-def step_seconds(model: VRNet, batch: dict, stage: int, backend: str, steps: int) -> float:
+def make_step(model: VRNet, batch: dict, stage: int, backend: str) -> Callable[[int], float]:
+    """A closure that runs training step ``i`` of ``stage`` with ``backend`` and returns its seconds."""
     params = set_stage(model, stage)
     optimizer = torch.optim.Adam(params, lr=1e-4)
     device = batch["src"].device
-    times = []
-    for i in range(steps + 1):
+
+    def step(i: int) -> float:
         stage_train_mode(model, stage)
         start = _now(device)
         out = model(batch["src"], batch["tgt"], backend=backend)
@@ -62,9 +67,24 @@ def step_seconds(model: VRNet, batch: dict, stage: int, backend: str, steps: int
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
-        if i > 0:
-            times.append(_now(device) - start)
-    return statistics.median(times)
+        return _now(device) - start
+
+    return step
+
+
+def step_seconds(model: VRNet, batch: dict, stage: int, steps: int) -> dict[str, float]:
+    """Median seconds per step for each backend, after one warm-up step each.
+
+    The backends take turns step by step, so that a slow spell of the machine falls on both.
+    """
+    steppers = {backend: make_step(model, batch, stage, backend) for backend in BACKENDS}
+    times = {backend: [] for backend in BACKENDS}
+    for i in range(steps + 1):
+        for backend, step in steppers.items():
+            seconds = step(i)
+            if i > 0:
+                times[backend].append(seconds)
+    return {backend: statistics.median(values) for backend, values in times.items()}
 
 
 @torch.no_grad()
@@ -105,16 +125,15 @@ def main() -> None:
               "threads": args.threads, "flush_denormal": flush, "torch": torch.__version__}
     records = []
     for stage in args.stage:
-        row = {}
-        for backend in ("ext", "torch"):
-            row[backend] = step_seconds(model, batch, stage, backend, args.steps)
+        row = step_seconds(model, batch, stage, args.steps)
+        for backend in BACKENDS:
             records.append({"stage": stage, "impl": backend, "median_s": row[backend],
                             "batch_size": preset["batch_size"], "points": preset["num_subsampled"], **common})
             print(f"stage {stage} {backend:<5} {row[backend]:.2f} s/step", flush=True)
         print(f"stage {stage}: ext is {row['torch'] / row['ext']:.2f}x faster than backend='torch'")
     if args.inference_points:
         pair = _batch(1, args.inference_points, torch.Generator().manual_seed(1))
-        for backend in ("ext", "torch"):
+        for backend in BACKENDS:
             seconds = inference_seconds(model, pair["src"].to(device), pair["tgt"].to(device), backend)
             records.append({"stage": "inference", "impl": backend, "median_s": seconds, "batch_size": 1,
                             "points": args.inference_points, **common})
