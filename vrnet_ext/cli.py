@@ -21,6 +21,10 @@ def _parse_bool(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"expected 1/0/true/false, got {text!r}")
 
 
+DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNET_DATA/modelnet40, "
+                 "else ../shared/data/modelnet40 beside the project)")
+
+
 def _train_parser(sub) -> None:
     from vrnet_ext.train import PRESETS, TrainConfig
 
@@ -41,6 +45,8 @@ def _train_parser(sub) -> None:
             p.add_argument(flag, choices=SETTINGS, default=None, help="CO | PV | RS | PV+RS")
         elif f.name == "split":
             p.add_argument(flag, choices=("UPC", "UC", "ND"), default=None, help="UPC | UC | ND")
+        elif f.name == "data_dir":
+            p.add_argument(flag, default=None, help=DATA_DIR_HELP)
         elif f.name == "backend":
             p.add_argument(flag, choices=("ext", "torch"), default=None, help="compiled ops or pure PyTorch")
         elif kind is bool:
@@ -83,7 +89,7 @@ def _eval_parser(sub) -> None:
     p.add_argument("--checkpoint", required=True, help="best.pt / last.pt written by `vrnet train`")
     p.add_argument("--setting", choices=SETTINGS, default=None, help="default: the checkpoint's")
     p.add_argument("--split", choices=("UPC", "UC", "ND"), default=None, help="default: the checkpoint's")
-    p.add_argument("--data-dir", default=None, help="folder holding modelnet40_1024_test.h5 (or VRNET_DATA)")
+    p.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--max-items", type=int, default=None, help="evaluate the first N test shapes only")
     p.add_argument("--iterations", type=int, default=None, help="ICP-like passes (paper Table 'with iteration')")

@@ -28,7 +28,8 @@ def load_h5(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """(points (S, P, 3) float32, labels (S,) int64) from one or more PointNet-layout HDF5 files."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"ModelNet40 file not found: {path} (set --data-dir or VRNET_DATA)")
+        raise FileNotFoundError(f"ModelNet40 file not found: {path} (set --data-dir to the folder holding "
+                                f"it, or VRNET_DATA to the data folder that holds modelnet40/)")
     try:
         with h5py.File(path, "r") as f:
             missing = {"data", "label"} - set(f.keys())
