@@ -9,8 +9,8 @@ from conftest import DATA_DIR, MODELNET_DIR, requires_modelnet
 from vrnet_ext import ops
 from vrnet_ext.cli import main
 from vrnet_ext.io import read_points, read_transform, write_ply
-from vrnet_ext.register import (IcpFailure, apply, icp, network_estimate, register, to_homogeneous,
-                                transform_errors, voxel_downsample)
+from vrnet_ext.register import (IcpFailure, TargetReach, apply, icp, network_estimate, register,
+                                to_homogeneous, transform_errors, voxel_downsample)
 
 LIDAR = DATA_DIR / "scenes" / "lidar_pair"
 
@@ -41,6 +41,19 @@ def test_voxel_downsample_averages_each_voxel():
         voxel_downsample(points, 0.0)
 
 
+def test_voxel_downsample_matches_a_per_voxel_mean_in_row_major_voxel_order():
+    rng = np.random.default_rng(5)
+    points = rng.normal(scale=3.0, size=(5000, 3)) - 7.0
+    voxel = 0.8
+    groups = {}
+    for p, cell in zip(points, map(tuple, np.floor((points - points.min(0)) / voxel).astype(int))):
+        groups.setdefault(cell, []).append(p)
+    expected = np.array([np.mean(groups[cell], axis=0) for cell in sorted(groups)])
+    np.testing.assert_allclose(voxel_downsample(points, voxel), expected, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="too small"):
+        voxel_downsample(np.array([[0.0, 0.0, 0.0], [1e3, 1e3, 1e3]]), 1e-5)
+
+
 def test_icp_recovers_a_small_motion():
     src = room()
     truth = motion(6.0, [0.1, -0.05, 0.08])
@@ -48,6 +61,42 @@ def test_icp_recovers_a_small_motion():
     errors = transform_errors(T, truth)
     assert errors["rotation_error_deg"] < 1e-3 and errors["translation_error"] < 1e-4, errors
     assert fitness > 0.99 and rmse < 1e-4 and iterations < 50
+
+
+def test_target_reach_never_rules_out_a_point_within_reach():
+    rng = np.random.default_rng(3)
+    tgt = torch.as_tensor(room(2000)).unsqueeze(0)
+    reach = 0.07
+    queries = torch.cat([torch.as_tensor(rng.uniform(-1, 5, size=(3000, 3))),
+                         tgt[0, :500] + torch.as_tensor(rng.normal(scale=0.05, size=(500, 3))),
+                         torch.tensor([[1e12, -1e12, 3.0], [-40.0, 2.0, 2.0]], dtype=torch.float64)]).unsqueeze(0)
+    nearest = torch.cdist(queries[0], tgt[0]).amin(1)
+    allowed = TargetReach(tgt, reach)(queries)
+    assert allowed.shape == (queries.shape[1],) and allowed.dtype == torch.bool
+    assert bool(allowed[nearest <= reach].all())
+    assert not bool(allowed[nearest > 4 * reach].any())  # beyond the 27 voxels: always ruled out
+    assert int(allowed.sum()) < int((nearest <= 4 * reach).sum()) + 1
+
+
+def test_target_reach_lets_everything_through_over_its_cell_budget():
+    tgt = torch.as_tensor(room(200)).unsqueeze(0)
+    far = tgt + 100.0
+    assert not bool(TargetReach(tgt, 0.1)(far).any())
+    assert bool(TargetReach(tgt, 0.1, max_cells=1000)(far).all())
+
+
+def test_icp_skipping_out_of_reach_points_changes_nothing(monkeypatch):
+    """Partial overlap: most moved source points have no target point within reach."""
+    src = room(3000)
+    truth = motion(4.0, [0.05, 0.02, -0.03])
+    tgt = apply(truth, src)
+    tgt = tgt[tgt[:, 0] < 2.0]
+    filtered = icp(src, tgt, np.eye(4), max_distance=0.1)
+    monkeypatch.setattr(TargetReach, "__call__", lambda self, points: torch.ones(points.shape[1], dtype=torch.bool))
+    unfiltered = icp(src, tgt, np.eye(4), max_distance=0.1)
+    np.testing.assert_allclose(filtered[0], unfiltered[0], rtol=0, atol=1e-12)
+    assert filtered[1:3] == unfiltered[1:3]
+    assert filtered[3] == pytest.approx(unfiltered[3], rel=1e-12)
 
 
 class ExactModel(torch.nn.Module):

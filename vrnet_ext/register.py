@@ -5,7 +5,8 @@ brought to that scale: both clouds are shifted by the same vector and divided by
 (a similarity applied to both sides keeps the rigid motion recoverable exactly), and each is
 subsampled to ``network_points``. The estimate is mapped back to metres and, optionally, refined by
 point-to-point ICP on voxel-downsampled clouds (``ops.knn`` grid search + weighted ``ops.kabsch``),
-whose memory is O(points): scans of 100k+ points fit in a few hundred MB.
+whose memory is O(points) plus a bool occupancy grid of at most 2^24 cells (16 MB) for the reach
+test: scans of 100k+ points fit in a few hundred MB.
 """
 from __future__ import annotations
 
@@ -58,10 +59,15 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Mean of the points in each occupied voxel of edge ``voxel_size`` -> (V, 3)."""
     if voxel_size <= 0:
         raise ValueError(f"voxel_size must be positive, got {voxel_size}")
-    keys = np.floor((points - points.min(0)) / voxel_size).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inverse.reshape(-1), points)
+    cells = np.floor((points - points.min(0)) / voxel_size).astype(np.int64)
+    sizes = cells.max(0) + 1
+    if float(np.prod(sizes.astype(np.float64))) >= 2.0 ** 62:
+        raise ValueError(f"voxel_size {voxel_size:g} is too small for a cloud of extent "
+                         f"{np.ptp(points, axis=0).tolist()} (more than 2^62 voxels)")
+    keys = (cells[:, 0] * sizes[1] + cells[:, 1]) * sizes[2] + cells[:, 2]  # row-major voxel number
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    sums = np.stack([np.bincount(inverse, weights=points[:, axis], minlength=len(counts)) for axis in range(3)], 1)
     return (sums / counts[:, None]).astype(points.dtype)
 
 
@@ -103,29 +109,85 @@ def network_estimate(model: VRNet, src: np.ndarray, tgt: np.ndarray, network_poi
     return to_homogeneous(R, scale * t_normalised + centre - R @ centre)
 
 
+class TargetReach:
+    """Which points may have a target point within ``reach``: a conservative test on a grid of
+    cells slightly larger than ``reach`` (a point qualifies when one of the 27 cells around its own
+    holds a target point), so the nearest-neighbour search skips points that cannot be inliers.
+    For the grid kNN those are the slow queries: far from every surface, many empty cells away.
+
+    tgt: (1, M, 3) tensor. Where the grid would need more than ``max_cells`` cells (a small reach
+    over a large scene), every point qualifies.
+    """
+
+    def __init__(self, tgt: torch.Tensor, reach: float, max_cells: int = 1 << 24) -> None:
+        self.cell = reach * (1.0 + 1e-6)  # a pair within reach is never two cells apart, rounding included
+        self.origin = tgt[0].amin(0) - self.cell  # one empty layer of cells around the target
+        cells = torch.floor((tgt[0] - self.origin) / self.cell).long()
+        shape = (cells.amax(0) + 2).tolist()
+        self.grid = None
+        if shape[0] * shape[1] * shape[2] <= max_cells:
+            occupied = torch.zeros(shape, dtype=torch.bool, device=tgt.device)
+            occupied[cells.unbind(1)] = True
+            self.grid = _dilate(occupied)
+
+    def __call__(self, points: torch.Tensor) -> torch.Tensor:
+        """points (1, N, 3) -> (N,) bool, False only where no target point is within ``reach``."""
+        if self.grid is None:
+            return torch.ones(points.shape[1], dtype=torch.bool, device=points.device)
+        cells = torch.floor((points[0] - self.origin) / self.cell)
+        shape = torch.tensor(self.grid.shape, dtype=cells.dtype, device=cells.device)
+        inside = ((cells >= 0) & (cells < shape)).all(1)
+        allowed = torch.zeros(points.shape[1], dtype=torch.bool, device=points.device)
+        allowed[inside] = self.grid[cells[inside].long().unbind(1)]
+        return allowed
+
+
+def _dilate(occupied: torch.Tensor) -> torch.Tensor:
+    """(X, Y, Z) bool grid -> the same grid with every cell next to (26-neighbourhood) a set cell set."""
+    for axis in range(3):
+        grown = occupied.clone()
+        length = occupied.shape[axis] - 1
+        grown.narrow(axis, 1, length).logical_or_(occupied.narrow(axis, 0, length))
+        grown.narrow(axis, 0, length).logical_or_(occupied.narrow(axis, 1, length))
+        occupied = grown
+    return occupied
+
+
+def _nearest_in_reach(moved: torch.Tensor, tgt: torch.Tensor, reach: TargetReach,
+                      backend: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest target neighbour of the points of ``moved`` (1, N, 3) that ``reach`` lets through:
+    -> (their indices into moved (P,), squared distances (P,), target indices (P,)); P may be 0."""
+    candidates = reach(moved).nonzero().squeeze(1)
+    if len(candidates) == 0:
+        return candidates, moved.new_empty(0), candidates
+    dist2, idx = ops.knn(moved[:, candidates], tgt, 1, backend=backend)
+    return candidates, dist2[0, :, 0], idx[0, :, 0]
+
+
 def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: float, iterations: int = 50,
         tolerance: float = 1e-6, device: torch.device = torch.device("cpu"),
         backend: str = "ext") -> tuple[np.ndarray, int, float, float]:
     """Point-to-point ICP: nearest target neighbour of each moved source point, pairs farther than
     ``max_distance`` get weight 0, weighted Kabsch; stops when the transform changes by less than
-    ``tolerance`` (rotation in radians, translation in metres).
+    ``tolerance`` (rotation in radians, translation in metres). Points that :class:`TargetReach`
+    rules out are not searched (they would get weight 0 anyway).
 
     Returns (4x4 transform, iterations run, fitness, inlier RMSE); raises IcpFailure when fewer
     than 3 pairs are within reach.
     """
     src_t = torch.as_tensor(src, dtype=torch.float64, device=device).unsqueeze(0)
     tgt_t = torch.as_tensor(tgt, dtype=torch.float64, device=device).unsqueeze(0)
+    reach = TargetReach(tgt_t, max_distance)
     T = torch.as_tensor(initial, dtype=torch.float64, device=device)
     done = 0
     for done in range(1, iterations + 1):
         moved = src_t @ T[:3, :3].T + T[:3, 3]
-        dist2, idx = ops.knn(moved, tgt_t, 1, backend=backend)
-        inliers = (dist2[..., 0] <= max_distance ** 2).to(src_t.dtype)
+        candidates, dist2, idx = _nearest_in_reach(moved, tgt_t, reach, backend)
+        inliers = (dist2 <= max_distance ** 2).to(src_t.dtype)
         if int(inliers.sum()) < 3:
             raise IcpFailure(f"ICP: fewer than 3 point pairs within max_distance={max_distance:g} of the initial "
                              "estimate (too far off; raise --max-distance or check the inputs)")
-        matched = tgt_t[0, idx[0, :, 0]].unsqueeze(0)
-        R, t = ops.kabsch(src_t, matched, inliers, backend=backend)
+        R, t = ops.kabsch(src_t[:, candidates], tgt_t[:, idx], inliers.unsqueeze(0), backend=backend)
         step = torch.eye(4, dtype=T.dtype, device=device)
         step[:3, :3], step[:3, 3] = R[0], t[0]
         change_rotation = torch.linalg.matrix_norm(step[:3, :3] - T[:3, :3]).item()
@@ -133,11 +195,10 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
         T = step
         if change_rotation < tolerance and change_translation < tolerance:
             break
-    moved = src_t @ T[:3, :3].T + T[:3, 3]
-    dist2 = ops.knn(moved, tgt_t, 1, backend=backend)[0][0, :, 0]
-    close = dist2 <= max_distance ** 2
-    fitness = float(close.double().mean())
-    rmse = float(dist2[close].mean().sqrt()) if bool(close.any()) else float("nan")
+    _, dist2, _ = _nearest_in_reach(src_t @ T[:3, :3].T + T[:3, 3], tgt_t, reach, backend)
+    close = dist2[dist2 <= max_distance ** 2]
+    fitness = len(close) / src_t.shape[1]
+    rmse = float(close.mean().sqrt()) if len(close) else float("nan")
     return T.cpu().numpy(), done, fitness, rmse
 
 
