@@ -10,7 +10,8 @@ from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
 from vrnet_ext.losses import correspondence_loss
-from vrnet_ext.metrics import chamfer_distance, correct_match_ratio, summarize
+from vrnet_ext.metrics import (chamfer_distance, correct_match_ratio, correspondence_error, rotation_error_deg,
+                               summarize)
 from vrnet_ext.model import VRNet
 from vrnet_ext.ops import kabsch
 
@@ -27,22 +28,33 @@ def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str |
     """Runs ``model`` over ``dataset`` and returns the metrics as a flat dict.
 
     ``use_rcp=False`` solves Kabsch on the VCPs instead (DCP-v2 behaviour, used to select a
-    stage-1 model whose correction walk is still untrained).
+    stage-1 model whose correction walk is still untrained). Whichever is used, the result also
+    holds ``RE mean (VCP Procrustes)`` and the mean distance of VCPs and RCPs from the true
+    correspondents, over the source points that have one in the target (``inliers``, gt_idx >= 0)
+    and over those that do not (``outliers``, only where there are any): what the correction
+    walk gains or costs on each kind of point.
     """
     device = torch.device(device)
     model.eval()
     loader = DataLoader(dataset, batch_size=batch_size, shuffle=False)
     preds_R, preds_t, gts_R, gts_t = [], [], [], []
     extra: dict[str, list[float]] = {k: [] for k in ("L0", "CD(src,VCP)", "CD(src,RCP)", "CD(src,tgt)",
-                                                     "match@0.15(VCP)", "match@0.15(RCP)")}
+                                                     "match@0.15(VCP)", "match@0.15(RCP)",
+                                                     "RE mean (VCP Procrustes)")}
+    point_errors = {f"{name} error ({kind})": [0.0, 0] for name in ("VCP", "RCP") for kind in ("inliers", "outliers")}
     for batch in tqdm(loader, desc="eval", disable=not progress, leave=False):
         batch = to_device(batch, device)
         src, tgt, R_gt, t_gt = batch["src"], batch["tgt"], batch["rotation"], batch["translation"]
         out = model(src, tgt, backend=backend)
-        if use_rcp:
-            R, t = out.rotation, out.translation
-        else:
-            R, t = kabsch(src, out.vcp, backend=backend or model.config.backend)
+        R_vcp, t_vcp = kabsch(src, out.vcp, backend=backend or model.config.backend)
+        R, t = (out.rotation, out.translation) if use_rcp else (R_vcp, t_vcp)
+        extra["RE mean (VCP Procrustes)"] += rotation_error_deg(R_vcp, R_gt).tolist()
+        inliers = batch["gt_idx"] >= 0
+        for name, pts in (("VCP", out.vcp), ("RCP", out.rcp)):
+            error = correspondence_error(pts, src, R_gt, t_gt)
+            for kind, chosen in (("inliers", inliers), ("outliers", ~inliers)):
+                point_errors[f"{name} error ({kind})"][0] += float(error[chosen].sum())
+                point_errors[f"{name} error ({kind})"][1] += int(chosen.sum())
         preds_R.append(R.cpu()); preds_t.append(t.cpu()); gts_R.append(R_gt.cpu()); gts_t.append(t_gt.cpu())
         aligned = src @ R_gt.mT + t_gt.unsqueeze(1)
         n = src.shape[0]
@@ -55,6 +67,7 @@ def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str |
     result = summarize(torch.cat(preds_R).numpy(), torch.cat(gts_R).numpy(),
                        torch.cat(preds_t).numpy(), torch.cat(gts_t).numpy())
     result.update({k: float(np.mean(v)) for k, v in extra.items()})
+    result.update({k: total / count for k, (total, count) in point_errors.items() if count})
     result["pairs"] = len(dataset)
     return result
 

@@ -38,12 +38,20 @@ def chamfer_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return knn(a, b, 1)[0].mean(dim=(1, 2)) + knn(b, a, 1)[0].mean(dim=(1, 2))
 
 
+def correspondence_error(points: torch.Tensor, src: torch.Tensor, gt_rotation: torch.Tensor,
+                         gt_translation: torch.Tensor) -> torch.Tensor:
+    """(B, N) distance of each predicted correspondent (VCP or RCP) from the true position
+    R_gt x_i + t_gt. For RCPs it equals the error of the correction walk's offset,
+    |offset_i - (R_gt x_i + t_gt - vcp_i)| (the paper's L4 residual)."""
+    truth = src @ gt_rotation.mT + gt_translation.unsqueeze(1)
+    return (points - truth).norm(dim=-1)
+
+
 def correct_match_ratio(points: torch.Tensor, src: torch.Tensor, gt_rotation: torch.Tensor,
                         gt_translation: torch.Tensor, threshold: float = 0.15) -> torch.Tensor:
     """(B,) share of source points whose predicted correspondent (VCP or RCP) lies within
     ``threshold`` of the true position R_gt x_i + t_gt."""
-    truth = src @ gt_rotation.mT + gt_translation.unsqueeze(1)
-    return ((points - truth).norm(dim=-1) < threshold).double().mean(dim=1)
+    return (correspondence_error(points, src, gt_rotation, gt_translation) < threshold).double().mean(dim=1)
 
 
 def summarize(pred_rotation: np.ndarray, gt_rotation: np.ndarray, pred_translation: np.ndarray,
