@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from conftest import DATA_DIR
 from vrnet_ext.io import PointCloudError, read_points, read_transform, write_ply
@@ -95,6 +96,13 @@ def test_read_transform(tmp_path):
     (tmp_path / "scaled.txt").write_text("\n".join(" ".join(str(v) for v in row) for row in 2 * np.eye(4)))
     with pytest.raises(PointCloudError, match="rigid"):
         read_transform(tmp_path / "scaled.txt")
+    (tmp_path / "mirror.txt").write_text("\n".join(" ".join(str(v) for v in row) for row in np.diag([1, 1, -1, 1])))
+    with pytest.raises(PointCloudError, match="det"):
+        read_transform(tmp_path / "mirror.txt")
+    rounded = Rotation.from_euler("zyx", [30, 10, -20], degrees=True).as_matrix() + 1.3e-4  # a 4-digit log
+    T[:3, :3] = rounded
+    (tmp_path / "rounded.txt").write_text("\n".join(" ".join(f"{v:.9f}" for v in row) for row in T))
+    np.testing.assert_allclose(read_transform(tmp_path / "rounded.txt"), T, atol=1e-9)
 
 
 @pytest.mark.skipif(not (SCENES / "lidar_pair" / "source.ply").exists(), reason=f"real scans not found under {SCENES}")

@@ -137,13 +137,16 @@ def _run_plot(args) -> int:
 def _register_parser(sub) -> None:
     p = sub.add_parser(
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
-        description="Estimates the rigid transform taking SOURCE onto TARGET: a VRNet estimate on a "
-                    "subsample (with --checkpoint; else the identity), refined by point-to-point ICP on "
-                    "voxel-downsampled clouds. Prints the 4x4 transform and writes JSON.")
+        description="Estimates the rigid transform taking SOURCE onto TARGET: an initial estimate (VRNet on "
+                    "a subsample with --checkpoint, FPFH + RANSAC with --fpfh, else the identity), refined by "
+                    "point-to-point ICP on voxel-downsampled clouds. Prints the 4x4 transform and writes JSON.")
     p.add_argument("source", help="point-cloud file to move")
     p.add_argument("target", help="point-cloud file to align to (same unit)")
     p.add_argument("--checkpoint", default=None, help="best.pt of `vrnet train` for the initial estimate")
     p.add_argument("--network-points", type=int, default=1024, help="points per cloud fed to VRNet")
+    p.add_argument("--fpfh", nargs="?", type=int, const=5000, default=None, metavar="POINTS",
+                   help="initial estimate from FPFH features + RANSAC on about POINTS (default 5000) points "
+                        "per scan, for scans far apart; no checkpoint needed")
     p.add_argument("--icp-points", type=int, default=50_000, help="about this many points per cloud for ICP")
     p.add_argument("--voxel-size", type=float, default=None, help="ICP voxel edge (overrides --icp-points)")
     p.add_argument("--max-distance", type=float, default=None, help="ICP inlier reach (default: 3 voxels)")
@@ -165,18 +168,21 @@ def _run_register(args) -> int:
 
     src, tgt = read_points(args.source), read_points(args.target)
     truth = read_transform(args.gt) if args.gt else None
+    if args.checkpoint and args.fpfh:
+        raise SystemExit("vrnet register: error: --checkpoint and --fpfh are two initial estimates: give one")
     model = None
     if args.checkpoint:
         from vrnet_ext.train import model_from_checkpoint
 
         model = model_from_checkpoint(args.checkpoint, args.device)[0].to(args.device)
     result = register(src, tgt, model, args.network_points, args.icp_points, args.voxel_size, args.max_distance,
-                      args.icp_iterations, args.seed, args.device, args.backend)
+                      args.icp_iterations, args.seed, args.device, args.backend, args.fpfh)
     record = result.to_dict()
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     record.update(source=str(args.source), target=str(args.target), checkpoint=args.checkpoint, peak_rss_mb=peak_mb)
     print(f"source {len(src)} points, target {len(tgt)} points; "
-          f"initial estimate: {'VRNet' if model is not None else 'identity'}; ICP iterations {result.icp_iterations}, "
+          f"initial estimate: {'VRNet' if model is not None else 'FPFH + RANSAC' if args.fpfh else 'identity'}; "
+          f"ICP iterations {result.icp_iterations}, "
           f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}; "
           f"{sum(result.seconds.values()):.1f} s, peak memory {peak_mb:.0f} MB")
     for warning in result.warnings:

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from vrnet_ext import ops
+from vrnet_ext.global_registration import fpfh_ransac
 from vrnet_ext.metrics import rotation_error_deg, translation_error
 from vrnet_ext.model import VRNet
 
@@ -164,6 +165,18 @@ def _nearest_in_reach(moved: torch.Tensor, tgt: torch.Tensor, reach: TargetReach
     return candidates, dist2[0, :, 0], idx[0, :, 0]
 
 
+def fpfh_estimate(src: np.ndarray, tgt: np.ndarray, points: int, seed: int,
+                  device: torch.device = torch.device("cpu")) -> np.ndarray:
+    """4x4 estimate from FPFH + RANSAC (:mod:`vrnet_ext.global_registration`) on both scans
+    voxel-downsampled to about ``points`` points (the voxel edge sets the feature radii)."""
+    voxel = voxel_size_for(tgt, points)
+
+    def downsampled(cloud: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(voxel_downsample(cloud, voxel), dtype=torch.float64, device=device)
+
+    return fpfh_ransac(downsampled(src), downsampled(tgt), voxel, seed=seed)[0].cpu().numpy()
+
+
 def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: float, iterations: int = 50,
         tolerance: float = 1e-6, device: torch.device = torch.device("cpu"),
         backend: str = "ext") -> tuple[np.ndarray, int, float, float]:
@@ -205,21 +218,26 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
 def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, network_points: int = 1024,
              icp_points: int = 50_000, voxel_size: float | None = None, max_distance: float | None = None,
              icp_iterations: int = 50, seed: int = 0, device: str | torch.device = "cpu",
-             backend: str = "ext") -> RegistrationResult:
+             backend: str = "ext", fpfh_points: int | None = None) -> RegistrationResult:
     """Estimates the rigid transform taking src (N, 3) onto tgt (M, 3), both in the same unit.
 
-    model: a trained VRNet for the initial estimate (None: start ICP from the identity).
+    model: a trained VRNet for the initial estimate. fpfh_points: instead, a global estimate from
+    FPFH features + RANSAC on about this many points per scan. Neither: ICP starts from the identity.
     network_points: points per cloud fed to the network. icp_points: ICP works on voxel-downsampled
     clouds of about this many points (``voxel_size`` overrides). max_distance: ICP inlier reach
     (default 3 voxels). icp_iterations=0 skips ICP. If ICP finds no pairs within reach, the result
     is the initial estimate with a message in ``warnings``.
     """
+    if model is not None and fpfh_points:
+        raise ValueError("give one initial estimate: a VRNet model or fpfh_points, not both")
     device = torch.device(device)
     seconds, start = {}, time.perf_counter()
     initial = np.eye(4)
     if model is not None:
         initial = network_estimate(model, src, tgt, network_points, seed, device, backend)
-    seconds["network"] = time.perf_counter() - start
+    elif fpfh_points:
+        initial = fpfh_estimate(src, tgt, fpfh_points, seed, device)
+    seconds["initial"] = time.perf_counter() - start
     points = {"source": len(src), "target": len(tgt)}
     if icp_iterations <= 0:
         return RegistrationResult(initial, initial, 0, float("nan"), float("nan"), seconds, points)

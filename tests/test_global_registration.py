@@ -1,0 +1,126 @@
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from conftest import DATA_DIR
+from test_register import motion, room
+from vrnet_ext.cli import main
+from vrnet_ext.global_registration import estimate_normals, fpfh, fpfh_ransac, mutual_matches, ransac
+from vrnet_ext.io import write_ply
+from vrnet_ext.register import apply, register, transform_errors, voxel_downsample
+
+KITCHEN = DATA_DIR / "scenes" / "3dmatch_redkitchen"
+
+
+def test_normals_of_a_plane_face_the_viewpoint():
+    g = torch.Generator().manual_seed(0)
+    plane = torch.cat([torch.rand(300, 2, generator=g, dtype=torch.float64), torch.zeros(300, 1, dtype=torch.float64)], 1)
+    up = estimate_normals(plane, viewpoint=(0.5, 0.5, 2.0))
+    down = estimate_normals(plane, viewpoint=(0.5, 0.5, -2.0))
+    torch.testing.assert_close(up, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(300, 3))
+    torch.testing.assert_close(down, -up)
+    with pytest.raises(ValueError, match="at least 3 points"):
+        estimate_normals(plane[:2])
+
+
+def test_fpfh_is_invariant_to_rigid_motion_and_each_histogram_sums_to_100():
+    points = torch.as_tensor(voxel_downsample(room(3000), 0.1))
+    points = points + 1e-3 * torch.randn(points.shape, generator=torch.Generator().manual_seed(0), dtype=points.dtype)
+    normals = estimate_normals(points, viewpoint=(2.0, 2.0, 2.0))
+    R = torch.tensor(Rotation.from_euler("zyx", [70, -20, 35], degrees=True).as_matrix())
+    t = torch.tensor([3.0, -1.0, 0.5], dtype=torch.float64)
+    features = fpfh(points, normals, radius=0.5)
+    moved = fpfh(points @ R.T + t, normals @ R.T, radius=0.5)
+    assert features.shape == (points.shape[0], 33)
+    torch.testing.assert_close(moved, features, rtol=0, atol=1e-6)
+    distances = torch.cdist(points, points) + torch.eye(points.shape[0], dtype=points.dtype) * 1e9
+    isolated = distances.amin(1) > 0.5  # no neighbour within the radius: an all-zero feature
+    expected = torch.where(isolated, 0.0, 100.0).to(points.dtype).unsqueeze(1).expand(-1, 3)
+    torch.testing.assert_close(features.view(-1, 3, 11).sum(-1), expected)
+
+
+def test_mutual_matches_keep_pairs_that_choose_each_other():
+    src = torch.tensor([[0.0], [1.0], [5.0]])
+    tgt = torch.tensor([[0.1], [4.0], [4.2]])
+    src_features, tgt_features = src.expand(3, 2).contiguous(), tgt.expand(3, 2).contiguous()
+    # 0 <-> 0 mutual; 1 -> 0 (0 prefers src 0): dropped; 2 <-> 2 mutual; fewer than 10 mutual: all kept
+    assert mutual_matches(src_features, tgt_features).tolist() == [[0, 0], [1, 0], [2, 2]]
+    many_src = torch.arange(40, dtype=torch.float64)[:, None].expand(40, 2).contiguous()
+    many_tgt = many_src.flip(0) + 0.01
+    matches = mutual_matches(many_src, many_tgt)
+    assert matches.shape == (40, 2) and (many_src[matches[:, 0]] - many_tgt[matches[:, 1]]).abs().max() < 0.02
+
+
+def test_ransac_recovers_a_transform_from_matches_with_60_percent_outliers():
+    g = torch.Generator().manual_seed(1)
+    src = torch.rand(500, 3, generator=g, dtype=torch.float64) * 4
+    truth = torch.as_tensor(motion(80.0, [1.0, -2.0, 0.5]))
+    tgt = src @ truth[:3, :3].T + truth[:3, 3]
+    matches = torch.stack([torch.arange(500), torch.arange(500)], 1)
+    wrong = torch.randperm(500, generator=g)[:300]
+    matches[wrong, 1] = torch.randint(0, 500, (300,), generator=g)
+    estimate, inliers = ransac(src, tgt, matches, inlier_distance=0.05, iterations=4000, seed=0)
+    errors = transform_errors(estimate.numpy(), truth.numpy())
+    assert errors["rotation_error_deg"] < 1e-6 and errors["translation_error"] < 1e-6
+    assert 200 <= inliers <= 205
+    with pytest.raises(ValueError, match="at least 3 putative matches"):
+        ransac(src, tgt, matches[:2], 0.05)
+
+
+def closed_room(count=8000, seed=0):
+    """Surfaces of a 4.5 x 4.5 x 2.5 m room around the origin (the sensor) plus two boxes placed
+    off-centre, so that no rotation maps the scene onto itself."""
+    rng = np.random.default_rng(seed)
+    boxes = [(np.array([-2.0, -1.5, -1.0]), np.array([2.5, 3.0, 1.5])),
+             (np.array([0.8, -1.5, -1.0]), np.array([1.8, -0.6, 0.0])),
+             (np.array([-2.0, 1.6, -1.0]), np.array([-1.2, 3.0, 0.8]))]
+    points = []
+    for lo, hi in boxes:
+        faces = rng.uniform(lo, hi, size=(count // 3, 3))
+        axis = rng.integers(0, 3, count // 3)
+        side = rng.integers(0, 2, count // 3)
+        faces[np.arange(count // 3), axis] = np.where(side == 0, lo[axis], hi[axis])
+        points.append(faces)
+    return np.concatenate(points)
+
+
+def test_fpfh_ransac_finds_a_large_motion_that_icp_from_the_identity_cannot():
+    """Both scans see the room from inside (the sensor at each one's origin), 75 degrees apart."""
+    src = closed_room()
+    truth = motion(75.0, [0.3, -0.2, 0.1])
+    tgt = apply(truth, closed_room(seed=1))
+    voxel = 0.1
+    down = [torch.as_tensor(voxel_downsample(cloud, voxel)) for cloud in (src, tgt)]
+    estimate, _ = fpfh_ransac(*down, voxel, iterations=20_000)
+    errors = transform_errors(estimate.numpy(), truth)
+    assert errors["rotation_error_deg"] < 3.0 and errors["translation_error"] < 0.15, errors
+    refined = register(src, tgt, fpfh_points=3000, icp_points=6000)
+    assert transform_errors(refined.transform, truth)["rotation_error_deg"] < 1.0
+    identity_start = register(src, tgt, icp_points=6000)
+    assert transform_errors(identity_start.transform, truth)["rotation_error_deg"] > 10.0
+
+
+def test_one_initial_estimate_at_a_time(tmp_path):
+    src = room(500)
+    with pytest.raises(ValueError, match="not both"):
+        register(src, src, model=torch.nn.Identity(), fpfh_points=1000)
+    write_ply(tmp_path / "a.ply", src)
+    with pytest.raises(SystemExit, match="give one"):
+        main(["register", str(tmp_path / "a.ply"), str(tmp_path / "a.ply"), "--fpfh", "--checkpoint", "x.pt"])
+
+
+@pytest.mark.skipif(not (KITCHEN / "cloud_bin_10.ply").exists(), reason=f"3DMatch fragments not found under {KITCHEN}")
+def test_real_3dmatch_pair_from_fpfh(tmp_path):
+    """Fragments 0 and 10 of 7-scenes-redkitchen (80 % overlap), ground truth from gt_pairs.txt."""
+    lines = (KITCHEN / "gt_pairs.txt").read_text().splitlines()
+    start = lines.index("pair 0 10")
+    truth = np.array([[float(v) for v in line.split()] for line in lines[start + 1:start + 5]])
+    np.savetxt(tmp_path / "gt.txt", truth)
+    args = ["register", str(KITCHEN / "cloud_bin_10.ply"), str(KITCHEN / "cloud_bin_0.ply"), "--fpfh",
+            "--gt", str(tmp_path / "gt.txt"), "--json", str(tmp_path / "r.json")]
+    assert main(args) == 0
+    import json
+    record = json.loads((tmp_path / "r.json").read_text())
+    assert record["errors_initial"]["rotation_error_deg"] < 3.0, record["errors_initial"]
+    assert record["errors"]["rotation_error_deg"] < 2.0 and record["errors"]["translation_error"] < 0.1, record["errors"]
