@@ -5,8 +5,10 @@ from scipy.spatial.transform import Rotation
 
 from conftest import DATA_DIR
 from test_register import motion, room
+from vrnet_ext import global_registration
 from vrnet_ext.cli import main
-from vrnet_ext.global_registration import estimate_normals, fpfh, fpfh_ransac, mutual_matches, ransac
+from vrnet_ext.global_registration import (_enough_hypotheses, estimate_normals, fpfh, fpfh_ransac, mutual_matches,
+                                          ransac)
 from vrnet_ext.io import write_ply
 from vrnet_ext.register import apply, register, transform_errors, voxel_downsample
 
@@ -66,6 +68,24 @@ def test_ransac_recovers_a_transform_from_matches_with_60_percent_outliers():
     assert 200 <= inliers <= 205
     with pytest.raises(ValueError, match="at least 3 putative matches"):
         ransac(src, tgt, matches[:2], 0.05)
+
+
+def test_ransac_stops_once_confident(monkeypatch):
+    assert _enough_hypotheses(0.5, 0.999) == pytest.approx(np.log(0.001) / np.log(1 - 0.125))
+    assert _enough_hypotheses(1.0, 0.999) == 0.0
+    assert _enough_hypotheses(1.0, 1.0) == float("inf") and _enough_hypotheses(0.0, 0.9) == float("inf")
+    g = torch.Generator().manual_seed(2)
+    src = torch.rand(200, 3, generator=g, dtype=torch.float64)
+    matches = torch.stack([torch.arange(200), torch.arange(200)], 1)
+    calls = []
+    kabsch = global_registration.ops.kabsch
+    monkeypatch.setattr(global_registration.ops, "kabsch", lambda *a, **k: calls.append(1) or kabsch(*a, **k))
+    ransac(src, src + 1.0, matches, 0.01, iterations=10_000, batch=100)  # all inliers: one batch
+    assert len(calls) == 2  # one batch of hypotheses + the refinement
+    ransac(src, src + 1.0, matches, 0.01, iterations=1000, confidence=1.0, batch=100)
+    assert len(calls) == 2 + 11
+    with pytest.raises(ValueError, match="confidence"):
+        ransac(src, src, matches, 0.01, confidence=0.0)
 
 
 def closed_room(count=8000, seed=0):

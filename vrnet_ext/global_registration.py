@@ -111,15 +111,31 @@ def mutual_matches(src_features: torch.Tensor, tgt_features: torch.Tensor) -> to
     return torch.stack([src_idx[mutual], forward[mutual]], dim=1)
 
 
+def _enough_hypotheses(inlier_ratio: float, confidence: float) -> float:
+    """Hypotheses after which one all-inlier sample of 3 was drawn with probability ``confidence``."""
+    all_inliers = inlier_ratio ** 3
+    if confidence >= 1.0 or all_inliers <= 0.0:
+        return math.inf
+    if all_inliers >= 1.0:
+        return 0.0
+    return math.log(1.0 - confidence) / math.log(1.0 - all_inliers)
+
+
 def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_distance: float,
-           iterations: int = 50_000, batch: int = 512, seed: int = 0) -> tuple[torch.Tensor, int]:
+           iterations: int = 50_000, confidence: float = 0.999, batch: int = 512,
+           seed: int = 0) -> tuple[torch.Tensor, int]:
     """Rigid transform from putative matches (C, 2) between src (N, 3) and tgt (M, 3).
 
-    ``iterations`` hypotheses from 3 random matches each, ``batch`` at a time (one Kabsch call per
-    batch); returns (4x4 transform refined on the best hypothesis' inliers, its inlier count).
+    Up to ``iterations`` hypotheses from 3 random matches each, ``batch`` at a time (one Kabsch
+    call per batch), stopping early as Open3D's RANSAC does once the best inlier ratio w says an
+    all-inlier sample has been drawn with probability ``confidence`` (after log(1 - confidence) /
+    log(1 - w^3) hypotheses; 1.0 never stops early). Returns (4x4 transform refined on the best
+    hypothesis' inliers, its inlier count).
     """
     if matches.shape[0] < 3:
         raise ValueError(f"matches: RANSAC needs at least 3 putative matches, got {matches.shape[0]}")
+    if not 0.0 < confidence <= 1.0:
+        raise ValueError(f"confidence must be in (0, 1], got {confidence}")
     generator = torch.Generator().manual_seed(seed)
     p, q = src[matches[:, 0]], tgt[matches[:, 1]]
     best_count, best = -1, None
@@ -138,9 +154,11 @@ def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_d
         top = int(counts.argmax())
         if int(counts[top]) > best_count:
             best_count, best = int(counts[top]), residual[top] <= inlier_distance
+        if start + size >= _enough_hypotheses(best_count / p.shape[0], confidence):
+            break
     if best is None or best_count < 3:
         raise ValueError("RANSAC found no hypothesis with 3 or more inliers: the features do not match "
-                         "(try another --voxel-size)")
+                         "(try another point count for --fpfh)")
     R, t = ops.kabsch(p[best][None], q[best][None])
     transform = torch.eye(4, dtype=src.dtype, device=src.device)
     transform[:3, :3], transform[:3, 3] = R[0], t[0]
