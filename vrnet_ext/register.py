@@ -155,7 +155,7 @@ def _dilate(occupied: torch.Tensor) -> torch.Tensor:
 
 
 def _nearest_in_reach(moved: torch.Tensor, tgt: torch.Tensor, reach: TargetReach,
-                      backend: str) -> tuple[torch.Tensor, torch.Tensor]:
+                      backend: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Nearest target neighbour of the points of ``moved`` (1, N, 3) that ``reach`` lets through:
     -> (their indices into moved (P,), squared distances (P,), target indices (P,)); P may be 0."""
     candidates = reach(moved).nonzero().squeeze(1)
