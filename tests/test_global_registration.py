@@ -121,13 +121,16 @@ def test_fpfh_ransac_finds_a_large_motion_that_icp_from_the_identity_cannot():
     assert transform_errors(identity_start.transform, truth)["rotation_error_deg"] > 10.0
 
 
-def test_one_initial_estimate_at_a_time(tmp_path):
+def test_one_initial_estimate_at_a_time(tmp_path, capsys):
     src = room(500)
     with pytest.raises(ValueError, match="not both"):
         register(src, src, model=torch.nn.Identity(), fpfh_points=1000)
+    with pytest.raises(ValueError, match="fpfh_points must be at least 3"):
+        register(src, src, fpfh_points=-5)
     write_ply(tmp_path / "a.ply", src)
-    with pytest.raises(SystemExit, match="give one"):
+    with pytest.raises(SystemExit) as exit_info:
         main(["register", str(tmp_path / "a.ply"), str(tmp_path / "a.ply"), "--fpfh", "--checkpoint", "x.pt"])
+    assert exit_info.value.code == 2 and "not allowed with argument" in capsys.readouterr().err
 
 
 @pytest.mark.skipif(not (KITCHEN / "cloud_bin_10.ply").exists(), reason=f"3DMatch fragments not found under {KITCHEN}")

@@ -142,11 +142,12 @@ def _register_parser(sub) -> None:
                     "point-to-point ICP on voxel-downsampled clouds. Prints the 4x4 transform and writes JSON.")
     p.add_argument("source", help="point-cloud file to move")
     p.add_argument("target", help="point-cloud file to align to (same unit)")
-    p.add_argument("--checkpoint", default=None, help="best.pt of `vrnet train` for the initial estimate")
-    p.add_argument("--network-points", type=int, default=1024, help="points per cloud fed to VRNet")
-    p.add_argument("--fpfh", nargs="?", type=int, const=5000, default=None, metavar="POINTS",
+    initial = p.add_mutually_exclusive_group()
+    initial.add_argument("--checkpoint", default=None, help="best.pt of `vrnet train` for the initial estimate")
+    initial.add_argument("--fpfh", nargs="?", type=int, const=5000, default=None, metavar="POINTS",
                    help="initial estimate from FPFH features + RANSAC on about POINTS (default 5000) points "
                         "per scan, for scans far apart; no checkpoint needed")
+    p.add_argument("--network-points", type=int, default=1024, help="points per cloud fed to VRNet")
     p.add_argument("--icp-points", type=int, default=50_000, help="about this many points per cloud for ICP")
     p.add_argument("--voxel-size", type=float, default=None, help="ICP voxel edge (overrides --icp-points)")
     p.add_argument("--max-distance", type=float, default=None, help="ICP inlier reach (default: 3 voxels)")
@@ -168,8 +169,6 @@ def _run_register(args) -> int:
 
     src, tgt = read_points(args.source), read_points(args.target)
     truth = read_transform(args.gt) if args.gt else None
-    if args.checkpoint and args.fpfh:
-        raise SystemExit("vrnet register: error: --checkpoint and --fpfh are two initial estimates: give one")
     model = None
     if args.checkpoint:
         from vrnet_ext.train import model_from_checkpoint

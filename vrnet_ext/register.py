@@ -1,4 +1,5 @@
-"""Registration of real scans: a VRNet estimate on a small subsample, refined by ICP at full scale.
+"""Registration of real scans: an initial estimate (VRNet on a small subsample, or FPFH + RANSAC
+from :mod:`vrnet_ext.global_registration`, or the identity), refined by ICP at full scale.
 
 The network was trained on unit-size ModelNet40 shapes of ~1k points, so a scan pair is first
 brought to that scale: both clouds are shifted by the same vector and divided by the same factor
@@ -230,6 +231,8 @@ def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, netwo
     """
     if model is not None and fpfh_points:
         raise ValueError("give one initial estimate: a VRNet model or fpfh_points, not both")
+    if fpfh_points is not None and fpfh_points < 3:
+        raise ValueError(f"fpfh_points must be at least 3, got {fpfh_points}")
     device = torch.device(device)
     seconds, start = {}, time.perf_counter()
     initial = np.eye(4)
