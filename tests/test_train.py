@@ -96,3 +96,33 @@ def test_cli_errors_are_readable(tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["eval"])
+
+
+@requires_modelnet
+def test_resume_from_a_mid_epoch_checkpoint_continues_bit_exactly(tmp_path, monkeypatch):
+    import vrnet_ext.train as train_module
+
+    train(tiny(tmp_path, "straight", stage1_epochs=2, stage2_epochs=1))
+    mid_epoch = []
+    real_save = train_module._save
+
+    def keep_mid_epoch(checkpoint, path):
+        if checkpoint["partial"] is not None and checkpoint["partial"]["batches"] == 2:
+            copy = tmp_path / f"mid{len(mid_epoch)}.pt"  # the state dict shares the live weights' storage
+            torch.save(checkpoint, copy)
+            mid_epoch.append(load_checkpoint(copy))
+        real_save(checkpoint, path)
+
+    monkeypatch.setattr(train_module, "_save", keep_mid_epoch)
+    train(tiny(tmp_path, "part", stage1_epochs=2, stage2_epochs=1, checkpoint_minutes=1e-9))
+    monkeypatch.undo()
+    assert [c["stage"] for c in mid_epoch] == [1, 1, 2]  # batch 2 of each epoch (4 batches per epoch)
+    resume_from = tmp_path / "mid1.pt"  # stage 1, epoch 2, after 2 of its 4 batches
+    train(tiny(tmp_path, "resumed", stage1_epochs=2, stage2_epochs=1, resume=str(resume_from)))
+    straight = load_checkpoint(tmp_path / "straight" / "last.pt")
+    resumed = load_checkpoint(tmp_path / "resumed" / "last.pt")
+    assert straight["step"] == resumed["step"]
+    for key, value in straight["model"].items():
+        assert torch.equal(value, resumed["model"][key]), key
+    # the resumed epoch's mean training loss counts the batches done before the stop
+    assert [r["train_loss"] for r in records(tmp_path / "resumed")] == [r["train_loss"] for r in records(tmp_path / "straight")][1:]

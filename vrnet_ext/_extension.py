@@ -43,6 +43,20 @@ def _kernel_device_types() -> frozenset[str]:
 KERNEL_DEVICE_TYPES = _kernel_device_types()
 
 
+def _register_autocast() -> None:
+    """Every compiled op runs in float32 under autocast: its inputs are promoted and autocast is
+    off inside it, so the matrix products a kernel issues itself (the GEMM tiles of ``knn``) are
+    not lowered to bfloat16 behind its back."""
+    names = [name for name in torch._C._dispatch_get_all_op_names() if name.startswith("vrnet_ext::")]
+    for name in names:
+        for device_type in KERNEL_DEVICE_TYPES:
+            torch.library.register_autocast(name, device_type, torch.float32)
+
+
+if LOAD_ERROR is None:
+    _register_autocast()
+
+
 def has_kernel(device: torch.device) -> bool:
     """True when the compiled module has kernels for ``device`` (fixed at import: traceable)."""
     return device.type in KERNEL_DEVICE_TYPES

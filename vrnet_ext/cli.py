@@ -26,13 +26,13 @@ DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNE
 
 
 def _train_parser(sub) -> None:
-    from vrnet_ext.train import PRESETS, TrainConfig
+    from vrnet_ext.train import PRECISIONS, PRESETS, TrainConfig
 
     p = sub.add_parser("train", help="two-stage training on ModelNet40 (DDP under torchrun)",
                        description="Two-stage VRNet training. Start from a preset; any flag overrides it. "
                                    "Under `torchrun --nproc_per_node N` the same command trains with DDP.")
     p.add_argument("--preset", choices=sorted(PRESETS), default="small",
-                   help="paper: batch 28, 100+100 epochs (GPU); small: minutes on a CPU; tiny: seconds (smoke test)")
+                   help="paper: batch 28, 100+100 epochs (GPU); cpu: the small model on the full training split at the paper's 768-point views (the shipped model; hours per session on a CPU); small: minutes on a CPU; tiny: seconds (smoke test)")
     hints = typing.get_type_hints(TrainConfig)
     for f in fields(TrainConfig):
         if f.name in ("preset", "model", "progress"):
@@ -47,6 +47,10 @@ def _train_parser(sub) -> None:
             p.add_argument(flag, choices=("UPC", "UC", "ND"), default=None, help="UPC | UC | ND")
         elif f.name == "data_dir":
             p.add_argument(flag, default=None, help=DATA_DIR_HELP)
+        elif f.name == "precision":
+            p.add_argument(flag, choices=PRECISIONS, default=None,
+                           help="bf16: forward and loss under bfloat16 autocast (ops, matching and Procrustes stay "
+                                "float32); fp32: everything in float32 (default: bf16)")
         elif f.name == "backend":
             p.add_argument(flag, choices=("ext", "torch"), default=None, help="compiled ops or pure PyTorch")
         elif kind is bool:

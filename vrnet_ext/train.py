@@ -11,7 +11,14 @@ with the RCPs); ``best_stage1.pt`` / ``best_stage2.pt``, each stage's best by it
 
 Runs are reproducible: the train pairs of an epoch come from (seed, epoch, index), the batch
 order from a seeded sampler and the L1 subsets from (seed, step), so ``--resume`` continues
-bit-exactly.
+bit-exactly. Besides the end of every epoch, ``last.pt`` is also written every
+``checkpoint_minutes`` inside an epoch (with the number of batches done), so a run stopped at any
+time loses at most that much work; ``--resume last.pt`` continues from the next batch.
+
+``precision="bf16"`` runs forward and loss under ``torch.autocast(dtype=torch.bfloat16)``: the
+Transformer, DGCNN projections and correction walk multiply in bfloat16 (AMX / AVX-512-BF16 on
+x86), while the compiled ops, the soft matching, BatchNorm statistics and the Procrustes solve stay
+in float32. Weights and optimizer state are float32 either way.
 """
 from __future__ import annotations
 
@@ -41,11 +48,16 @@ PRESETS = {
                   num_points=1024, num_subsampled=768),
     "small": dict(model=VRNetConfig.small().to_dict(), batch_size=8, stage1_epochs=3, stage2_epochs=2,
                   num_points=512, num_subsampled=384, max_train_items=480, max_val_items=96),
+    "cpu": dict(model=VRNetConfig.small().to_dict(), batch_size=16, stage1_epochs=30, stage2_epochs=10,
+                num_points=1024, num_subsampled=768, lr_milestones=[20]),
     "tiny": dict(model=VRNetConfig.small(k=8, dgcnn_channels=(16, 16), emb_dims=32, heads=2, ff_dims=64,
                                          walk_channels=(32, 16, 3)).to_dict(),
                  batch_size=4, stage1_epochs=1, stage2_epochs=1, num_points=96, num_subsampled=64,
                  max_train_items=16, max_val_items=8),
 }
+
+
+PRECISIONS = ("bf16", "fp32")
 
 
 @dataclass
@@ -77,6 +89,8 @@ class TrainConfig:
     backend: str = "ext"
     num_workers: int = 0
     loss_l4: float = 100.0
+    precision: str = "bf16"
+    checkpoint_minutes: float = 10.0
     resume: str | None = None
     flush_denormal: bool = True
     progress: bool = True
@@ -92,6 +106,12 @@ class TrainConfig:
         if unknown:
             raise ValueError(f"unknown training options: {sorted(unknown)}")
         return cls(**values)
+
+    def __post_init__(self) -> None:
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+        if not self.checkpoint_minutes > 0:
+            raise ValueError(f"checkpoint_minutes must be > 0, got {self.checkpoint_minutes}")
 
 
 class _Run:
@@ -143,12 +163,23 @@ def stage_train_mode(model: VRNet, stage: int) -> None:
             module.eval()
 
 
-def _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse) -> dict:
-    """``best``: the stage's selection score so far (val L0 in stage 1, val RMSE(R) in stage 2);
-    ``best_rmse``: the lowest val RMSE(R) of the whole run (selects best.pt across stages)."""
+def _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse, train_seconds,
+                partial=None) -> dict:
+    """``epoch``: the last completed epoch of ``stage``; ``best``: the stage's selection score so
+    far (val L0 in stage 1, val RMSE(R) in stage 2); ``best_rmse``: the lowest val RMSE(R) of the
+    whole run (selects best.pt across stages); ``train_seconds``: wall time spent in training
+    and validation epochs so far, over all sessions; ``partial``: ``{"epoch", "batches",
+    "totals"}`` of an epoch in progress (mid-epoch checkpoints only)."""
     return {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
             "config": json.loads(json.dumps(asdict(cfg))), "stage": stage, "epoch": epoch, "step": step,
-            "best": best, "best_rmse": best_rmse}
+            "best": best, "best_rmse": best_rmse, "train_seconds": train_seconds, "partial": partial}
+
+
+def _save(checkpoint: dict, path: Path) -> None:
+    """Writes ``path`` atomically (a run stopped mid-write leaves the previous file intact)."""
+    partial_path = path.with_name(path.name + ".partial")
+    torch.save(checkpoint, partial_path)
+    os.replace(partial_path, path)
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
@@ -201,9 +232,7 @@ def train(cfg: TrainConfig) -> dict:
     train_set, val_set = _datasets(cfg)
     sampler = DistributedSampler(train_set, num_replicas=run.world, rank=run.rank, shuffle=True, seed=cfg.seed,
                                  drop_last=True)
-    loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=sampler, num_workers=cfg.num_workers,
-                        drop_last=True)
-    if len(loader) == 0:
+    if len(sampler) < cfg.batch_size:
         raise ValueError(f"batch_size {cfg.batch_size} x {run.world} process(es) exceeds the "
                          f"{len(train_set)} training pairs")
     state = load_checkpoint(cfg.resume, run.device) if cfg.resume else None
@@ -212,6 +241,8 @@ def train(cfg: TrainConfig) -> dict:
     loss_weights = HybridLossWeights(l4=cfg.loss_l4)
     step = state["step"] if state else 0
     best_rmse = state.get("best_rmse", float("inf")) if state else float("inf")
+    train_seconds = state.get("train_seconds", 0.0) if state else 0.0
+    autocast = torch.autocast(run.device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
     record: dict = {}
     for stage, epochs, lr in ((1, cfg.stage1_epochs, cfg.lr_stage1), (2, cfg.stage2_epochs, cfg.lr_stage2)):
         if state is not None and (state["stage"] > stage or (state["stage"] == stage and state["epoch"] + 1 >= epochs)):
@@ -219,29 +250,40 @@ def train(cfg: TrainConfig) -> dict:
         params = set_stage(model, stage)
         optimizer = torch.optim.Adam(params, lr=lr, weight_decay=cfg.weight_decay)
         scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.lr_milestones, cfg.lr_gamma)
-        first_epoch, best = 0, float("inf")
+        first_epoch, best, partial = 0, float("inf"), None
         if state is not None and state["stage"] == stage:
             optimizer.load_state_dict(state["optimizer"])
             scheduler.load_state_dict(state["scheduler"])
-            first_epoch, best = state["epoch"] + 1, state["best"]
+            first_epoch, best, partial = state["epoch"] + 1, state["best"], state.get("partial")
         wrapped = DistributedDataParallel(model) if run.world > 1 else model
         for epoch in range(first_epoch, epochs):
             global_epoch = epoch if stage == 1 else cfg.stage1_epochs + epoch
             train_set.set_epoch(global_epoch)
             sampler.set_epoch(global_epoch)
             stage_train_mode(model, stage)
-            started, totals, batches = time.time(), {}, 0
-            bar = tqdm(loader, desc=f"stage {stage} epoch {epoch + 1}/{epochs}", disable=not (cfg.progress and run.main))
+            epoch_started = started = time.time()
+            totals, batches = {}, 0
+            if partial is not None and partial["epoch"] == epoch:
+                totals, batches = dict(partial["totals"]), partial["batches"]
+            partial = None
+            # The epoch's batches after those a mid-epoch checkpoint already did (same order).
+            indices = list(sampler)[batches * cfg.batch_size:]
+            loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=indices, num_workers=cfg.num_workers,
+                                drop_last=True)
+            saved_at = time.time()
+            bar = tqdm(loader, desc=f"stage {stage} epoch {epoch + 1}/{epochs}", initial=batches,
+                       total=batches + len(loader), disable=not (cfg.progress and run.main))
             for batch in bar:
                 batch = to_device(batch, run.device)
-                out = wrapped(batch["src"], batch["tgt"])
-                if stage == 1:
-                    loss = correspondence_loss(out.matching, batch["gt_idx"])
-                    parts = {"L0": float(loss.detach())}
-                else:
-                    generator = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
-                    loss, parts = hybrid_loss(out, batch["src"], batch["rotation"], batch["translation"],
-                                              loss_weights, generator, cfg.backend)
+                with autocast:
+                    out = wrapped(batch["src"], batch["tgt"])
+                    if stage == 1:
+                        loss = correspondence_loss(out.matching, batch["gt_idx"])
+                        parts = {"L0": float(loss.detach())}
+                    else:
+                        generator = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+                        loss, parts = hybrid_loss(out, batch["src"], batch["rotation"], batch["translation"],
+                                                  loss_weights, generator, cfg.backend)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"non-finite loss at stage {stage}, step {step}: {parts}")
                 optimizer.zero_grad(set_to_none=True)
@@ -252,9 +294,16 @@ def train(cfg: TrainConfig) -> dict:
                 for k, v in dict(parts, loss=float(loss.detach())).items():
                     totals[k] = totals.get(k, 0.0) + v
                 bar.set_postfix(loss=f"{float(loss.detach()):.4f}")
+                if run.main and time.time() - saved_at > 60 * cfg.checkpoint_minutes:
+                    now = time.time()
+                    train_seconds += now - started
+                    started = saved_at = now
+                    _save(_checkpoint(model, optimizer, scheduler, cfg, stage, epoch - 1, step, best, best_rmse,
+                                      train_seconds, {"epoch": epoch, "batches": batches, "totals": dict(totals)}),
+                          out_dir / "last.pt")
             scheduler.step()
             record = {"stage": stage, "epoch": epoch + 1, "step": step, "lr": optimizer.param_groups[0]["lr"],
-                      "epoch_seconds": round(time.time() - started, 2), "world_size": run.world}
+                      "epoch_seconds": round(time.time() - epoch_started, 2), "world_size": run.world}
             record.update({f"train_{k}": v / max(batches, 1) for k, v in totals.items()})
             record["replica_max_abs_diff"] = _replica_spread(model, run)
             if run.main:
@@ -264,12 +313,15 @@ def train(cfg: TrainConfig) -> dict:
                 score = val["L0"] if stage == 1 else val["RMSE(R)"]
                 improved, improved_rmse = score < best, val["RMSE(R)"] < best_rmse
                 best, best_rmse = min(best, score), min(best_rmse, val["RMSE(R)"])
-                ckpt = _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse)
-                torch.save(ckpt, out_dir / "last.pt")
+                train_seconds += time.time() - started
+                record["train_seconds"] = round(train_seconds, 1)
+                ckpt = _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse,
+                                   train_seconds)
+                _save(ckpt, out_dir / "last.pt")
                 if improved:
-                    torch.save(ckpt, out_dir / f"best_stage{stage}.pt")
+                    _save(ckpt, out_dir / f"best_stage{stage}.pt")
                 if improved_rmse:
-                    torch.save(ckpt, out_dir / "best.pt")
+                    _save(ckpt, out_dir / "best.pt")
                 _log(out_dir, record)
             run.barrier()
         state = None

@@ -62,17 +62,22 @@ class VRNet(nn.Module):
         moved = src
         for _ in range(self.config.iterations):
             out = self._single_pass(moved, tgt, backend)
-            rotation = out.rotation @ rotation
-            translation = (out.rotation @ translation.unsqueeze(-1)).squeeze(-1) + out.translation
-            moved = src @ rotation.mT + translation.unsqueeze(1)
+            with torch.autocast(src.device.type, enabled=False):  # compose the motions in src's dtype
+                rotation = out.rotation @ rotation
+                translation = (out.rotation @ translation.unsqueeze(-1)).squeeze(-1) + out.translation
+                moved = src @ rotation.mT + translation.unsqueeze(1)
         out.rotation, out.translation = rotation, translation
         return out
 
     def _single_pass(self, src: torch.Tensor, tgt: torch.Tensor, backend: str) -> VRNetOutput:
         phi_x, phi_y = self.transformer(self.features(src, backend), self.features(tgt, backend))
-        scores = torch.bmm(phi_x.transpose(1, 2), phi_y) / math.sqrt(phi_x.shape[1])
-        matching = torch.softmax(scores, dim=-1)
-        vcp = torch.bmm(matching, tgt)
+        # The soft matching decides where every VCP lands: it runs in float32 even under autocast
+        # (a bfloat16 score carries ~3 significant digits, a visible error on sharp softmax rows).
+        with torch.autocast(src.device.type, enabled=False):
+            phi_x, phi_y = phi_x.to(src.dtype), phi_y.to(src.dtype)
+            scores = torch.bmm(phi_x.transpose(1, 2), phi_y) / math.sqrt(phi_x.shape[1])
+            matching = torch.softmax(scores, dim=-1)
+            vcp = torch.bmm(matching, tgt)
         if self.walk is None:
             offset = torch.zeros_like(vcp)
         else:

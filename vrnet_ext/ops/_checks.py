@@ -4,6 +4,26 @@ from __future__ import annotations
 import torch
 
 FLOAT_DTYPES = (torch.float32, torch.float64)
+LOW_PRECISION_DTYPES = (torch.bfloat16, torch.float16)
+
+
+def promote_low_precision(t: torch.Tensor | None) -> torch.Tensor | None:
+    """bfloat16 / float16 -> float32; anything else unchanged (None passes through).
+
+    Every op computes in float32 or better: geometry (distances, 3x3 SVDs, centroids) loses far
+    too much in 8 or 11 mantissa bits. Low-precision inputs, as autocast produces them from bf16
+    matrix products, are promoted on entry, so the op returns float32 (autocast's rule for
+    precision-sensitive ops) and its gradient flows back through the cast in the input's dtype.
+    """
+    if isinstance(t, torch.Tensor) and t.dtype in LOW_PRECISION_DTYPES:
+        return t.float()
+    return t
+
+
+def float32_region(t: torch.Tensor) -> torch.autocast:
+    """Autocast off on ``t``'s device: the references compute in their inputs' dtype (float32 or
+    better), never in a bfloat16 that an enclosing autocast would pick for their matrix products."""
+    return torch.autocast(t.device.type, enabled=False)
 
 
 def check_tensor(value: object, name: str) -> torch.Tensor:

@@ -4,7 +4,8 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import check_float, check_index, check_index_range, check_same, check_shape
+from vrnet_ext.ops._checks import (check_float, check_index, check_index_range, check_same, check_shape,
+                                   float32_region, promote_low_precision)
 
 
 def validate_graph(values: torch.Tensor, idx: torch.Tensor, values_name: str) -> None:
@@ -45,19 +46,21 @@ def edge_features(x: torch.Tensor, idx: torch.Tensor, backend: str = "ext") -> t
     """Edge features of a kNN graph.
 
     Args:
-        x: (B, C, N) point features.
+        x: (B, C, N) point features (bfloat16/float16 are promoted to float32).
         idx: (B, N, k) int64 neighbour indices into the N points (e.g. from :func:`knn`).
         backend: ``"ext"`` or ``"torch"``.
 
     Returns:
         (B, 2C, N, k): ``[x[idx] - x_i, x_i]`` along channels.
     """
+    x = promote_low_precision(x)
     validate_graph(x, idx, "x")
     if idx.shape[1] != x.shape[2]:
         raise ValueError(f"idx must have shape (B, N, k) with N = {x.shape[2]}, got {tuple(idx.shape)}")
     if use_extension(backend, x.device):
         return torch.ops.vrnet_ext.edge_features(x, idx)
-    return edge_features_reference(x, idx)
+    with float32_region(x):
+        return edge_features_reference(x, idx)
 
 
 if has_extension():

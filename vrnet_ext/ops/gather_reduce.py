@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
+from vrnet_ext.ops._checks import float32_region, promote_low_precision
 from vrnet_ext.ops.edge_features import gather_neighbours, validate_graph
 
 REDUCTIONS = ("max", "min", "sum", "mean")
@@ -30,7 +31,7 @@ def gather_reduce(values: torch.Tensor, idx: torch.Tensor, reduce: str = "max", 
     """Reduce each point's neighbour values.
 
     Args:
-        values: (B, C, M) per-point values.
+        values: (B, C, M) per-point values (bfloat16/float16 are promoted to float32).
         idx: (B, N, k) int64 indices into the M points.
         reduce: ``"max"``, ``"min"``, ``"sum"`` or ``"mean"``.
         backend: ``"ext"`` or ``"torch"``.
@@ -41,10 +42,12 @@ def gather_reduce(values: torch.Tensor, idx: torch.Tensor, reduce: str = "max", 
     """
     if reduce not in REDUCTIONS:
         raise ValueError(f"reduce must be one of {REDUCTIONS}, got {reduce!r}")
+    values = promote_low_precision(values)
     validate_graph(values, idx, "values")
     if use_extension(backend, values.device):
         return torch.ops.vrnet_ext.gather_reduce(values, idx, reduce)[0]
-    return gather_reduce_reference(values, idx, reduce)
+    with float32_region(values):
+        return gather_reduce_reference(values, idx, reduce)
 
 
 if has_extension():

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
+from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape, float32_region, promote_low_precision
 
 
 def _validate(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None) -> None:
@@ -60,7 +60,8 @@ def kabsch(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None = 
     """Rigid transform aligning ``src`` to ``tgt`` (row i of each corresponds).
 
     Args:
-        src: (B, N, 3) source points, N >= 3.
+        src: (B, N, 3) source points, N >= 3 (float32/float64; bfloat16/float16 inputs are
+            promoted to float32, as under autocast).
         tgt: (B, N, 3) corresponding target points.
         weights: optional (B, N) non-negative weights (not all zero per batch); None = uniform.
         backend: ``"ext"`` or ``"torch"``.
@@ -68,12 +69,14 @@ def kabsch(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None = 
     Returns:
         R (B, 3, 3) proper rotations and t (B, 3) with ``R @ src_i + t ~ tgt_i``.
     """
+    src, tgt, weights = (promote_low_precision(t) for t in (src, tgt, weights))
     _validate(src, tgt, weights)
     if use_extension(backend, src.device):
         if weights is None:
             weights = torch.ones(src.shape[:2], dtype=src.dtype, device=src.device)
         return torch.ops.vrnet_ext.kabsch(src, tgt, weights)
-    return kabsch_reference(src, tgt, weights)
+    with float32_region(src):
+        return kabsch_reference(src, tgt, weights)
 
 
 if has_extension():

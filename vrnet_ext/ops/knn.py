@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
+from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape, float32_region, promote_low_precision
 
 
 def _validate(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool) -> None:
@@ -57,7 +57,8 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool = Fal
     """k nearest neighbours of every query point among the ref points.
 
     Args:
-        query: (B, N, C) float32/float64 points or features.
+        query: (B, N, C) float32/float64 points or features (bfloat16/float16 are promoted to
+            float32, as under autocast).
         ref: (B, M, C), same dtype and device.
         k: neighbours per query, 1 <= k <= M (M - 1 with ``exclude_self``).
         exclude_self: drop ref index n for query n (query and ref are the same cloud).
@@ -68,10 +69,12 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool = Fal
         differentiable with respect to query and ref.
         idx (B, N, k) int64 indices into ref.
     """
+    query, ref = promote_low_precision(query), promote_low_precision(ref)
     _validate(query, ref, k, exclude_self)
     if use_extension(backend, query.device):
         return torch.ops.vrnet_ext.knn(query, ref, k, exclude_self)
-    return knn_reference(query, ref, k, exclude_self)
+    with float32_region(query):
+        return knn_reference(query, ref, k, exclude_self)
 
 
 if has_extension():

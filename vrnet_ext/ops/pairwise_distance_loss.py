@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
+from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape, float32_region, promote_low_precision
 
 
 def pairwise_distance_loss_reference(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -26,13 +26,14 @@ def pairwise_distance_loss(x: torch.Tensor, y: torch.Tensor, backend: str = "ext
     """RMSE between the pairwise-distance matrices of two corresponding clouds.
 
     Args:
-        x: (B, N, 3) points, N >= 2.
+        x: (B, N, 3) points, N >= 2 (bfloat16/float16 are promoted to float32).
         y: (B, N, 3) corresponding points.
         backend: ``"ext"`` or ``"torch"``.
 
     Returns:
         (B,) loss per batch element.
     """
+    x, y = promote_low_precision(x), promote_low_precision(y)
     check_float(x, "x")
     check_float(y, "y")
     check_shape(x, "x", 3, "(B, N, 3)", last=3)
@@ -43,7 +44,8 @@ def pairwise_distance_loss(x: torch.Tensor, y: torch.Tensor, backend: str = "ext
         raise ValueError(f"x needs at least 2 points per cloud, got {x.shape[1]}")
     if use_extension(backend, x.device):
         return torch.ops.vrnet_ext.pairwise_distance_loss(x, y)
-    return pairwise_distance_loss_reference(x, y)
+    with float32_region(x):
+        return pairwise_distance_loss_reference(x, y)
 
 
 if has_extension():

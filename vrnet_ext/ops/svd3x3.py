@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import check_finite, check_float, check_shape
+from vrnet_ext.ops._checks import check_finite, check_float, check_shape, float32_region, promote_low_precision
 
 
 def svd3x3_reference(A: torch.Tensor):
@@ -23,20 +23,22 @@ def svd3x3(A: torch.Tensor, backend: str = "ext"):
     """SVD of a batch of 3x3 matrices.
 
     Args:
-        A: (B, 3, 3) float32/float64.
+        A: (B, 3, 3) float32/float64 (bfloat16/float16 are promoted to float32).
         backend: ``"ext"`` or ``"torch"``.
 
     Returns:
         U (B, 3, 3), S (B, 3) descending, V (B, 3, 3) with ``A = U diag(S) V^T``. Singular vectors
         are defined up to the sign of each (u_i, v_i) pair.
     """
+    A = promote_low_precision(A)
     check_float(A, "A")
     check_shape(A, "A", 3, "(B, 3, 3)", last=3)
     if A.shape[1] != 3:
         raise ValueError(f"A must have shape (B, 3, 3), got {tuple(A.shape)}")
     if use_extension(backend, A.device):
         return torch.ops.vrnet_ext.svd3x3(A)
-    return svd3x3_reference(A)
+    with float32_region(A):
+        return svd3x3_reference(A)
 
 
 if has_extension():
