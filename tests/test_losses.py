@@ -80,3 +80,21 @@ def test_geometry_loss_matches_weighting(device):
     _, parts = losses.hybrid_loss(out, src, R, t)
     expected = torch.stack([((torch.cdist(s, s) * 0.5) ** 2).mean().sqrt() for s in src]).mean()
     assert parts["L2"] == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_gate_and_confidence_terms_use_the_true_positions():
+    src, R, t, truth = rigid(B=1, N=6)
+    vcp = truth.clone()
+    vcp[0, :2] += 0.5  # two VCPs need a correction
+    offset = torch.zeros_like(vcp)
+    offset[0, 0] = -0.5  # the walk fixes the first one only
+    out = make_output(src, R, t, vcp, offset)
+    out.gate_logits = torch.tensor([[3.0, -1.0, 0.0, 0.0, -2.0, 1.0]], dtype=src.dtype)
+    out.confidence_logits = torch.tensor([[1.0, 2.0, -1.0, 0.5, 0.0, 0.0]], dtype=src.dtype)
+    _, parts = losses.hybrid_loss(out, src, R, t, backend="torch")
+    bce = torch.nn.functional.binary_cross_entropy_with_logits
+    needs = torch.tensor([[1.0, 1, 0, 0, 0, 0]], dtype=src.dtype)
+    correct = torch.tensor([[1.0, 0, 1, 1, 1, 1]], dtype=src.dtype)
+    assert parts["LG"] == pytest.approx(bce(out.gate_logits, needs).item())
+    assert parts["LC"] == pytest.approx(bce(out.confidence_logits, correct).item())
+    assert "LG" not in losses.hybrid_loss(make_output(src, R, t, vcp, offset), src, R, t, backend="torch")[1]

@@ -94,5 +94,6 @@ def test_evaluate_reports_vcp_and_rcp_errors_on_inliers_and_outliers():
     assert result["VCP error (outliers)"] == pytest.approx(expected_outlier_error)
     R_vcp, _ = kabsch(src.expand(2, 20, 3), vcp, backend="torch")
     expected_re = metrics.rotation_error_deg(R_vcp, R.expand(2, 3, 3)).mean().item()
-    assert result["RE mean (VCP Procrustes)"] == pytest.approx(expected_re)
-    assert result["RE mean (VCP Procrustes)"] > 0.1 and result["RE mean (deg)"] < 1e-6
+    assert result["RE mean [VCP]"] == pytest.approx(expected_re)
+    assert result["RE mean [VCP]"] > 0.1 and result["RE mean (deg)"] < 1e-6 and result["RE mean [RCP]"] < 1e-6
+    assert result["RMSE(R) [RCP]"] < 1e-6 < result["RMSE(R) [VCP]"]

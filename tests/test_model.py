@@ -107,3 +107,41 @@ def test_bad_input():
         model(src[:, :4], tgt)
     with pytest.raises(ValueError, match="walk_channels"):
         VRNetConfig(walk_channels=(8, 4))
+
+
+def test_gated_walk_with_confidence_starts_as_unweighted_vcp_procrustes():
+    from vrnet_ext.ops import kabsch
+
+    model = small_model(walk_gate=True, walk_confidence=True).eval()
+    src, tgt = clouds()
+    out = model(src, tgt)
+    assert model.walk.net[-1].out_channels == 5  # offset (3) + gate + confidence
+    assert not out.offset.any() and torch.equal(out.rcp, out.vcp)
+    torch.testing.assert_close(out.weights, torch.full((2, 60), 0.5))
+    R, t = kabsch(src, out.vcp)
+    torch.testing.assert_close(out.rotation, R)
+    torch.testing.assert_close(out.translation, t)
+
+
+def test_gate_scales_the_offset_and_confidence_weights_the_procrustes():
+    from vrnet_ext.ops import kabsch
+
+    model = small_model(walk_gate=True, walk_confidence=True).eval()
+    last = model.walk.net[-1]
+    with torch.no_grad():
+        last.weight.normal_()
+        last.bias[3] = -40.0  # gate logit: the offsets of every point vanish
+    src, tgt = clouds()
+    out = model(src, tgt)
+    assert out.offset.abs().max() < 1e-12 and out.gate_logits.shape == (2, 60)
+    torch.testing.assert_close(out.rcp, out.vcp)
+    R, t = kabsch(src, out.rcp, torch.sigmoid(out.confidence_logits))
+    torch.testing.assert_close(out.rotation, R)
+    torch.testing.assert_close(out.translation, t)
+    R_plain, _ = kabsch(src, out.rcp)
+    assert (out.rotation - R_plain).abs().max() > 1e-4, "the weights must change the estimate"
+    with torch.no_grad():
+        last.bias[3] = 40.0  # gate open: the raw offsets pass unchanged
+    opened = model(src, tgt)
+    raw = model.walk.net(torch.cat([opened.src_embedding, torch.bmm(opened.tgt_embedding, opened.matching.mT)], 1))
+    torch.testing.assert_close(opened.offset, raw[:, :3].transpose(1, 2))

@@ -10,8 +10,8 @@ from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
 from vrnet_ext.losses import correspondence_loss
-from vrnet_ext.metrics import (chamfer_distance, correct_match_ratio, correspondence_error, rotation_error_deg,
-                               summarize)
+from vrnet_ext.metrics import (chamfer_distance, correct_match_ratio, correspondence_error, euler_zyx_deg,
+                               rotation_error_deg, summarize)
 from vrnet_ext.model import VRNet
 from vrnet_ext.ops import kabsch
 
@@ -22,33 +22,51 @@ def to_device(batch: dict, device: torch.device) -> dict:
     return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
 
+def estimators(src: torch.Tensor, out, backend: str) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+    """Every Procrustes estimate one forward pass offers, for the walk's ablation.
+
+    ``VCP``: Kabsch on source <-> VCPs (DCP-v2); ``RCP``: on source <-> RCPs, unweighted (the paper's
+    VRNet); with a confidence head also ``VCP weighted`` / ``RCP weighted`` (the confidences as
+    weights; ``RCP weighted`` is then the model's own estimate).
+    """
+    result = {"VCP": kabsch(src, out.vcp, backend=backend), "RCP": kabsch(src, out.rcp, backend=backend)}
+    weights = getattr(out, "weights", None)
+    if weights is not None:
+        result["VCP weighted"] = kabsch(src, out.vcp, weights, backend=backend)
+        result["RCP weighted"] = kabsch(src, out.rcp, weights, backend=backend)
+    return result
+
+
 @torch.no_grad()
 def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str | torch.device = "cpu",
              backend: str | None = None, progress: bool = True, use_rcp: bool = True) -> dict:
     """Runs ``model`` over ``dataset`` and returns the metrics as a flat dict.
 
-    ``use_rcp=False`` solves Kabsch on the VCPs instead (DCP-v2 behaviour, used to select a
-    stage-1 model whose correction walk is still untrained). Whichever is used, the result also
-    holds ``RE mean (VCP Procrustes)`` and the mean distance of VCPs and RCPs from the true
-    correspondents, over the source points that have one in the target (``inliers``, gt_idx >= 0)
-    and over those that do not (``outliers``, only where there are any): what the correction
-    walk gains or costs on each kind of point.
+    The paper's columns and the isotropic errors describe the model's own estimate, or with
+    ``use_rcp=False`` Kabsch on the VCPs (DCP-v2 behaviour, used to select a stage-1 model whose
+    correction walk is still untrained). Every estimate of :func:`estimators` is also reported as
+    ``RMSE(R) [name]`` and ``RE mean [name]``, and the mean distance of VCPs and RCPs from the true
+    correspondents over the source points that have one in the target (``inliers``, gt_idx >= 0)
+    and over those that do not (``outliers``, only where there are any): what the correction walk
+    gains or costs on each kind of point.
     """
     device = torch.device(device)
     model.eval()
+    solver_backend = backend or model.config.backend
     loader = DataLoader(dataset, batch_size=batch_size, shuffle=False)
     preds_R, preds_t, gts_R, gts_t = [], [], [], []
+    by_estimator: dict[str, list[torch.Tensor]] = {}
     extra: dict[str, list[float]] = {k: [] for k in ("L0", "CD(src,VCP)", "CD(src,RCP)", "CD(src,tgt)",
-                                                     "match@0.15(VCP)", "match@0.15(RCP)",
-                                                     "RE mean (VCP Procrustes)")}
+                                                     "match@0.15(VCP)", "match@0.15(RCP)")}
     point_errors = {f"{name} error ({kind})": [0.0, 0] for name in ("VCP", "RCP") for kind in ("inliers", "outliers")}
     for batch in tqdm(loader, desc="eval", disable=not progress, leave=False):
         batch = to_device(batch, device)
         src, tgt, R_gt, t_gt = batch["src"], batch["tgt"], batch["rotation"], batch["translation"]
         out = model(src, tgt, backend=backend)
-        R_vcp, t_vcp = kabsch(src, out.vcp, backend=backend or model.config.backend)
-        R, t = (out.rotation, out.translation) if use_rcp else (R_vcp, t_vcp)
-        extra["RE mean (VCP Procrustes)"] += rotation_error_deg(R_vcp, R_gt).tolist()
+        solved = estimators(src, out, solver_backend)
+        for name, (R_est, _) in solved.items():
+            by_estimator.setdefault(name, []).append(R_est.cpu())
+        R, t = (out.rotation, out.translation) if use_rcp else solved["VCP"]
         inliers = batch["gt_idx"] >= 0
         for name, pts in (("VCP", out.vcp), ("RCP", out.rcp)):
             error = correspondence_error(pts, src, R_gt, t_gt)
@@ -64,10 +82,15 @@ def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str |
             extra[key] += chamfer_distance(aligned, pts).tolist()
         extra["match@0.15(VCP)"] += correct_match_ratio(out.vcp, src, R_gt, t_gt).tolist()
         extra["match@0.15(RCP)"] += correct_match_ratio(out.rcp, src, R_gt, t_gt).tolist()
-    result = summarize(torch.cat(preds_R).numpy(), torch.cat(gts_R).numpy(),
-                       torch.cat(preds_t).numpy(), torch.cat(gts_t).numpy())
+    gt_R = torch.cat(gts_R)
+    result = summarize(torch.cat(preds_R).numpy(), gt_R.numpy(), torch.cat(preds_t).numpy(), torch.cat(gts_t).numpy())
     result.update({k: float(np.mean(v)) for k, v in extra.items()})
     result.update({k: total / count for k, (total, count) in point_errors.items() if count})
+    for name, rotations in by_estimator.items():
+        R_est = torch.cat(rotations)
+        euler_error = euler_zyx_deg(R_est) - euler_zyx_deg(gt_R)
+        result[f"RMSE(R) [{name}]"] = float(np.sqrt((euler_error ** 2).mean()))
+        result[f"RE mean [{name}]"] = float(rotation_error_deg(R_est, gt_R).mean())
     result["pairs"] = len(dataset)
     return result
 

@@ -1,5 +1,10 @@
 """VRNet's hybrid loss (paper Sec. III-C): L0 for stage 1, L = l1 L1 + l2 L2 + l3 L3 + l4 L4 for stage 2.
 
+With the walk's gate and confidence heads (``VRNetConfig.walk_gate`` / ``walk_confidence``, not
+in the paper) stage 2 adds two binary cross-entropies: LG teaches the gate which VCPs lie farther
+than ``correct_within`` from their true position (those need a correction), LC teaches the
+confidence which RCPs lie within it (those should carry the Procrustes solve).
+
 ``rmse(a, b) = sqrt(mean((a - b)^2))`` per pair, then averaged over the batch. Its square root is
 taken of ``max(mean, 1e-20)`` so the gradient stays finite at a perfect fit.
 """
@@ -8,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from torch.nn import functional as F
 
 from vrnet_ext.model.vrnet import VRNetOutput
 from vrnet_ext.ops import kabsch, pairwise_distance_loss
@@ -67,18 +73,32 @@ class HybridLossWeights:
     l4: float = 100.0
     groups: int = 10
     subset_size: int = 32
+    gate: float = 1.0
+    confidence: float = 1.0
+    correct_within: float = 0.03  # a VCP / RCP this close to R_gt x + t_gt counts as correct (unit-sphere shapes)
 
 
 def hybrid_loss(out: VRNetOutput, src: torch.Tensor, gt_rotation: torch.Tensor, gt_translation: torch.Tensor,
                 weights: HybridLossWeights | None = None, generator: torch.Generator | None = None,
                 backend: str = "ext") -> tuple[torch.Tensor, dict[str, float]]:
-    """Stage-2 loss L (Eq. 12). Returns (L, {"L1": .., "L2": .., "L3": .., "L4": ..})."""
+    """Stage-2 loss L (Eq. 12) [+ LG + LC]. Returns (L, {"L1": .., "L2": .., "L3": .., "L4": .. [, "LG", "LC"]})."""
     w = weights or HybridLossWeights()
     l1 = local_motion_consensus_loss(src, out.rcp, out.rotation, out.translation, w.groups, w.subset_size,
                                      generator, backend)
     l2 = pairwise_distance_loss(src, out.rcp, backend=backend).mean()
     l3 = rmse(transform(src, out.rotation, out.translation), out.rcp).mean()
-    l4 = rmse(transform(src, gt_rotation, gt_translation) - out.vcp, out.offset).mean()
+    truth = transform(src, gt_rotation, gt_translation)
+    l4 = rmse(truth - out.vcp, out.offset).mean()
     total = w.l1 * l1 + w.l2 * l2 + w.l3 * l3 + w.l4 * l4
     parts = {"L1": float(l1.detach()), "L2": float(l2.detach()), "L3": float(l3.detach()), "L4": float(l4.detach())}
+    if out.gate_logits is not None:
+        needs_correction = (out.vcp.detach() - truth).norm(dim=-1) > w.correct_within
+        lg = F.binary_cross_entropy_with_logits(out.gate_logits.float(), needs_correction.float())
+        total = total + w.gate * lg
+        parts["LG"] = float(lg.detach())
+    if out.confidence_logits is not None:
+        correct = (out.rcp.detach() - truth).norm(dim=-1) < w.correct_within
+        lc = F.binary_cross_entropy_with_logits(out.confidence_logits.float(), correct.float())
+        total = total + w.confidence * lc
+        parts["LC"] = float(lc.detach())
     return total, parts

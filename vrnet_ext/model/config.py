@@ -21,6 +21,11 @@ class VRNetConfig:
     * ``walk_zero_init``: the walk's last (linear) layer starts at zero, so the RCPs start equal to
       the VCPs and stage 2 starts from stage 1's estimate instead of from random offsets of about
       the objects' size (True, the default; the paper does not say; False: PyTorch's default init).
+    * ``walk_gate``: the walk's offset is multiplied by a learned per-point gate in (0, 1), so
+      points whose VCP is already right can keep it exactly (not in the paper; False: the paper's
+      ungated walk).
+    * ``walk_confidence``: the walk also predicts a per-point confidence in (0, 1) that weights the
+      final Procrustes (not in the paper, whose Procrustes is unweighted; False: unweighted).
     * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.
     """
 
@@ -36,6 +41,8 @@ class VRNetConfig:
     walk_channels: tuple[int, ...] = (512, 256, 512, 256, 128, 16, 3)
     walk_coordinates: bool = False
     walk_zero_init: bool = True
+    walk_gate: bool = False
+    walk_confidence: bool = False
     correction_walk: bool = True
     iterations: int = 1
     backend: str = "ext"

@@ -27,6 +27,20 @@ class VRNetOutput:
     offset: torch.Tensor       # (B, N, 3) correction walk (zeros without it)
     src_embedding: torch.Tensor  # (B, c, N) Phi_X
     tgt_embedding: torch.Tensor  # (B, c, M) Phi_Y
+    gate_logits: torch.Tensor | None = None        # (B, N) walk gate (VCP needs correcting), or None
+    confidence_logits: torch.Tensor | None = None  # (B, N) RCP confidence, or None (unweighted)
+
+    @property
+    def weights(self) -> torch.Tensor | None:
+        """(B, N) Procrustes weights sigmoid(confidence_logits), or None (uniform)."""
+        if self.confidence_logits is None:
+            return None
+        return procrustes_weights(self.confidence_logits).to(self.rcp.dtype)
+
+
+def procrustes_weights(confidence_logits: torch.Tensor) -> torch.Tensor:
+    """(B, N) logits -> positive weights (floored so that no pair's weights all vanish)."""
+    return torch.sigmoid(confidence_logits).clamp_min(1e-6)
 
 
 class VRNet(nn.Module):
@@ -40,8 +54,8 @@ class VRNet(nn.Module):
         self.transformer = Transformer(cfg.emb_dims, cfg.heads, cfg.ff_dims, cfg.encoder_layers,
                                        cfg.decoder_layers, cfg.dropout)
         walk_inputs = 2 * cfg.emb_dims + (6 if cfg.walk_coordinates else 0)
-        self.walk = (CorrectionWalk(walk_inputs, cfg.walk_channels, cfg.walk_zero_init) if cfg.correction_walk
-                     else None)
+        self.walk = (CorrectionWalk(walk_inputs, cfg.walk_channels, cfg.walk_zero_init, cfg.walk_gate,
+                                    cfg.walk_confidence) if cfg.correction_walk else None)
 
     def feature_modules(self) -> list[nn.Module]:
         """The feature extractor (DGCNN + Transformer): trained in stage 1, frozen in stage 2."""
@@ -79,12 +93,15 @@ class VRNet(nn.Module):
             matching = torch.softmax(scores, dim=-1)
             vcp = torch.bmm(matching, tgt)
         if self.walk is None:
-            offset = torch.zeros_like(vcp)
+            offset, gate_logits, confidence_logits = torch.zeros_like(vcp), None, None
         else:
             seeds = [phi_x, torch.bmm(phi_y, matching.transpose(1, 2))]
             if self.config.walk_coordinates:
                 seeds += [src.transpose(1, 2), vcp.transpose(1, 2)]
-            offset = self.walk(torch.cat(seeds, dim=1)).transpose(1, 2)
+            walk = self.walk(torch.cat(seeds, dim=1))
+            offset, gate_logits, confidence_logits = walk.offset, walk.gate_logits, walk.confidence_logits
         rcp = vcp + offset
-        rotation, translation = kabsch(src, rcp, backend=backend)
-        return VRNetOutput(rotation, translation, matching, vcp, rcp, offset, phi_x, phi_y)
+        weights = None if confidence_logits is None else procrustes_weights(confidence_logits).to(src.dtype)
+        rotation, translation = kabsch(src, rcp, weights, backend=backend)
+        return VRNetOutput(rotation, translation, matching, vcp, rcp, offset, phi_x, phi_y, gate_logits,
+                           confidence_logits)
