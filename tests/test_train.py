@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from conftest import MODELNET_DIR, requires_modelnet
-from vrnet_ext.train import TrainConfig, load_checkpoint, train
+from vrnet_ext.checkpoints import read_checkpoint as load_checkpoint
+from vrnet_ext.train import TrainConfig, train
 
 
 def tiny(tmp_path, name, **overrides):

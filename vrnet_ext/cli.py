@@ -61,6 +61,10 @@ def _train_parser(sub) -> None:
     p.add_argument("--emb-dims", type=int, default=None, help="model embedding size c")
     p.add_argument("--k", type=int, default=None, help="DGCNN neighbours")
     p.add_argument("--iterations", type=int, default=None, help="ICP-like passes at evaluation")
+    p.add_argument("--walk-gate", type=_parse_bool, default=None,
+                   help="1: the walk's offsets are gated per point (right VCPs stay exact); 0: the paper's walk")
+    p.add_argument("--walk-confidence", type=_parse_bool, default=None,
+                   help="1: the walk also predicts per-point confidences that weight the Procrustes; 0: unweighted")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -68,10 +72,10 @@ def build_train_config(args):
     """TrainConfig from parsed ``vrnet train`` flags: the preset, then every flag given."""
     from vrnet_ext.train import PRESETS, TrainConfig
 
-    overrides = {k: v for k, v in vars(args).items()
-                 if k not in ("command", "preset", "emb_dims", "k", "iterations", "no_progress")}
+    model_keys = ("emb_dims", "k", "iterations", "walk_gate", "walk_confidence")
+    overrides = {k: v for k, v in vars(args).items() if k not in ("command", "preset", "no_progress") + model_keys}
     model = dict(PRESETS[args.preset]["model"])
-    for key in ("emb_dims", "k", "iterations"):
+    for key in model_keys:
         if getattr(args, key) is not None:
             model[key] = getattr(args, key)
     return TrainConfig.from_preset(args.preset, model=model, progress=not args.no_progress, **overrides)
@@ -105,9 +109,9 @@ def _eval_parser(sub) -> None:
 def _run_eval(args) -> int:
     from vrnet_ext.data import ModelNet40Pairs, PairSpec
     from vrnet_ext.evaluate import evaluate, format_table, time_inference
-    from vrnet_ext.train import model_from_checkpoint
+    from vrnet_ext.checkpoints import load_model
 
-    model, state = model_from_checkpoint(args.checkpoint, args.device)
+    model, state = load_model(args.checkpoint, args.device)
     cfg = state["config"]
     if args.iterations:
         model.config.iterations = args.iterations
@@ -171,13 +175,13 @@ def _run_register(args) -> int:
     from vrnet_ext.io import read_points, read_transform, write_ply
     from vrnet_ext.register import apply, register, transform_errors
 
+    model = None
+    if args.checkpoint:  # before the scans: a bad checkpoint fails at once
+        from vrnet_ext.checkpoints import load_model
+
+        model = load_model(args.checkpoint, args.device)[0]
     src, tgt = read_points(args.source), read_points(args.target)
     truth = read_transform(args.gt) if args.gt else None
-    model = None
-    if args.checkpoint:
-        from vrnet_ext.train import model_from_checkpoint
-
-        model = model_from_checkpoint(args.checkpoint, args.device)[0].to(args.device)
     result = register(src, tgt, model, args.network_points, args.icp_points, args.voxel_size, args.max_distance,
                       args.icp_iterations, args.seed, args.device, args.backend, args.fpfh)
     record = result.to_dict()

@@ -36,6 +36,7 @@ from torch.utils.data import DataLoader
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
+from vrnet_ext.checkpoints import read_checkpoint, validate_model_config
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.evaluate import evaluate, to_device
 from vrnet_ext.losses import HybridLossWeights, correspondence_loss, hybrid_loss
@@ -92,6 +93,7 @@ class TrainConfig:
     precision: str = "bf16"
     checkpoint_minutes: float = 10.0
     resume: str | None = None
+    features_from: str | None = None
     flush_denormal: bool = True
     progress: bool = True
 
@@ -182,16 +184,37 @@ def _save(checkpoint: dict, path: Path) -> None:
     os.replace(partial_path, path)
 
 
-def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
-    """A checkpoint written by :func:`train` (weights-only unpickling)."""
-    return torch.load(path, map_location=map_location, weights_only=True)
+def _check_resumable(state: dict, model_cfg: VRNetConfig, path: str) -> None:
+    """A run resumes only the model it was training (the file's config, not silently this run's)."""
+    saved = validate_model_config(state["config"]["model"], path).to_dict()
+    wanted = model_cfg.to_dict()
+    saved["backend"] = wanted["backend"]  # the kernels used do not change the model
+    differing = sorted(k for k in wanted if saved.get(k) != wanted[k])
+    if differing:
+        raise ValueError(f"resume: {path} holds a model with other {', '.join(differing)} "
+                         f"({', '.join(f'{k}={saved.get(k)!r}' for k in differing)}) than this run "
+                         f"({', '.join(f'{k}={wanted[k]!r}' for k in differing)}); pass the same preset and options")
 
 
-def model_from_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[VRNet, dict]:
-    state = load_checkpoint(path, map_location)
-    model = VRNet(VRNetConfig.from_dict(state["config"]["model"]))
-    model.load_state_dict(state["model"])
-    return model, state
+FEATURE_FIELDS = ("k", "dgcnn_channels", "emb_dims", "negative_slope", "heads", "ff_dims", "encoder_layers",
+                  "decoder_layers")
+
+
+def init_features_from(model: VRNet, path: str) -> None:
+    """Copies the feature extractor (DGCNN + Transformer, weights and BatchNorm statistics) of
+    another run's checkpoint into ``model``: stage 2 (or an ablation arm) on trained stage-1
+    features, whatever that run's correction walk was."""
+    state = read_checkpoint(path)
+    saved = validate_model_config(state["config"]["model"], path)
+    differing = [k for k in FEATURE_FIELDS if getattr(saved, k) != getattr(model.config, k)]
+    if differing:
+        raise ValueError(f"features_from: {path} has other feature settings ({', '.join(differing)}) than this run")
+    prefixes = ("features.", "transformer.")
+    features = {k: v for k, v in state["model"].items() if k.startswith(prefixes)}
+    own = {k for k in model.state_dict() if k.startswith(prefixes)}
+    if set(features) != own:
+        raise ValueError(f"features_from: {path} does not hold this model's feature extractor")
+    model.load_state_dict(features, strict=False)
 
 
 def _log(out_dir: Path, record: dict) -> None:
@@ -235,8 +258,11 @@ def train(cfg: TrainConfig) -> dict:
     if len(sampler) < cfg.batch_size:
         raise ValueError(f"batch_size {cfg.batch_size} x {run.world} process(es) exceeds the "
                          f"{len(train_set)} training pairs")
-    state = load_checkpoint(cfg.resume, run.device) if cfg.resume else None
+    if cfg.features_from and not cfg.resume:
+        init_features_from(model, cfg.features_from)
+    state = read_checkpoint(cfg.resume, run.device) if cfg.resume else None
     if state is not None:
+        _check_resumable(state, model_cfg, cfg.resume)
         model.load_state_dict(state["model"])
     loss_weights = HybridLossWeights(l4=cfg.loss_l4)
     step = state["step"] if state else 0

@@ -1,0 +1,102 @@
+"""Checkpoints are untrusted files: bounded, validated, clear errors naming the file."""
+import pickle
+
+import pytest
+import torch
+
+from vrnet_ext import VRNet, VRNetConfig
+from vrnet_ext.checkpoints import CheckpointError, load_model, read_checkpoint
+from vrnet_ext.pretrained import export_pretrained
+
+TINY = dict(k=4, dgcnn_channels=[8, 8], emb_dims=16, heads=2, ff_dims=16, walk_channels=[8, 3])
+
+
+def write_checkpoint(path, model_config=None, weights=None):
+    config = VRNetConfig.small(**TINY).to_dict() if model_config is None else model_config
+    if weights is None:
+        torch.manual_seed(0)
+        weights = VRNet(VRNetConfig.from_dict(config)).state_dict()
+    torch.save({"model": weights, "config": {"model": config, "setting": "PV", "split": "UPC"}}, path)
+    return path
+
+
+class Payload:
+    def __reduce__(self):
+        return (print, ("payload ran",))
+
+
+def hostile_files(tmp_path):
+    text = tmp_path / "notes.pt"
+    text.write_text("hello")
+    empty = tmp_path / "empty.pt"
+    empty.write_bytes(b"")
+    a_list = tmp_path / "list.pt"
+    torch.save([1, 2, 3], a_list)
+    no_config = tmp_path / "no_config.pt"
+    torch.save({"model": {}}, no_config)
+    raw_pickle = tmp_path / "payload.pt"
+    raw_pickle.write_bytes(pickle.dumps(Payload()))
+    torch_pickle = tmp_path / "torch_payload.pt"
+    torch.save({"model": Payload(), "config": {"model": {}}}, torch_pickle)
+    truncated = tmp_path / "truncated.pt"
+    good = write_checkpoint(tmp_path / "good.pt").read_bytes()
+    truncated.write_bytes(good[: len(good) // 2])
+    return [text, empty, a_list, no_config, raw_pickle, torch_pickle, truncated]
+
+
+def test_files_that_are_not_checkpoints_raise_a_clear_error(tmp_path, capsys):
+    for path in hostile_files(tmp_path):
+        with pytest.raises(CheckpointError, match="not a vrnet checkpoint") as info:
+            read_checkpoint(path)
+        assert str(path) in str(info.value) and "weights_only=False" not in str(info.value)
+    assert "payload ran" not in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("field, value", [("iterations", 10**6), ("emb_dims", 8192), ("k", 0), ("heads", 10**4),
+                                          ("dgcnn_channels", [8] * 100), ("walk_channels", [10**6, 3]),
+                                          ("encoder_layers", 500), ("k", "many"), ("negative_slope", float("nan"))])
+def test_config_outside_the_limits_is_refused_before_anything_is_built(tmp_path, field, value):
+    config = VRNetConfig.small(**TINY).to_dict()
+    config[field] = value
+    path = write_checkpoint(tmp_path / "big.pt", config, weights={})
+    with pytest.raises(CheckpointError, match=str(tmp_path / "big.pt")):
+        load_model(path)
+
+
+def test_weights_that_do_not_match_the_config_are_refused(tmp_path):
+    weights = VRNet(VRNetConfig.small(**TINY)).state_dict()
+    weights["features.projection.weight"] = torch.zeros(3, 3, 3)
+    with pytest.raises(CheckpointError, match="do not match"):
+        load_model(write_checkpoint(tmp_path / "bad.pt", weights=weights))
+    del weights["features.projection.weight"]
+    with pytest.raises(CheckpointError, match="do not match"):
+        load_model(write_checkpoint(tmp_path / "missing.pt", weights=weights))
+
+
+def test_a_valid_checkpoint_and_its_float16_export_load_in_eval_mode(tmp_path):
+    path = write_checkpoint(tmp_path / "good.pt")
+    model, state = load_model(path)
+    assert not model.training and state["config"]["setting"] == "PV"
+    shipped = export_pretrained(path, tmp_path / "shipped.pt", {"data": "test"})
+    small = read_checkpoint(shipped)
+    assert all(v.dtype == torch.float16 for v in small["model"].values() if v.is_floating_point())
+    assert small["card"] == {"data": "test"}
+    half, _ = load_model(shipped)
+    assert all(p.dtype == torch.float32 for p in half.parameters())
+    src, tgt = torch.rand(1, 40, 3), torch.rand(1, 40, 3)
+    torch.testing.assert_close(half(src, tgt).matching, model(src, tgt).matching, atol=2e-2, rtol=0)
+
+
+def test_cli_reports_a_bad_checkpoint_without_a_traceback(tmp_path, capsys):
+    from vrnet_ext.cli import main
+
+    config = VRNetConfig.small(**TINY).to_dict()
+    config["iterations"] = 10**6
+    path = write_checkpoint(tmp_path / "hang.pt", config, weights={})
+    scan = tmp_path / "scan.xyz"
+    scan.write_text("\n".join(f"{i} {i * i % 7} {i % 3}" for i in range(50)))
+    for command in (["eval", "--checkpoint", str(path)],
+                    ["register", str(scan), str(scan), "--checkpoint", str(path)]):
+        assert main(command) == 2
+        err = capsys.readouterr().err
+        assert "iterations" in err and "Traceback" not in err

@@ -1,0 +1,109 @@
+"""Reading VRNet checkpoints and shipped weights: bounded, validated, with errors naming the file.
+
+A checkpoint is untrusted input. It is unpickled with ``weights_only=True`` (tensors and plain
+values only, no code), its model configuration is checked against :data:`MODEL_LIMITS` before
+anything is built (a file asking for ``iterations = 10**6`` or ``emb_dims = 8192`` would otherwise
+hang or exhaust the machine), and its weights must match that configuration exactly. Every
+failure is a :class:`CheckpointError` that names the file and says what is wrong; none of them
+suggests ``weights_only=False``, which would let the file run code.
+
+Two kinds of file are read:
+
+* a training checkpoint (``last.pt``, ``best.pt`` of ``vrnet train``): ``model``, ``config``
+  (the :class:`~vrnet_ext.train.TrainConfig` as a dict, ``config["model"]`` the model's), the
+  optimizer state and progress counters;
+* shipped weights (``vrnet_ext/weights/*.pt``, see :mod:`vrnet_ext.pretrained`): the same
+  ``model`` and ``config`` keys with float16 tensors, plus a ``card`` of metrics.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from vrnet_ext.model import VRNet, VRNetConfig
+
+# Inclusive (low, high) bounds on the model configuration a file may ask for. The paper's model
+# (k 20, emb 512, ff 1024, widths <= 512, one encoder and decoder layer) is far inside them.
+MODEL_LIMITS = {
+    "k": (1, 128),
+    "emb_dims": (1, 2048),
+    "heads": (1, 64),
+    "ff_dims": (1, 8192),
+    "encoder_layers": (0, 12),
+    "decoder_layers": (0, 12),
+    "iterations": (1, 20),
+}
+WIDTH_LIMIT = 2048   # every DGCNN / walk layer width
+DEPTH_LIMIT = 16     # layers in dgcnn_channels / walk_channels
+
+
+class CheckpointError(ValueError):
+    """A file that is not a usable VRNet checkpoint (the message names the file and the reason)."""
+
+
+def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
+    """The dict stored in ``path`` (weights-only unpickling), with ``model`` and ``config`` present."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # torch raises many types here; none of its advice applies to untrusted files
+        raise CheckpointError(f"{path}: not a vrnet checkpoint (it cannot be read as a weights-only torch "
+                              f"file: {type(exc).__name__})") from None
+    if not isinstance(state, dict) or not isinstance(state.get("model"), dict) \
+            or not isinstance(state.get("config"), dict) or not isinstance(state["config"].get("model"), dict):
+        raise CheckpointError(f"{path}: not a vrnet checkpoint (it lacks the 'model' weights or the "
+                              f"'config' with a 'model' section)")
+    return state
+
+
+def validate_model_config(values: dict, source: str = "config") -> VRNetConfig:
+    """A :class:`VRNetConfig` from untrusted ``values``, every size checked against the limits."""
+    try:
+        config = VRNetConfig.from_dict(values)
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{source}: invalid model configuration: {exc}") from None
+    for name, (low, high) in MODEL_LIMITS.items():
+        value = getattr(config, name)
+        if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+            raise CheckpointError(f"{source}: model {name} = {value!r} is outside [{low}, {high}]")
+    for name in ("dgcnn_channels", "walk_channels"):
+        widths = getattr(config, name)
+        if not 1 <= len(widths) <= DEPTH_LIMIT or not all(1 <= w <= WIDTH_LIMIT for w in widths):
+            raise CheckpointError(f"{source}: model {name} = {list(widths)} needs 1-{DEPTH_LIMIT} widths "
+                                  f"in [1, {WIDTH_LIMIT}]")
+    if not isinstance(config.negative_slope, (int, float)) or not 0 <= config.negative_slope < 1:
+        raise CheckpointError(f"{source}: model negative_slope = {config.negative_slope!r} is outside [0, 1)")
+    return config
+
+
+def model_from_state(state: dict, source: str) -> VRNet:
+    """The float32 model described by a checkpoint dict (float16 shipped weights are widened)."""
+    config = validate_model_config(state["config"]["model"], source)
+    model = VRNet(config)
+    weights = {k: v.float() if isinstance(v, torch.Tensor) and v.dtype == torch.float16 else v
+               for k, v in state["model"].items()}
+    try:
+        model.load_state_dict(weights)
+    except (RuntimeError, TypeError, ValueError) as exc:
+        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(f"{source}: its weights do not match its model configuration ({first_line})") from None
+    return model
+
+
+def load_model(checkpoint: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[VRNet, dict]:
+    """(model in eval mode, checkpoint dict) from a checkpoint path or a shipped name
+    (:func:`vrnet_ext.pretrained.available`)."""
+    from vrnet_ext.pretrained import available, weights_path
+
+    path = weights_path(str(checkpoint)) if str(checkpoint) in available() else Path(checkpoint)
+    state = read_checkpoint(path, map_location)
+    model = model_from_state(state, str(path)).to(map_location)
+    return model.eval(), state
+
+
+__all__ = ["CheckpointError", "MODEL_LIMITS", "load_model", "model_from_state", "read_checkpoint",
+           "validate_model_config"]
