@@ -127,3 +127,37 @@ def test_resume_from_a_mid_epoch_checkpoint_continues_bit_exactly(tmp_path, monk
         assert torch.equal(value, resumed["model"][key]), key
     # the resumed epoch's mean training loss counts the batches done before the stop
     assert [r["train_loss"] for r in records(tmp_path / "resumed")] == [r["train_loss"] for r in records(tmp_path / "straight")][1:]
+
+
+@requires_modelnet
+def test_a_stop_signal_saves_a_mid_epoch_checkpoint_that_resumes_bit_exactly(tmp_path):
+    import signal
+    import subprocess
+
+    straight = tmp_path / "straight"
+    train(tiny(tmp_path, "straight", stage1_epochs=2, stage2_epochs=0, max_train_items=40, batch_size=2))
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "vrnet_ext.cli", "train", "--preset", "tiny", "--data-dir", str(MODELNET_DIR),
+           "--out-dir", str(run), "--stage1-epochs", "2", "--stage2-epochs", "0", "--max-train-items", "40",
+           "--batch-size", "2", "--no-progress"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    process = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    # wait until the first epoch has ended, then ask for a stop in the middle of the second
+    for _ in range(600):
+        if (run / "metrics.jsonl").exists():
+            break
+        import time
+        time.sleep(0.1)
+    process.send_signal(signal.SIGTERM)
+    out, err = process.communicate(timeout=300)
+    assert process.returncode == 0, err[-2000:]
+    stopped = load_checkpoint(run / "last.pt")
+    if stopped["partial"] is None:
+        pytest.skip("the run finished before the signal arrived")
+    assert "--resume" in out and stopped["partial"]["epoch"] == 1
+    train(tiny(tmp_path, "run", stage1_epochs=2, stage2_epochs=0, max_train_items=40, batch_size=2,
+               resume=str(run / "last.pt")))
+    expected, resumed = load_checkpoint(straight / "last.pt"), load_checkpoint(run / "last.pt")
+    assert expected["step"] == resumed["step"]
+    for key, value in expected["model"].items():
+        assert torch.equal(value, resumed["model"][key]), key

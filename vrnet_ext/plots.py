@@ -80,3 +80,42 @@ def plot_registration(src, tgt, transforms: dict, path: str | Path, max_points: 
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_pair(src, tgt, truth, vcp, rcp, estimate, path: str | Path, title: str = "") -> Path:
+    """Three 3-D panels of one registered pair (numpy arrays, all (N, 3) but ``tgt`` (M, 3)).
+
+    1. the input: source (red) and target (green);
+    2. the correspondences in the target's frame: where the source points truly are (``truth``,
+       purple), their VCPs (grey) and RCPs (blue), a red line from each VCP to its RCP (the walk);
+    3. the result: the source moved by the estimate (red) over the target (green).
+    """
+    import numpy as np
+
+    fig = plt.figure(figsize=(15, 5.2))
+    panels = (
+        ("input: source (red), target (green)", [(src, "tab:red"), (tgt, "tab:green")]),
+        ("true positions (purple), VCPs (grey), RCPs (blue)", [(truth, "tab:purple"), (vcp, "0.55"), (rcp, "tab:blue")]),
+        ("result: moved source (red), target (green)", [(estimate, "tab:red"), (tgt, "tab:green")]),
+    )
+    everything = np.concatenate([src, tgt, truth, vcp, rcp, estimate])
+    low, high = everything.min(axis=0), everything.max(axis=0)
+    for i, (panel_title, clouds) in enumerate(panels):
+        ax = fig.add_subplot(1, 3, i + 1, projection="3d")
+        for points, colour in clouds:
+            ax.scatter(points[:, 0], points[:, 2], points[:, 1], s=2, c=colour, depthshade=False)
+        if i == 1:
+            moved = np.linalg.norm(rcp - vcp, axis=1) > 1e-3
+            for a, b in zip(vcp[moved], rcp[moved]):
+                ax.plot([a[0], b[0]], [a[2], b[2]], [a[1], b[1]], c="tab:red", linewidth=0.5)
+        ax.set_xlim(low[0], high[0]); ax.set_ylim(low[2], high[2]); ax.set_zlim(low[1], high[1])
+        ax.set_box_aspect(high[[0, 2, 1]] - low[[0, 2, 1]])
+        ax.view_init(elev=20, azim=-60)
+        ax.set_title(panel_title, fontsize=10)
+        ax.set_xticklabels([]); ax.set_yticklabels([]); ax.set_zticklabels([])
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

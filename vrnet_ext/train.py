@@ -25,6 +25,8 @@ from __future__ import annotations
 import csv
 import json
 import os
+import signal
+import threading
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -217,6 +219,27 @@ def init_features_from(model: VRNet, path: str) -> None:
     model.load_state_dict(features, strict=False)
 
 
+class _StopRequest:
+    """SIGINT / SIGTERM (Ctrl-C, ``kill``, a scheduler's stop) ask for a stop after the current
+    batch instead of killing the run: it then writes a mid-epoch ``last.pt`` and returns, and
+    ``--resume last.pt`` continues with the next batch. Single-process runs only (``torchrun``
+    handles the signals of DDP workers itself)."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.requested = False
+        self._previous = {}
+        if enabled and threading.current_thread() is threading.main_thread():
+            for number in (signal.SIGINT, signal.SIGTERM):
+                self._previous[number] = signal.signal(number, self._request)
+
+    def _request(self, number, frame) -> None:
+        self.requested = True
+
+    def restore(self) -> None:
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)
+
+
 def _log(out_dir: Path, record: dict) -> None:
     """Appends to metrics.jsonl and rewrites metrics.csv over the union of all records' keys."""
     jsonl = out_dir / "metrics.jsonl"
@@ -269,6 +292,17 @@ def train(cfg: TrainConfig) -> dict:
     best_rmse = state.get("best_rmse", float("inf")) if state else float("inf")
     train_seconds = state.get("train_seconds", 0.0) if state else 0.0
     autocast = torch.autocast(run.device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
+    stop = _StopRequest(enabled=run.world == 1)
+    try:
+        return _train_stages(cfg, run, model, train_set, val_set, sampler, state, loss_weights, step, best_rmse,
+                             train_seconds, autocast, stop, out_dir)
+    finally:
+        stop.restore()
+
+
+def _train_stages(cfg, run, model, train_set, val_set, sampler, state, loss_weights, step, best_rmse, train_seconds,
+                  autocast, stop, out_dir) -> dict:
+    """The stage and epoch loops of :func:`train` (its arguments are the state :func:`train` set up)."""
     record: dict = {}
     for stage, epochs, lr in ((1, cfg.stage1_epochs, cfg.lr_stage1), (2, cfg.stage2_epochs, cfg.lr_stage2)):
         if state is not None and (state["stage"] > stage or (state["stage"] == stage and state["epoch"] + 1 >= epochs)):
@@ -320,13 +354,18 @@ def train(cfg: TrainConfig) -> dict:
                 for k, v in dict(parts, loss=float(loss.detach())).items():
                     totals[k] = totals.get(k, 0.0) + v
                 bar.set_postfix(loss=f"{float(loss.detach()):.4f}")
-                if run.main and time.time() - saved_at > 60 * cfg.checkpoint_minutes:
+                if run.main and (stop.requested or time.time() - saved_at > 60 * cfg.checkpoint_minutes):
                     now = time.time()
                     train_seconds += now - started
                     started = saved_at = now
                     _save(_checkpoint(model, optimizer, scheduler, cfg, stage, epoch - 1, step, best, best_rmse,
                                       train_seconds, {"epoch": epoch, "batches": batches, "totals": dict(totals)}),
                           out_dir / "last.pt")
+                if stop.requested:
+                    bar.close()
+                    print(f"vrnet train: stopped at stage {stage}, epoch {epoch + 1}, batch {batches}; "
+                          f"continue with --resume {out_dir / 'last.pt'}", flush=True)
+                    return {"stage": stage, "epoch": epoch + 1, "step": step, "stopped": True}
             scheduler.step()
             record = {"stage": stage, "epoch": epoch + 1, "step": step, "lr": optimizer.param_groups[0]["lr"],
                       "epoch_seconds": round(time.time() - epoch_started, 2), "world_size": run.world}
