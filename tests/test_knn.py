@@ -150,3 +150,36 @@ def test_bad_input(device, backend):
             ops.knn(good, poisoned, 3, backend=backend)
     with pytest.raises(ValueError, match="backend"):
         ops.knn(good, good, 3, backend="cuda-magic")
+
+
+def _brute_force(query, ref, k):
+    """float64 brute force: (B, N, k) distances of the k nearest."""
+    d = ((query.double()[:, :, None] - ref.double()[:, None]) ** 2).sum(-1)
+    return d.topk(k, largest=False, sorted=True).values
+
+
+def _exact_distances(query, ref, idx):
+    gathered = ref.double().gather(1, idx.reshape(idx.shape[0], -1, 1).expand(-1, -1, ref.shape[2]))
+    return ((query.double()[:, :, None] - gathered.reshape(*idx.shape, -1)) ** 2).sum(-1)
+
+
+@pytest.mark.parametrize("offset, C, dtype", [(100.0, 4, torch.float32), (1000.0, 4, torch.float32),
+                                              (1000.0, 1, torch.float32), (1e4, 2, torch.float32),
+                                              (1e6, 64, torch.float64), (-3e3, 16, torch.float32)])
+def test_feature_knn_is_exact_far_from_the_origin(offset, C, dtype):
+    # |q|^2 + |r|^2 - 2 q.r cancels catastrophically for clouds far from the origin; the GEMM path
+    # must still return the true nearest neighbours (regression: 46-100 % of rows were wrong).
+    g = torch.Generator().manual_seed(3)
+    x = (torch.rand(2, 512, C, generator=g, dtype=torch.float64) + offset).to(dtype)
+    _, idx = ops.knn(x, x, 8)
+    torch.testing.assert_close(_exact_distances(x, x, idx), _brute_force(x, x, 8), rtol=0, atol=0)
+
+
+def test_feature_knn_with_overflowing_norms_returns_valid_indices():
+    # squared norms overflow float32 here: indices must still point into ref (regression:
+    # uninitialised memory came back as indices), each row its own k distinct points.
+    x = torch.rand(1, 300, 4, generator=torch.Generator().manual_seed(0)) * 1e20
+    dist2, idx = ops.knn(x, x, 5)
+    assert int(idx.min()) >= 0 and int(idx.max()) < 300
+    assert all(len(set(row.tolist())) == 5 for row in idx[0])
+    assert torch.equal(idx[0, :, 0], torch.arange(300)) and not dist2.isnan().any()

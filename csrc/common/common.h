@@ -78,6 +78,16 @@ inline void check_dim(const at::Tensor& t, int64_t dim, const char* name, const 
   TORCH_CHECK_VALUE(t.dim() == dim, name, " must have shape ", shape, ", got ", t.sizes());
 }
 
+// Backward kernels are registered ops that anyone can call with any tensors: each checks that a
+// gradient or saved tensor has exactly the expected sizes, the dtype and the device of `like`.
+inline void check_like(const at::Tensor& t, const char* name, at::IntArrayRef sizes, const at::Tensor& like,
+                       const char* like_name) {
+  TORCH_CHECK_VALUE(t.sizes() == sizes, name, " must have shape ", sizes, ", got ", t.sizes());
+  TORCH_CHECK_TYPE(t.scalar_type() == like.scalar_type(), name, " must have the dtype of ", like_name, " (",
+                   like.scalar_type(), "), got ", t.scalar_type());
+  check_same_device(like, like_name, t, name);
+}
+
 // Raises ValueError if an index tensor holds values outside [0, upper).
 inline void check_index_range(const at::Tensor& idx, int64_t upper, const char* name) {
   if (!idx.is_cpu()) {

@@ -25,4 +25,19 @@ inline void check_edge_features_inputs(const at::Tensor& x, const at::Tensor& id
   check_index_range(idx, x.size(2), "idx");
 }
 
+// edge_features_backward(grad_out, idx, num_points): grad_out (B, 2C, N, k) of a graph idx (B, N, k).
+inline void check_edge_features_backward_inputs(const at::Tensor& grad, const at::Tensor& idx, int64_t num_points) {
+  check_float(grad, "grad_out");
+  check_index(idx, "idx");
+  check_dim(idx, 3, "idx", "(B, N, k)");
+  check_dim(grad, 4, "grad_out", "(B, 2C, N, k)");
+  check_same_device(grad, "grad_out", idx, "idx");
+  TORCH_CHECK_VALUE(num_points == idx.size(1), "num_points must equal the N of idx (", idx.size(1), "), got ",
+                    num_points);
+  TORCH_CHECK_VALUE(grad.size(1) % 2 == 0 && grad.size(0) == idx.size(0) && grad.size(2) == idx.size(1) &&
+                        grad.size(3) == idx.size(2),
+                    "grad_out must have shape (B, 2C, N, k) with (B, N, k) = ", idx.sizes(), ", got ", grad.sizes());
+  check_index_range(idx, num_points, "idx");
+}
+
 }  // namespace vrnet

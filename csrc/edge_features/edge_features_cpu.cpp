@@ -37,6 +37,7 @@ at::Tensor edge_features_cpu(const at::Tensor& x_in, const at::Tensor& idx_in) {
 
 // grad_x[c, m] = sum_{(n,j): idx=m} g_diff[c,n,j] + sum_j (g_centre[c,m,j] - g_diff[c,m,j]).
 at::Tensor edge_features_backward_cpu(const at::Tensor& grad_in, const at::Tensor& idx_in, int64_t num_points) {
+  check_edge_features_backward_inputs(grad_in, idx_in, num_points);
   const at::Tensor grad = grad_in.contiguous(), idx = idx_in.contiguous();
   const int64_t B = grad.size(0), C = grad.size(1) / 2, N = num_points, k = idx.size(2);
   at::Tensor grad_x = at::zeros({B, C, N}, grad.options());

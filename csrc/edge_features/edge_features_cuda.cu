@@ -54,6 +54,7 @@ at::Tensor edge_features_cuda(const at::Tensor& x_in, const at::Tensor& idx_in) 
 }
 
 at::Tensor edge_features_backward_cuda(const at::Tensor& grad_in, const at::Tensor& idx_in, int64_t num_points) {
+  check_edge_features_backward_inputs(grad_in, idx_in, num_points);
   const c10::cuda::CUDAGuard guard(grad_in.device());
   const at::Tensor grad = grad_in.contiguous(), idx = idx_in.contiguous();
   const int64_t B = grad.size(0), C = grad.size(1) / 2, N = num_points, k = idx.size(2);

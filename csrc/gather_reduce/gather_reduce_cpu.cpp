@@ -80,13 +80,15 @@ std::tuple<at::Tensor, at::Tensor> gather_reduce_cpu(const at::Tensor& values_in
 at::Tensor gather_reduce_backward_cpu(const at::Tensor& grad_in, const at::Tensor& idx_in, const at::Tensor& arg_in,
                                       c10::string_view reduce_name, int64_t num_values) {
   const Reduce reduce = parse_reduce(reduce_name);
+  check_gather_reduce_backward_inputs(grad_in, idx_in, arg_in, reduce, num_values);
   const at::Tensor grad = grad_in.contiguous(), idx = idx_in.contiguous(), arg = arg_in.contiguous();
   const int64_t B = grad.size(0), C = grad.size(1), N = grad.size(2), M = num_values, k = idx.size(2);
   at::Tensor grad_values = at::zeros({B, C, M}, grad.options());
   AT_DISPATCH_FLOATING_TYPES(grad.scalar_type(), "gather_reduce_backward_cpu", [&] {
     const scalar_t* gp = grad.const_data_ptr<scalar_t>();
     const int64_t* ip = idx.const_data_ptr<int64_t>();
-    const int64_t* ap = arg.numel() ? arg.const_data_ptr<int64_t>() : nullptr;
+    const bool keep_arg = reduce == Reduce::kMax || reduce == Reduce::kMin;
+    const int64_t* ap = keep_arg ? arg.const_data_ptr<int64_t>() : nullptr;
     scalar_t* gv = grad_values.mutable_data_ptr<scalar_t>();
     const scalar_t scale = reduce == Reduce::kMean ? scalar_t(1) / static_cast<scalar_t>(k) : scalar_t(1);
     // One task per (batch, channel) row: the scatter has no races and a fixed order.

@@ -104,6 +104,7 @@ std::tuple<at::Tensor, at::Tensor> gather_reduce_cuda(const at::Tensor& values_i
 at::Tensor gather_reduce_backward_cuda(const at::Tensor& grad_in, const at::Tensor& idx_in, const at::Tensor& arg_in,
                                        c10::string_view reduce_name, int64_t num_values) {
   const Reduce reduce = parse_reduce(reduce_name);
+  check_gather_reduce_backward_inputs(grad_in, idx_in, arg_in, reduce, num_values);
   const c10::cuda::CUDAGuard guard(grad_in.device());
   const at::Tensor grad = grad_in.contiguous(), idx = idx_in.contiguous(), arg = arg_in.contiguous();
   const int64_t B = grad.size(0), C = grad.size(1), N = grad.size(2), M = num_values, k = idx.size(2);
@@ -113,7 +114,7 @@ at::Tensor gather_reduce_backward_cuda(const at::Tensor& grad_in, const at::Tens
   AT_DISPATCH_FLOATING_TYPES(grad.scalar_type(), "gather_reduce_backward_cuda", [&] {
     const scalar_t scale = reduce == Reduce::kMean ? scalar_t(1) / static_cast<scalar_t>(k) : scalar_t(1);
     gather_reduce_backward_kernel<scalar_t><<<blocks_for(B * C * M), kThreads, 0, current_stream()>>>(
-        grad.const_data_ptr<scalar_t>(), arg.numel() ? arg.const_data_ptr<int64_t>() : nullptr,
+        grad.const_data_ptr<scalar_t>(), (reduce == Reduce::kMax || reduce == Reduce::kMin) ? arg.const_data_ptr<int64_t>() : nullptr,
         inc.order.const_data_ptr<int64_t>(), inc.row_ptr.const_data_ptr<int64_t>(), B, C, M, N, k, scale,
         grad_values.mutable_data_ptr<scalar_t>());
     C10_CUDA_KERNEL_LAUNCH_CHECK();

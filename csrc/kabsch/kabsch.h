@@ -23,6 +23,14 @@ inline void check_kabsch_inputs(const at::Tensor& src, const at::Tensor& tgt, co
   TORCH_CHECK_VALUE(src.size(1) >= 3, "src needs at least 3 points per cloud, got ", src.size(1));
 }
 
+// kabsch_backward(grad_R, grad_t, src, tgt, weights): the forward's inputs and gradients of its outputs.
+inline void check_kabsch_backward_inputs(const at::Tensor& grad_R, const at::Tensor& grad_t, const at::Tensor& src,
+                                         const at::Tensor& tgt, const at::Tensor& weights) {
+  check_kabsch_inputs(src, tgt, weights);
+  check_like(grad_R, "grad_R", {src.size(0), 3, 3}, src, "src");
+  check_like(grad_t, "grad_t", {src.size(0), 3}, src, "src");
+}
+
 // One problem: weight sum, weighted centroids, weighted covariance H = sum_i w_i/W (x_i - xc)(y_i - yc)^T,
 // and the solution R = V diag(1, 1, d) U^T of H = U S V^T.
 struct Procrustes {

@@ -70,6 +70,7 @@ std::tuple<at::Tensor, at::Tensor> kabsch_cpu(const at::Tensor& src_in, const at
 std::tuple<at::Tensor, at::Tensor, at::Tensor> kabsch_backward_cpu(const at::Tensor& gR_in, const at::Tensor& gt_in,
                                                                    const at::Tensor& src_in, const at::Tensor& tgt_in,
                                                                    const at::Tensor& weights_in) {
+  check_kabsch_backward_inputs(gR_in, gt_in, src_in, tgt_in, weights_in);
   const at::Tensor gR = gR_in.contiguous(), gt = gt_in.contiguous();
   const at::Tensor src = src_in.contiguous(), tgt = tgt_in.contiguous(), weights = weights_in.contiguous();
   const int64_t B = src.size(0), N = src.size(1);

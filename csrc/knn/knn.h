@@ -3,6 +3,7 @@
 #pragma once
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <limits>
 #include <utility>
@@ -35,18 +36,41 @@ inline void check_knn_inputs(const at::Tensor& query, const at::Tensor& ref, int
                     ", got ", B);
 }
 
-// Candidate buffer for scans over many candidates: anything at or below the threshold is appended;
-// when the buffer fills, nth_element keeps the k best by (distance, index) and the threshold drops
-// to the k-th of them. Amortised O(1) per candidate instead of an insertion sort.
+// knn_backward(grad_dist2, query, ref, idx): the forward's inputs and outputs, consistent.
+inline void check_knn_backward_inputs(const at::Tensor& grad, const at::Tensor& query, const at::Tensor& ref,
+                                      const at::Tensor& idx) {
+  check_float(query, "query");
+  check_dim(query, 3, "query", "(B, N, C)");
+  check_dim(ref, 3, "ref", "(B, M, C)");
+  check_like(ref, "ref", {query.size(0), ref.size(1), query.size(2)}, query, "query");
+  check_index(idx, "idx");
+  check_dim(idx, 3, "idx", "(B, N, k)");
+  check_same_device(query, "query", idx, "idx");
+  TORCH_CHECK_VALUE(idx.size(0) == query.size(0) && idx.size(1) == query.size(1), "idx must have shape (B, N, k) = (",
+                    query.size(0), ", ", query.size(1), ", k), got ", idx.sizes());
+  check_like(grad, "grad_dist2", idx.sizes(), query, "query");
+  check_index_range(idx, ref.size(1), "idx");
+}
+
+// Candidate buffer for the GEMM-tiled CPU search. Candidates arrive with *approximate* squared
+// distances (|q|^2 + |r|^2 - 2 q.r on centred coordinates, wrong by up to `slack`); the buffer keeps
+// every candidate that could still be among the k nearest: those at or below the k-th smallest
+// approximate distance plus 2 * slack. When it fills, nth_element finds that k-th distance and
+// drops the rest. `finish` recomputes the survivors' distances exactly (sum of squared coordinate
+// differences) and writes the k best by (exact distance, index): the result is the exact kNN as
+// long as the approximation error stays within `slack`. Non-finite approximate distances (squared
+// norms that overflow) count as +inf, so a row always holds at least k candidates.
 template <typename scalar_t>
 struct Reservoir {
   std::vector<std::pair<scalar_t, int64_t>> items;
   int64_t k = 0;
   size_t capacity = 0;
-  scalar_t threshold = std::numeric_limits<scalar_t>::infinity();
+  scalar_t slack = 0;
+  scalar_t threshold = std::numeric_limits<scalar_t>::infinity();  // k-th approximate distance + 2 slack
 
-  void reset(int64_t k_) {
+  void reset(int64_t k_, scalar_t slack_) {
     k = k_;
+    slack = slack_;
     capacity = static_cast<size_t>(2 * k_ + 64);
     items.clear();
     items.reserve(capacity);
@@ -59,14 +83,31 @@ struct Reservoir {
   void shrink() {
     if (items.size() <= static_cast<size_t>(k)) return;
     std::nth_element(items.begin(), items.begin() + (k - 1), items.end());
-    items.resize(k);
-    threshold = items[k - 1].first;
-    for (const auto& item : items) threshold = std::max(threshold, item.first);
+    threshold = items[k - 1].first + 2 * slack;
+    if (!std::isfinite(threshold)) {  // overflowing norms: keep k (valid indices, no longer the nearest)
+      items.resize(k);
+      return;
+    }
+    auto keep_end = std::partition(items.begin() + k, items.end(),
+                                   [this](const std::pair<scalar_t, int64_t>& item) { return item.first <= threshold; });
+    items.erase(keep_end, items.end());
+    // Many candidates within the slack of the k-th (ties, a large slack): grow instead of thrashing.
+    if (items.size() * 2 > capacity) capacity = items.size() * 2;
   }
-  // Writes the k best, ascending by (distance, index).
-  void finish(scalar_t* dist, int64_t* idx) {
+  // Writes the k best by exact distance (ties by lower index) for the query row `q` of C values;
+  // `ref` holds the reference rows (C values each) that the candidates index.
+  void finish(const scalar_t* q, const scalar_t* ref, int64_t C, scalar_t* dist, int64_t* idx) {
     shrink();
-    std::sort(items.begin(), items.end());
+    for (auto& item : items) {
+      const scalar_t* r = ref + item.second * C;
+      scalar_t acc = 0;
+      for (int64_t c = 0; c < C; ++c) {
+        const scalar_t diff = q[c] - r[c];
+        acc += diff * diff;
+      }
+      item.first = acc;
+    }
+    std::partial_sort(items.begin(), items.begin() + k, items.end());
     for (int64_t i = 0; i < k; ++i) {
       dist[i] = items[i].first;
       idx[i] = items[i].second;

@@ -2,6 +2,9 @@
 // per-query reservoir. Neither materialises the N x M distance matrix.
 #include <ATen/ops/empty.h>
 #include <ATen/ops/mm.h>
+#include <ATen/ops/mean.h>
+#include <ATen/ops/sub.h>
+#include <ATen/ops/_to_copy.h>
 #include <ATen/ops/zeros.h>
 #include <ATen/ops/zeros_like.h>
 #include <torch/library.h>
@@ -159,37 +162,75 @@ void knn_grid(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool ex
 constexpr int64_t kQueryBlock = 256;
 constexpr int64_t kRefBlock = 1024;
 
+// Squared norms of `count` rows of C values.
+template <typename scalar_t>
+void squared_norms(const scalar_t* rows, int64_t count, int64_t C, std::vector<scalar_t>& out) {
+  out.resize(count);
+  at::parallel_for(0, count, 256, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i) {
+      scalar_t acc = 0;
+      for (int64_t c = 0; c < C; ++c) acc += rows[i * C + c] * rows[i * C + c];
+      out[i] = acc;
+    }
+  });
+}
+
+// GEMM-tiled kNN for any C. Both clouds are first shifted by the reference cloud's mean (computed
+// in double), so that |q|^2 + |r|^2 - 2 q.r does not cancel catastrophically for clouds far from
+// the origin; the reservoir then keeps every candidate within the rounding bound of that formula
+// and re-ranks the survivors by exact distance (see Reservoir).
 template <typename scalar_t>
 void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self,
                at::Tensor& dist, at::Tensor& idx) {
   const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2);
-  std::vector<scalar_t> qn(N), rn(M);
+  // Rounding of the expanded formula: a few units in the last place of (|q|^2 + |r|^2) per term of
+  // the dot product; 8 (C + 2) eps is a generous bound for any summation order the GEMM picks.
+  const scalar_t relative_error = static_cast<scalar_t>(8 * (C + 2)) * std::numeric_limits<scalar_t>::epsilon();
+  std::vector<scalar_t> qn, rn;
   std::vector<Reservoir<scalar_t>> reservoirs(std::min(N, kQueryBlock));
   for (int64_t b = 0; b < B; ++b) {
     const at::Tensor qb = query.select(0, b), rb = ref.select(0, b);
-    const scalar_t* qp = qb.const_data_ptr<scalar_t>();
-    const scalar_t* rp = rb.const_data_ptr<scalar_t>();
-    auto sq_norms = [C](const scalar_t* p, int64_t count, std::vector<scalar_t>& out) {
-      at::parallel_for(0, count, 256, [&](int64_t begin, int64_t end) {
-        for (int64_t i = begin; i < end; ++i) {
-          scalar_t acc = 0;
-          for (int64_t c = 0; c < C; ++c) acc += p[i * C + c] * p[i * C + c];
-          out[i] = acc;
-        }
-      });
-    };
-    sq_norms(qp, N, qn);
-    sq_norms(rp, M, rn);
+    const at::Tensor shift = rb.to(at::kDouble).mean(0, /*keepdim=*/true);
+    const at::Tensor q_centred = at::sub(qb.to(at::kDouble), shift).to(qb.scalar_type()).contiguous();
+    const at::Tensor r_centred = at::sub(rb.to(at::kDouble), shift).to(rb.scalar_type()).contiguous();
+    squared_norms(q_centred.const_data_ptr<scalar_t>(), N, C, qn);
+    squared_norms(r_centred.const_data_ptr<scalar_t>(), M, C, rn);
+    const scalar_t rn_max = *std::max_element(rn.begin(), rn.end());
+    const scalar_t* q_rows = qb.const_data_ptr<scalar_t>();
+    const scalar_t* r_rows = rb.const_data_ptr<scalar_t>();
     scalar_t* d_out = dist.mutable_data_ptr<scalar_t>() + b * N * k;
     int64_t* i_out = idx.mutable_data_ptr<int64_t>() + b * N * k;
+    if (!std::isfinite(rn_max) || !std::isfinite(*std::max_element(qn.begin(), qn.end()))) {
+      // Squared norms overflow the dtype (coordinates spread over ~1e19 in float32): the expanded
+      // formula is meaningless, so this cloud is searched exhaustively with exact differences.
+      at::parallel_for(0, N, 16, [&](int64_t begin, int64_t end) {
+        for (int64_t n = begin; n < end; ++n) {
+          TopK<scalar_t> top{d_out + n * k, i_out + n * k, k};
+          top.reset(M);
+          for (int64_t j = 0; j < M; ++j) {
+            if (exclude_self && j == n) continue;
+            scalar_t acc = 0;
+            for (int64_t c = 0; c < C; ++c) {
+              const scalar_t diff = q_rows[n * C + c] - r_rows[j * C + c];
+              acc += diff * diff;
+            }
+            top.push(acc, j);
+          }
+        }
+      });
+      continue;
+    }
     for (int64_t q0 = 0; q0 < N; q0 += kQueryBlock) {
       const int64_t q1 = std::min(N, q0 + kQueryBlock);
-      const at::Tensor q_tile = qb.narrow(0, q0, q1 - q0);
-      for (auto& r : reservoirs) r.reset(k);
+      const at::Tensor q_tile = q_centred.narrow(0, q0, q1 - q0);
+      for (int64_t n = q0; n < q1; ++n) {
+        const scalar_t slack = relative_error * (qn[n] + rn_max);
+        reservoirs[n - q0].reset(k, std::isfinite(slack) ? slack : scalar_t(0));
+      }
       for (int64_t r0 = 0; r0 < M; r0 += kRefBlock) {
         const int64_t r1 = std::min(M, r0 + kRefBlock);
-        // dots[n, j] = q_n . r_j; then d = |q|^2 + |r|^2 - 2 q.r, clamped at 0.
-        const at::Tensor dots = at::mm(q_tile, rb.narrow(0, r0, r1 - r0).t());
+        // dots[n, j] = q_n . r_j; then d ~ |q|^2 + |r|^2 - 2 q.r, clamped at 0, +inf if not finite.
+        const at::Tensor dots = at::mm(q_tile, r_centred.narrow(0, r0, r1 - r0).t());
         const scalar_t* dp = dots.const_data_ptr<scalar_t>();
         const int64_t width = r1 - r0;
         at::parallel_for(q0, q1, 16, [&](int64_t begin, int64_t end) {
@@ -199,7 +240,10 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
             const scalar_t* rn_block = rn.data() + r0;
             const scalar_t qn_n = qn[n];
             scalar_t* dst = row_dist.data();
-            for (int64_t j = 0; j < width; ++j) dst[j] = std::max<scalar_t>(qn_n + rn_block[j] - 2 * row[j], 0);
+            for (int64_t j = 0; j < width; ++j) {
+              const scalar_t d = qn_n + rn_block[j] - 2 * row[j];
+              dst[j] = std::isfinite(d) ? std::max<scalar_t>(d, 0) : std::numeric_limits<scalar_t>::infinity();
+            }
             // NaN never passes `<= threshold`: the query itself is skipped without a per-candidate test.
             if (exclude_self && n >= r0 && n < r1) dst[n - r0] = std::numeric_limits<scalar_t>::quiet_NaN();
             Reservoir<scalar_t>& res = reservoirs[n - q0];
@@ -209,7 +253,8 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
         });
       }
       at::parallel_for(q0, q1, 16, [&](int64_t begin, int64_t end) {
-        for (int64_t n = begin; n < end; ++n) reservoirs[n - q0].finish(d_out + n * k, i_out + n * k);
+        for (int64_t n = begin; n < end; ++n)
+          reservoirs[n - q0].finish(q_rows + n * C, r_rows, C, d_out + n * k, i_out + n * k);
       });
     }
   }
@@ -235,6 +280,7 @@ std::tuple<at::Tensor, at::Tensor> knn_cpu(const at::Tensor& query_in, const at:
 // d dist2[n, j] / d query[n] = 2 (q_n - r_idx), / d ref[idx] = -2 (q_n - r_idx).
 std::tuple<at::Tensor, at::Tensor> knn_backward_cpu(const at::Tensor& grad_in, const at::Tensor& query_in,
                                                     const at::Tensor& ref_in, const at::Tensor& idx_in) {
+  check_knn_backward_inputs(grad_in, query_in, ref_in, idx_in);
   const at::Tensor grad = grad_in.contiguous(), query = query_in.contiguous();
   const at::Tensor ref = ref_in.contiguous(), idx = idx_in.contiguous();
   const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2), k = idx.size(2);

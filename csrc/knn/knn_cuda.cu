@@ -240,6 +240,7 @@ __global__ void knn_grad_ref_kernel(const scalar_t* __restrict__ grad, const sca
 
 std::tuple<at::Tensor, at::Tensor> knn_backward_cuda(const at::Tensor& grad_in, const at::Tensor& query_in,
                                                      const at::Tensor& ref_in, const at::Tensor& idx_in) {
+  check_knn_backward_inputs(grad_in, query_in, ref_in, idx_in);
   const c10::cuda::CUDAGuard guard(query_in.device());
   const at::Tensor grad = grad_in.contiguous(), query = query_in.contiguous();
   const at::Tensor ref = ref_in.contiguous(), idx = idx_in.contiguous();

@@ -15,4 +15,12 @@ inline void check_pairwise_distance_loss_inputs(const at::Tensor& x, const at::T
   TORCH_CHECK_VALUE(x.size(1) >= 2, "x needs at least 2 points per cloud, got ", x.size(1));
 }
 
+// pairwise_distance_loss_backward(grad_loss, x, y, loss): grad_loss and loss are (B,).
+inline void check_pairwise_distance_loss_backward_inputs(const at::Tensor& grad, const at::Tensor& x,
+                                                         const at::Tensor& y, const at::Tensor& loss) {
+  check_pairwise_distance_loss_inputs(x, y);
+  check_like(grad, "grad_loss", {x.size(0)}, x, "x");
+  check_like(loss, "loss", {x.size(0)}, x, "x");
+}
+
 }  // namespace vrnet

@@ -59,6 +59,7 @@ at::Tensor pairwise_distance_loss_cpu(const at::Tensor& x_in, const at::Tensor& 
 // d loss / d x_i = 2 g / (N^2 loss) sum_j e_ij (x_i - x_j) / |x_i - x_j|, zero where loss or |.| is 0.
 std::tuple<at::Tensor, at::Tensor> pairwise_distance_loss_backward_cpu(const at::Tensor& grad_in, const at::Tensor& x_in,
                                                                        const at::Tensor& y_in, const at::Tensor& loss_in) {
+  check_pairwise_distance_loss_backward_inputs(grad_in, x_in, y_in, loss_in);
   const at::Tensor grad = grad_in.contiguous(), x = x_in.contiguous(), y = y_in.contiguous();
   const at::Tensor loss = loss_in.contiguous();
   const int64_t B = x.size(0), N = x.size(1);

@@ -116,6 +116,7 @@ at::Tensor pairwise_distance_loss_cuda(const at::Tensor& x_in, const at::Tensor&
 std::tuple<at::Tensor, at::Tensor> pairwise_distance_loss_backward_cuda(const at::Tensor& grad_in,
                                                                         const at::Tensor& x_in, const at::Tensor& y_in,
                                                                         const at::Tensor& loss_in) {
+  check_pairwise_distance_loss_backward_inputs(grad_in, x_in, y_in, loss_in);
   const c10::cuda::CUDAGuard guard(x_in.device());
   const at::Tensor grad = grad_in.contiguous(), x = x_in.contiguous(), y = y_in.contiguous();
   const at::Tensor loss = loss_in.contiguous();

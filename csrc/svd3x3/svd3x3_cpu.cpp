@@ -28,6 +28,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> svd3x3_cpu(const at::Tensor& A_in
 
 at::Tensor svd3x3_backward_cpu(const at::Tensor& gU_in, const at::Tensor& gS_in, const at::Tensor& gV_in,
                                const at::Tensor& U_in, const at::Tensor& S_in, const at::Tensor& V_in) {
+  check_svd3x3_backward_inputs(gU_in, gS_in, gV_in, U_in, S_in, V_in);
   const at::Tensor gU = gU_in.contiguous(), gS = gS_in.contiguous(), gV = gV_in.contiguous();
   const at::Tensor U = U_in.contiguous(), S = S_in.contiguous(), V = V_in.contiguous();
   const int64_t B = U.size(0);
