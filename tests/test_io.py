@@ -113,3 +113,63 @@ def test_real_scans():
     assert kitchen.shape == (258342, 3) and float(np.abs(kitchen).max()) < 10.0  # metres, indoor
     T = read_transform(SCENES / "lidar_pair" / "T_target_source.txt")
     assert abs(np.linalg.det(T[:3, :3]) - 1) < 1e-5
+
+
+def test_hostile_headers_and_arrays_raise_clear_errors(tmp_path, points):
+    cases = {}
+    cases["negative.ply"] = ("ply\nformat ascii 1.0\nelement vertex -3\nproperty float x\nproperty float y\n"
+                             "property float z\nelement face 1\nproperty list uchar int v\nend_header\n1 2 3\n3 0 1 2\n")
+    cases["negative.pcd"] = ("# .PCD v0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH -2\nHEIGHT 1\n"
+                             "POINTS -2\nDATA ascii\n1 2 3\n")
+    cases["short_property.ply"] = "ply\nformat ascii 1.0\nelement vertex 3\nproperty\nend_header\n1 2 3\n"
+    for name, text in cases.items():
+        (tmp_path / name).write_text(text)
+    huge = tmp_path / "huge.npy"
+    with open(huge, "wb") as f:  # a header promising 10^10 x 3 float64 (224 GiB) and 24 bytes of data
+        np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False, "shape": (10**10, 3)})
+        f.write(np.zeros(3).tobytes())
+    np.save(tmp_path / "complex.npy", points.astype(np.complex64) + 1j)
+    np.save(tmp_path / "bool.npy", points > 0)
+    for name, message in [("negative.ply", "negative"), ("negative.pcd", "negative"), ("short_property.ply", "property"),
+                          ("huge.npy", "not a readable"), ("complex.npy", "real-valued"), ("bool.npy", "real-valued")]:
+        with pytest.raises(PointCloudError, match=message) as info:
+            read_points(tmp_path / name)
+        assert str(tmp_path / name) in str(info.value)
+
+
+def test_pcd_comment_that_mentions_data_is_a_comment(tmp_path, points):
+    header = ("# .PCD v0.7 - DATA written by hand\n# DATA binary would be faster\nVERSION 0.7\nFIELDS x y z\n"
+              "SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+              f"WIDTH {len(points)}\nHEIGHT 1\nPOINTS {len(points)}\nDATA ascii\n")
+    (tmp_path / "c.pcd").write_text(header + "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in points.tolist()))
+    np.testing.assert_allclose(read_points(tmp_path / "c.pcd"), points, rtol=1e-6)
+
+
+def test_read_transform_of_a_binary_file_names_the_file(tmp_path, points):
+    write_ply(tmp_path / "scan.ply", points)
+    with pytest.raises(PointCloudError, match="scan.ply"):
+        read_transform(tmp_path / "scan.ply")
+
+
+def test_ascii_ply_is_read_without_per_line_python_objects(tmp_path):
+    # 400k vertices, ~17 MB of text: peak memory must stay a small multiple of the file (was ~16x)
+    import resource
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(0)
+    cloud = rng.normal(size=(400_000, 3))
+    path = tmp_path / "big.ply"
+    header = ("ply\nformat ascii 1.0\nelement vertex 400000\nproperty float x\nproperty float y\n"
+              "property float z\nend_header\n")
+    with open(path, "w") as f:
+        f.write(header)
+        np.savetxt(f, cloud, fmt="%.6f")
+    size_mb = path.stat().st_size / 2**20
+    code = ("import resource, sys; from vrnet_ext.io import read_points; "
+            "base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss; p = read_points(sys.argv[1]); "
+            "print(p.shape[0], (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) / 1024)")
+    out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=300)
+    rows, extra_mb = out.stdout.split()
+    assert int(rows) == 400_000
+    assert float(extra_mb) < 4 * size_mb, (extra_mb, size_mb)

@@ -50,8 +50,12 @@ def test_voxel_downsample_matches_a_per_voxel_mean_in_row_major_voxel_order():
         groups.setdefault(cell, []).append(p)
     expected = np.array([np.mean(groups[cell], axis=0) for cell in sorted(groups)])
     np.testing.assert_allclose(voxel_downsample(points, voxel), expected, rtol=0, atol=1e-12)
+    # more voxels in the box than an int64 key can number: the occupied ones are numbered instead
+    far = np.vstack([points, [[1e6, 1e6, 1e6]]])
+    np.testing.assert_allclose(voxel_downsample(far, 1e-4)[-1], [1e6, 1e6, 1e6])
+    assert len(voxel_downsample(far, 1e-4)) == len(np.unique(far, axis=0))
     with pytest.raises(ValueError, match="too small"):
-        voxel_downsample(np.array([[0.0, 0.0, 0.0], [1e3, 1e3, 1e3]]), 1e-5)
+        voxel_downsample(np.array([[0.0, 0.0, 0.0], [1e3, 1e3, 1e3]]), 1e-17)
 
 
 def test_icp_recovers_a_small_motion():
@@ -182,3 +186,40 @@ def test_real_lidar_pair_icp_matches_reference():
     result = register(read_points(LIDAR / "source.ply"), read_points(LIDAR / "target.ply"))
     errors = transform_errors(result.transform, read_transform(LIDAR / "T_target_source.txt"))
     assert errors["rotation_error_deg"] < 0.5 and errors["translation_error"] < 0.05, errors
+
+
+def test_cli_register_rejects_bad_options_before_any_work(tmp_path, capsys):
+    from vrnet_ext.cli import main
+
+    cloud = np.random.default_rng(0).normal(size=(200, 3)).astype(np.float32)
+    write_ply(tmp_path / "a.ply", cloud)
+    a = str(tmp_path / "a.ply")
+    bad = [["--icp-points", "0"], ["--icp-points", "-5"], ["--voxel-size", "nan"], ["--voxel-size", "0"],
+           ["--max-distance", "nan"], ["--max-distance", "inf"], ["--max-distance", "0"], ["--max-distance", "-1"],
+           ["--device", "nonsense"], ["--json", str(tmp_path / "missing" / "r.json")],
+           ["--icp-iterations", "-1"], ["--fpfh-points", "0"]]
+    for options in bad:
+        with pytest.raises(SystemExit) as exit_info:
+            main(["register", a, a, *options])
+        assert exit_info.value.code == 2, options
+        err = capsys.readouterr().err
+        assert options[0] in err and "Traceback" not in err, (options, err)
+    # --fpfh takes no value: the two files stay the two files
+    assert main(["register", a, a, "--fpfh", "--icp-iterations", "0"]) in (0, 2)
+    err = capsys.readouterr().err
+    assert "invalid int" not in err
+    gt_ply = tmp_path / "gt.ply"
+    write_ply(gt_ply, cloud)
+    assert main(["register", a, a, "--gt", str(gt_ply), "--icp-iterations", "0"]) == 2
+    assert "gt.ply" in capsys.readouterr().err
+
+
+def test_a_stray_far_point_in_the_target_does_not_change_the_icp_result():
+    src = room(20000)
+    tgt = apply(motion(3.0, [0.1, -0.05, 0.02]), room(20000, seed=1))
+    clean = register(src, tgt, icp_points=5000)
+    for distance in (1e3, 1e5):
+        stray = np.vstack([tgt, [[distance, 0.0, 0.0]]])
+        result = register(src, stray, icp_points=5000)
+        assert transform_errors(result.transform, clean.transform)["rotation_error_deg"] < 0.05, distance
+        assert result.points["target_icp"] <= clean.points["target_icp"] + 1

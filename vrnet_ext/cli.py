@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import resource
 import sys
 import typing
@@ -19,6 +20,59 @@ def _parse_bool(text: str) -> bool:
     if value in ("0", "false", "no", "off"):
         return False
     raise argparse.ArgumentTypeError(f"expected 1/0/true/false, got {text!r}")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def _nonnegative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
+    return value
+
+
+def _device(text: str) -> str:
+    """A device name torch knows and this machine has (checked before any work starts)."""
+    import torch
+
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        raise argparse.ArgumentTypeError(f"not a device name: {text!r} (e.g. cpu, cuda, cuda:1)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise argparse.ArgumentTypeError(f"{text!r}: no CUDA device is available here")
+    if device.type not in ("cpu", "cuda"):
+        raise argparse.ArgumentTypeError(f"{text!r}: only cpu and cuda devices are supported")
+    return text
+
+
+def _writable_path(text: str) -> str:
+    """An output file whose folder exists (checked before the work, not after it)."""
+    folder = Path(text).expanduser().resolve().parent
+    if not folder.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r}: the folder {folder} does not exist")
+    return text
 
 
 DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNET_DATA/modelnet40, "
@@ -147,25 +201,31 @@ def _register_parser(sub) -> None:
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
         description="Estimates the rigid transform taking SOURCE onto TARGET: an initial estimate (VRNet on "
                     "a subsample with --checkpoint, FPFH + RANSAC with --fpfh, else the identity), refined by "
-                    "point-to-point ICP on voxel-downsampled clouds. Prints the 4x4 transform and writes JSON.")
+                    "point-to-point ICP on voxel-downsampled clouds. Prints the 4x4 transform and writes JSON.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("source", help="point-cloud file to move")
     p.add_argument("target", help="point-cloud file to align to (same unit)")
     initial = p.add_mutually_exclusive_group()
-    initial.add_argument("--checkpoint", default=None, help="best.pt of `vrnet train` for the initial estimate")
-    initial.add_argument("--fpfh", nargs="?", type=int, const=5000, default=None, metavar="POINTS",
-                   help="initial estimate from FPFH features + RANSAC on about POINTS (default 5000) points "
-                        "per scan, for scans far apart; no checkpoint needed")
-    p.add_argument("--network-points", type=int, default=1024, help="points per cloud fed to VRNet")
-    p.add_argument("--icp-points", type=int, default=50_000, help="about this many points per cloud for ICP")
-    p.add_argument("--voxel-size", type=float, default=None, help="ICP voxel edge (overrides --icp-points)")
-    p.add_argument("--max-distance", type=float, default=None, help="ICP inlier reach (default: 3 voxels)")
-    p.add_argument("--icp-iterations", type=int, default=50, help="0: no ICP")
+    initial.add_argument("--checkpoint", default=None,
+                         help="shipped model name or best.pt of `vrnet train` for the initial estimate")
+    initial.add_argument("--fpfh", action="store_true",
+                         help="initial estimate from FPFH features + RANSAC (no checkpoint needed), for scans far apart")
+    p.add_argument("--fpfh-points", type=_positive_int, default=5000,
+                   help="with --fpfh: about this many points per scan for the features")
+    p.add_argument("--network-points", type=_positive_int, default=1024, help="points per cloud fed to VRNet")
+    p.add_argument("--icp-points", type=_positive_int, default=50_000,
+                   help="about this many points per cloud for ICP")
+    p.add_argument("--voxel-size", type=_positive_float, default=None,
+                   help="ICP voxel edge, in the scans' unit (default: from --icp-points)")
+    p.add_argument("--max-distance", type=_positive_float, default=None,
+                   help="ICP inlier reach, in the scans' unit (default: 3 voxels)")
+    p.add_argument("--icp-iterations", type=_nonnegative_int, default=50, help="0: no ICP")
     p.add_argument("--gt", default=None, help="ground-truth 4x4 transform file: report the errors")
-    p.add_argument("--json", default=None, help="write the result here")
-    p.add_argument("--out", default=None, help="write the moved source as a PLY here")
-    p.add_argument("--plot", default=None, help="write top/side views (PNG) here")
+    p.add_argument("--json", type=_writable_path, default=None, help="write the result here")
+    p.add_argument("--out", type=_writable_path, default=None, help="write the moved source as a PLY here")
+    p.add_argument("--plot", type=_writable_path, default=None, help="write top/side views (PNG) here")
     p.add_argument("--backend", choices=("ext", "torch"), default="ext")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", type=_device, default="cpu")
     p.add_argument("--seed", type=int, default=0)
 
 
@@ -183,7 +243,8 @@ def _run_register(args) -> int:
     src, tgt = read_points(args.source), read_points(args.target)
     truth = read_transform(args.gt) if args.gt else None
     result = register(src, tgt, model, args.network_points, args.icp_points, args.voxel_size, args.max_distance,
-                      args.icp_iterations, args.seed, args.device, args.backend, args.fpfh)
+                      args.icp_iterations, args.seed, args.device, args.backend,
+                      args.fpfh_points if args.fpfh else None)
     record = result.to_dict()
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     record.update(source=str(args.source), target=str(args.target), checkpoint=args.checkpoint, peak_rss_mb=peak_mb)
@@ -275,6 +336,14 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as exc:
         print(f"vrnet {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except MemoryError:
+        print(f"vrnet {args.command}: error: out of memory (use fewer points: --icp-points, --network-points, "
+              f"--batch-size)", file=sys.stderr)
+        return 1
+    except RuntimeError as exc:
+        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"vrnet {args.command}: error: {first_line}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

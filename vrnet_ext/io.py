@@ -9,6 +9,7 @@ missing or truncated file, a header that does not parse, no x/y/z, NaN/Inf coord
 """
 from __future__ import annotations
 
+import io
 import os
 import re
 from pathlib import Path
@@ -34,18 +35,35 @@ def _fail(path: Path, message: str) -> PointCloudError:
     return PointCloudError(f"{path}: {message}")
 
 
-def _read_header(path: Path, data: bytes, terminator: bytes, max_bytes: int = 1 << 16) -> tuple[list[str], int]:
-    """Header lines up to and including the terminator line, and the offset of the body."""
-    end = data.find(terminator, 0, max_bytes)
-    if end < 0:
-        raise _fail(path, f"no {terminator.decode().strip()!r} line in the first {max_bytes} bytes: not a valid header")
-    body = data.find(b"\n", end)
-    body = len(data) if body < 0 else body + 1
+def _read_header(path: Path, data: bytes, terminator: str, max_bytes: int = 1 << 16) -> tuple[list[str], int]:
+    """Header lines up to and including the first line whose first word is ``terminator`` (so a
+    comment that mentions it does not end the header), and the offset of the body."""
+    offset = 0
+    lines = []
+    while offset < min(len(data), max_bytes):
+        end = data.find(b"\n", offset)
+        end = len(data) if end < 0 else end + 1
+        try:
+            line = data[offset:end].decode("ascii").strip()
+        except UnicodeDecodeError:
+            raise _fail(path, "the header is not ASCII text") from None
+        offset = end
+        if line:
+            lines.append(line)
+            if line.split()[0] == terminator:
+                return lines, offset
+    raise _fail(path, f"no {terminator!r} line in the first {max_bytes} bytes: not a valid header")
+
+
+def _count(path: Path, text: str, what: str) -> int:
+    """A non-negative element / point count from a header."""
     try:
-        text = data[:body].decode("ascii")
-    except UnicodeDecodeError:
-        raise _fail(path, "the header is not ASCII text") from None
-    return [line.strip() for line in text.splitlines() if line.strip()], body
+        value = int(text)
+    except ValueError:
+        raise _fail(path, f"the {what} count {text!r} is not an integer") from None
+    if value < 0:
+        raise _fail(path, f"the {what} count is negative ({value})")
+    return value
 
 
 def _parse_ply_vertex(path: Path, header: list[str]) -> tuple[str, int, list[tuple[str, str]], int]:
@@ -58,12 +76,11 @@ def _parse_ply_vertex(path: Path, header: list[str]) -> tuple[str, int, list[tup
         if words[0] == "format" and len(words) >= 2:
             fmt = words[1]
         elif words[0] == "element" and len(words) == 3:
-            try:
-                current = (words[1], int(words[2]), [])
-            except ValueError:
-                raise _fail(path, f"bad element line {line!r}") from None
+            current = (words[1], _count(path, words[2], f"element {words[1]!r}"), [])
             elements.append(current)
         elif words[0] == "property" and current is not None:
+            if len(words) < 3:
+                raise _fail(path, f"bad property line {line!r}")
             if words[1] == "list":
                 current[2].append((words[-1], "list"))
             elif len(words) == 3 and words[1] in _PLY_TYPES:
@@ -86,22 +103,17 @@ def _parse_ply_vertex(path: Path, header: list[str]) -> tuple[str, int, list[tup
 
 
 def _read_ply(path: Path, data: bytes) -> np.ndarray:
-    header, body = _read_header(path, data, b"end_header")
+    header, body = _read_header(path, data, "end_header")
     fmt, count, props, skip = _parse_ply_vertex(path, header)
     names = [name for name, _ in props]
     if not {"x", "y", "z"} <= set(names):
         raise _fail(path, f"the vertex element needs x, y and z properties, has {names}")
     if fmt == "ascii":
-        lines = data[body:].decode("ascii", errors="replace").splitlines()[skip:skip + count]
-        if len(lines) < count:
-            raise _fail(path, f"truncated: header promises {count} vertices, found {len(lines)} lines")
-        try:
-            table = np.array([line.split()[:len(props)] for line in lines], dtype=np.float64)
-        except ValueError:
-            raise _fail(path, "vertex lines must hold one number per property") from None
-        if table.ndim != 2 or table.shape[1] != len(props):
-            raise _fail(path, f"vertex lines must hold {len(props)} numbers")
-        return table[:, [names.index(a) for a in "xyz"]]
+        columns = [names.index(a) for a in "xyz"]
+        table = _text_rows(path, data[body:], count, skip, columns, f"vertex lines with {len(props)} numbers")
+        if table.shape[0] < count:
+            raise _fail(path, f"truncated: header promises {count} vertices, found {table.shape[0]} lines")
+        return table
     order = "<" if fmt == "binary_little_endian" else ">"
     dtype = np.dtype([(name, order + t) for name, t in props])
     needed = body + skip + count * dtype.itemsize
@@ -111,8 +123,21 @@ def _read_ply(path: Path, data: bytes) -> np.ndarray:
     return np.stack([vertices[a] for a in "xyz"], axis=1)
 
 
+def _text_rows(path: Path, body: bytes, count: int, skip: int, columns: list[int], what: str) -> np.ndarray:
+    """``count`` rows (after ``skip`` lines) of whitespace-separated numbers -> (rows, len(columns))
+    float64, parsed by numpy's streaming reader: memory of the result only, not of Python strings."""
+    if count == 0:
+        return np.empty((0, len(columns)))
+    try:
+        table = np.loadtxt(io.BytesIO(body), dtype=np.float64, skiprows=skip, max_rows=count, usecols=columns,
+                           ndmin=2, encoding="latin-1")
+    except (ValueError, IndexError):
+        raise _fail(path, f"the data must be {what}") from None
+    return table
+
+
 def _read_pcd(path: Path, data: bytes) -> np.ndarray:
-    header, body = _read_header(path, data, b"DATA")
+    header, body = _read_header(path, data, "DATA")
     fields: dict[str, list[str]] = {}
     for line in header:
         if not line.startswith("#"):
@@ -123,8 +148,11 @@ def _read_pcd(path: Path, data: bytes) -> np.ndarray:
         sizes = [int(s) for s in fields["SIZE"]]
         types = fields["TYPE"]
         counts = [int(c) for c in fields.get("COUNT", ["1"] * len(names))]
-        points = int(fields["POINTS"][0]) if "POINTS" in fields else int(fields["WIDTH"][0]) * int(fields["HEIGHT"][0])
         mode = fields["DATA"][0].lower()
+        if "POINTS" in fields:
+            points = _count(path, fields["POINTS"][0], "POINTS")
+        else:
+            points = _count(path, fields["WIDTH"][0], "WIDTH") * _count(path, fields["HEIGHT"][0], "HEIGHT")
     except (KeyError, IndexError, ValueError) as exc:
         raise _fail(path, f"PCD header misses or mangles {exc}: needs FIELDS, SIZE, TYPE, POINTS and DATA") from None
     if not {"x", "y", "z"} <= set(names):
@@ -132,16 +160,12 @@ def _read_pcd(path: Path, data: bytes) -> np.ndarray:
     if not len(names) == len(sizes) == len(types) == len(counts):
         raise _fail(path, "PCD FIELDS, SIZE, TYPE and COUNT must have one entry per field")
     if mode == "ascii":
-        rows = data[body:].decode("ascii", errors="replace").split("\n")
-        rows = [r for r in rows if r.strip()][:points]
-        if len(rows) < points:
-            raise _fail(path, f"truncated: header promises {points} points, found {len(rows)} rows")
-        try:
-            table = np.array([r.split() for r in rows], dtype=np.float64)
-        except ValueError:
-            raise _fail(path, "PCD ascii rows must hold one number per field value") from None
-        columns = np.cumsum([0] + counts)
-        return table[:, [columns[names.index(a)] for a in "xyz"]]
+        offsets = np.cumsum([0] + counts)
+        columns = [int(offsets[names.index(a)]) for a in "xyz"]
+        table = _text_rows(path, data[body:], points, 0, columns, "PCD ascii rows with one number per field value")
+        if table.shape[0] < points:
+            raise _fail(path, f"truncated: header promises {points} points, found {table.shape[0]} rows")
+        return table
     if mode == "binary":
         try:
             dtype = np.dtype([(name, "<" + _PCD_TYPES[(t.upper(), s)], (c,) if c > 1 else ())
@@ -167,13 +191,16 @@ def _read_text(path: Path) -> np.ndarray:
 
 
 def _read_npy(path: Path) -> np.ndarray:
+    # Memory-mapped: the header's shape is checked against the file's size before anything is read,
+    # so a header claiming 10^10 rows fails at once instead of allocating them.
     try:
-        array = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise _fail(path, f"not a readable .npy array: {exc}") from None
-    if array.ndim != 2 or array.shape[1] < 3 or not np.issubdtype(array.dtype, np.number):
-        raise _fail(path, f"expected a numeric (N, >=3) array, got {array.dtype} {array.shape}")
-    return array[:, :3]
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise _fail(path, f"not a readable .npy array ({type(exc).__name__}: {exc})") from None
+    real = np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)
+    if array.ndim != 2 or array.shape[1] < 3 or not real:
+        raise _fail(path, f"expected a real-valued (N, >=3) integer or float array, got {array.dtype} {array.shape}")
+    return np.array(array[:, :3])
 
 
 def _read_kitti(path: Path, data: bytes) -> np.ndarray:
@@ -231,8 +258,14 @@ def read_transform(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise PointCloudError(f"{path}: no such file")
+    if path.stat().st_size > 1 << 16:
+        raise _fail(path, "too large for a 4x4 transform (16 numbers as text)")
+    try:
+        text = path.read_text(encoding="ascii")
+    except UnicodeDecodeError:
+        raise _fail(path, "a 4x4 transform must be a text file of 16 numbers (this one is not ASCII text)") from None
     numbers = [float(v) for v in re.findall(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?",
-                                             "\n".join(l for l in path.read_text().splitlines() if not l.lstrip().startswith("#")))]
+                                             "\n".join(l for l in text.splitlines() if not l.lstrip().startswith("#")))]
     if len(numbers) != 16:
         raise _fail(path, f"a 4x4 transform needs 16 numbers, found {len(numbers)}")
     T = np.array(numbers).reshape(4, 4)

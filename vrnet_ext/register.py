@@ -61,21 +61,38 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Mean of the points in each occupied voxel of edge ``voxel_size`` -> (V, 3)."""
     if voxel_size <= 0:
         raise ValueError(f"voxel_size must be positive, got {voxel_size}")
-    cells = np.floor((points - points.min(0)) / voxel_size).astype(np.int64)
-    sizes = cells.max(0) + 1
-    if float(np.prod(sizes.astype(np.float64))) >= 2.0 ** 62:
+    if not np.isfinite(voxel_size):
+        raise ValueError(f"voxel_size must be finite, got {voxel_size}")
+    cells_float = np.floor((points - points.min(0)) / voxel_size)
+    if float(cells_float.max(initial=0.0)) >= 2.0 ** 62:
         raise ValueError(f"voxel_size {voxel_size:g} is too small for a cloud of extent "
-                         f"{np.ptp(points, axis=0).tolist()} (more than 2^62 voxels)")
-    keys = (cells[:, 0] * sizes[1] + cells[:, 1]) * sizes[2] + cells[:, 2]  # row-major voxel number
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+                         f"{np.ptp(points, axis=0).tolist()} (more than 2^62 voxels along an axis)")
+    cells = cells_float.astype(np.int64)
+    sizes = cells.max(0) + 1
+    if float(np.prod(sizes.astype(np.float64))) < 2.0 ** 62:
+        keys = (cells[:, 0] * sizes[1] + cells[:, 1]) * sizes[2] + cells[:, 2]  # row-major voxel number
+        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    else:  # a far-flung cloud (stray points km away): number the occupied voxels row by row instead
+        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
     sums = np.stack([np.bincount(inverse, weights=points[:, axis], minlength=len(counts)) for axis in range(3)], 1)
     return (sums / counts[:, None]).astype(points.dtype)
 
 
+STRAY_POINTS = 2  # extreme points per axis end that voxel_size_for ignores
+
+
 def voxel_size_for(points: np.ndarray, target_points: int) -> float:
-    """A voxel edge that leaves roughly ``target_points`` of a scan (surface scaling: V ~ 1/size^2)."""
-    extent = float(np.linalg.norm(points.max(0) - points.min(0)))
+    """A voxel edge that leaves roughly ``target_points`` of a scan (surface scaling: V ~ 1/size^2).
+
+    The search starts from a thousandth of the diagonal of the scan's box without its two most extreme
+    points at each end of each axis, so one or two stray points far away (a reflection, a bad range
+    reading) do not make the voxels coarse."""
+    if target_points < 1:
+        raise ValueError(f"target_points must be >= 1, got {target_points}")
+    trim = min(STRAY_POINTS, (len(points) - 1) // 2)
+    ordered = np.sort(points, axis=0)
+    extent = float(np.linalg.norm(ordered[len(points) - 1 - trim] - ordered[trim])) or 1.0
     size = extent / 1000.0
     for _ in range(30):
         count = len(voxel_downsample(points, size))
@@ -233,6 +250,12 @@ def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, netwo
         raise ValueError("give one initial estimate: a VRNet model or fpfh_points, not both")
     if fpfh_points is not None and fpfh_points < 3:
         raise ValueError(f"fpfh_points must be at least 3, got {fpfh_points}")
+    for name, value in (("network_points", network_points), ("icp_points", icp_points)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    for name, value in (("voxel_size", voxel_size), ("max_distance", max_distance)):
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be a finite number > 0 (or None for the default), got {value!r}")
     device = torch.device(device)
     seconds, start = {}, time.perf_counter()
     initial = np.eye(4)
@@ -245,13 +268,14 @@ def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, netwo
     if icp_iterations <= 0:
         return RegistrationResult(initial, initial, 0, float("nan"), float("nan"), seconds, points)
     start = time.perf_counter()
-    voxel = voxel_size or voxel_size_for(tgt, icp_points)
+    voxel = voxel_size if voxel_size is not None else voxel_size_for(tgt, icp_points)
     src_icp, tgt_icp = voxel_downsample(src, voxel), voxel_downsample(tgt, voxel)
     seconds["downsample"] = time.perf_counter() - start
     points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))
     start = time.perf_counter()
     try:
-        T, iterations, fitness, rmse = icp(src_icp, tgt_icp, initial, max_distance or 3.0 * voxel, icp_iterations,
+        reach = max_distance if max_distance is not None else 3.0 * voxel
+        T, iterations, fitness, rmse = icp(src_icp, tgt_icp, initial, reach, icp_iterations,
                                            device=device, backend=backend)
     except IcpFailure as failure:
         return RegistrationResult(initial, initial, 0, 0.0, float("nan"), seconds, points,
