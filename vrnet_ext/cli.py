@@ -80,7 +80,7 @@ DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNE
 
 
 def _train_parser(sub) -> None:
-    from vrnet_ext.train import PRECISIONS, PRESETS, TrainConfig
+    from vrnet_ext.train import FIELD_HELP, PRECISIONS, PRESETS, TrainConfig, preset_values
 
     p = sub.add_parser("train", help="two-stage training on ModelNet40 (DDP under torchrun)",
                        description="Two-stage VRNet training. Start from a preset; any flag overrides it. "
@@ -93,25 +93,28 @@ def _train_parser(sub) -> None:
             continue
         flag = "--" + f.name.replace("_", "-")
         kind = hints[f.name]
+        values = preset_values(f.name)
+        shown = {str(v) for v in values.values()}
+        default = (f"default: {shown.pop()}" if len(shown) == 1
+                   else "default: " + ", ".join(f"{k} {v}" for k, v in values.items()))
+        description = f"{FIELD_HELP.get(f.name, f.name)} ({default})"
         if f.name in ("classes", "lr_milestones"):
-            p.add_argument(flag, type=int, nargs="+", default=None, help=f"{f.name} (space-separated ints)")
+            p.add_argument(flag, type=int, nargs="+", default=None, help=description)
         elif f.name == "setting":
-            p.add_argument(flag, choices=SETTINGS, default=None, help="CO | PV | RS | PV+RS")
+            p.add_argument(flag, choices=SETTINGS, default=None, help=description)
         elif f.name == "split":
-            p.add_argument(flag, choices=("UPC", "UC", "ND"), default=None, help="UPC | UC | ND")
+            p.add_argument(flag, choices=("UPC", "UC", "ND"), default=None, help=description)
         elif f.name == "data_dir":
             p.add_argument(flag, default=None, help=DATA_DIR_HELP)
         elif f.name == "precision":
-            p.add_argument(flag, choices=PRECISIONS, default=None,
-                           help="bf16: forward and loss under bfloat16 autocast (ops, matching and Procrustes stay "
-                                "float32); fp32: everything in float32 (default: bf16)")
+            p.add_argument(flag, choices=PRECISIONS, default=None, help=description)
         elif f.name == "backend":
-            p.add_argument(flag, choices=("ext", "torch"), default=None, help="compiled ops or pure PyTorch")
+            p.add_argument(flag, choices=("ext", "torch"), default=None, help=description)
         elif kind is bool:
-            p.add_argument(flag, type=_parse_bool, default=None, help=f"{f.name}: 1/0 (preset default)")
+            p.add_argument(flag, type=_parse_bool, default=None, help=description)
         else:
             base = int if "int" in str(kind) else float if "float" in str(kind) else str
-            p.add_argument(flag, type=base, default=None, help=f"{f.name} (preset default)")
+            p.add_argument(flag, type=base, default=None, help=description)
     p.add_argument("--emb-dims", type=int, default=None, help="model embedding size c")
     p.add_argument("--k", type=int, default=None, help="DGCNN neighbours")
     p.add_argument("--iterations", type=int, default=None, help="ICP-like passes at evaluation")
@@ -138,9 +141,17 @@ def build_train_config(args):
 def _run_train(args) -> int:
     from vrnet_ext.train import train
 
-    record = train(build_train_config(args))
+    cfg = build_train_config(args)
+    record = train(cfg)
+    out_dir = Path(cfg.out_dir)
+    if record.get("stopped"):
+        return 0
     if record:
-        print(json.dumps({k: v for k, v in record.items() if k.startswith(("val_RMSE", "val_MAE", "train_loss", "step"))}, indent=1))
+        summary = ", ".join(f"{k} {record[k]:.4g}" for k in ("val_RMSE(R)", "val_MAE(R)", "val_RMSE(t)") if k in record)
+        print(f"last epoch (stage {record['stage']}, epoch {record['epoch']}): {summary}")
+    print(f"wrote {out_dir}/: last.pt (to --resume), best.pt (lowest validation RMSE(R)), best_stage1.pt, "
+          f"best_stage2.pt, metrics.jsonl, metrics.csv, curves.png")
+    print(f"evaluate with: vrnet eval --checkpoint {out_dir / 'best.pt'}")
     return 0
 
 

@@ -28,7 +28,7 @@ import os
 import signal
 import threading
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 
 import torch
@@ -61,6 +61,45 @@ PRESETS = {
 
 
 PRECISIONS = ("bf16", "fp32")
+
+# What each training option means (``vrnet train --help`` adds every preset's value).
+FIELD_HELP = {
+    "data_dir": "folder holding modelnet40_1024_{train,test}.h5",
+    "out_dir": "where checkpoints, metrics.jsonl/csv and curves.png go",
+    "setting": "CO | PV | RS | PV+RS",
+    "split": "UPC | UC | ND",
+    "batch_size": "pairs per step (per process under DDP)",
+    "stage1_epochs": "epochs of stage 1 (features, L0)",
+    "stage2_epochs": "epochs of stage 2 (frozen features, correction walk, hybrid loss)",
+    "lr_stage1": "Adam learning rate of stage 1",
+    "lr_stage2": "Adam learning rate of stage 2",
+    "weight_decay": "Adam weight decay",
+    "lr_milestones": "epochs (counted within each stage) at which the learning rate is multiplied by lr_gamma",
+    "lr_gamma": "learning-rate factor at each milestone",
+    "num_points": "points per shape before the crop",
+    "num_subsampled": "points per cloud after the PV / RS crop",
+    "classes": "keep only these ModelNet40 labels",
+    "max_train_items": "use at most this many training shapes (default: all)",
+    "max_val_items": "validate on at most this many held-out shapes (default: all)",
+    "val_fraction": "share of the training shapes held out for validation",
+    "seed": "seed of pairs, batch order and initialisation",
+    "device": "auto | cpu | cuda",
+    "backend": "ext (compiled ops) | torch (pure PyTorch)",
+    "num_workers": "DataLoader worker processes",
+    "loss_l4": "weight of L4 (amendment offset) in the hybrid loss",
+    "precision": "bf16: forward and loss under bfloat16 autocast (ops, matching and Procrustes stay float32) | fp32",
+    "checkpoint_minutes": "also write last.pt every this many minutes inside an epoch",
+    "resume": "continue from this last.pt (same options as the run that wrote it)",
+    "features_from": "start from the feature extractor of this checkpoint (e.g. stage 2 on another run's features)",
+    "flush_denormal": "flush denormal floats to zero (1/0; much faster soft matching on x86)",
+}
+
+
+def preset_values(name: str) -> dict[str, object]:
+    """Every preset's value of one training option (``preset -> value``)."""
+    default = {f.name: (f.default if f.default_factory is MISSING else f.default_factory())
+               for f in fields(TrainConfig)}[name]
+    return {preset: values.get(name, default) for preset, values in PRESETS.items()}
 
 
 @dataclass
