@@ -78,9 +78,17 @@ def test_dcp_ablation_and_iterations(device):
     out = dcp(src, tgt)
     assert dcp.walk is None and torch.equal(out.rcp, out.vcp) and not out.offset.any()
     iterative = small_model(iterations=3).eval()
+    single = small_model(iterations=1).eval()  # the same weights (same seed), one pass per call
     with torch.no_grad():
         out3 = iterative(src, tgt)
-    torch.testing.assert_close(torch.linalg.det(out3.rotation), torch.ones(2), rtol=0, atol=1e-5)
+        R, t, moved = torch.eye(3).expand(2, 3, 3), torch.zeros(2, 3), src
+        for _ in range(3):  # each pass estimates the motion still left between the moved source and tgt
+            step = single(moved, tgt)
+            R, t = step.rotation @ R, (step.rotation @ t.unsqueeze(-1)).squeeze(-1) + step.translation
+            moved = src @ R.mT + t.unsqueeze(1)
+    torch.testing.assert_close(out3.rotation, R, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out3.translation, t, rtol=1e-4, atol=1e-5)
+    assert (out3.rotation - single(src, tgt).rotation).abs().max() > 1e-3, "three passes must differ from one"
 
 
 @requires_ext
@@ -105,6 +113,14 @@ def test_bad_input():
         model(src, tgt[:1])
     with pytest.raises(ValueError, match="at least k"):
         model(src[:, :4], tgt)
+    poisoned = src.clone()
+    poisoned[1, 3, 0] = float("nan")
+    with pytest.raises(ValueError, match="src contains NaN"):
+        model(poisoned, tgt)
+    with pytest.raises(ValueError, match="tgt contains NaN"):
+        model(src, tgt.clone().fill_(float("inf")))
+    with pytest.raises(TypeError, match="src.*float64.*float32"):
+        model(src.double(), tgt.double())
     with pytest.raises(ValueError, match="walk_channels"):
         VRNetConfig(walk_channels=(8, 4))
 

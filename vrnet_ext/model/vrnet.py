@@ -12,7 +12,7 @@ from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
 from vrnet_ext.ops import kabsch
-from vrnet_ext.ops._checks import check_float, check_same, check_shape
+from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
 
 
 @dataclass
@@ -70,6 +70,12 @@ class VRNet(nn.Module):
         check_same({"src": src, "tgt": tgt})
         if src.shape[0] != tgt.shape[0]:
             raise ValueError(f"src and tgt batch sizes differ: {src.shape[0]} vs {tgt.shape[0]}")
+        weight_dtype = self.features.projection.weight.dtype
+        if src.dtype != weight_dtype:
+            raise TypeError(f"src has dtype {src.dtype} but the model's weights are {weight_dtype}: "
+                            f"pass src.to({weight_dtype}) or convert the model with model.to({src.dtype})")
+        check_finite(src, "src")
+        check_finite(tgt, "tgt")
         backend = backend or self.config.backend
         rotation = torch.eye(3, dtype=src.dtype, device=src.device).expand(src.shape[0], 3, 3)
         translation = src.new_zeros(src.shape[0], 3)
