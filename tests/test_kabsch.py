@@ -137,3 +137,22 @@ def test_bad_input(device, backend):
     poisoned[0, 0, 0] = float("inf")
     with pytest.raises(ValueError, match="NaN or Inf"):
         ops.kabsch(src, poisoned, backend=backend)
+
+
+def test_huge_weights_and_coordinates_keep_exact_results_and_gradients():
+    g = torch.Generator().manual_seed(2)
+    src = torch.randn(2, 10, 3, dtype=torch.float64, generator=g)
+    tgt = src.flip(1) + 0.1
+    R_unit, t_unit = ops.kabsch(src, tgt, torch.ones(2, 10, dtype=torch.float64))
+    R_huge, t_huge = ops.kabsch(src, tgt, torch.full((2, 10), 1e300, dtype=torch.float64))  # the sum overflows
+    torch.testing.assert_close(R_huge, R_unit)
+    torch.testing.assert_close(t_huge, t_unit)
+    # float32 at |x| ~ 1e20: the weight gradient's intermediates overflow float32 (regression)
+    x = (torch.randn(1, 8, 3, generator=g) * 1e20).requires_grad_()
+    y = torch.randn(1, 8, 3, generator=g) * 1e20
+    w = (torch.rand(1, 8, generator=g) + 0.1).requires_grad_()
+    ops.kabsch(x, y, w)[0].sum().backward()
+    w64 = w.detach().double().requires_grad_()
+    ops.kabsch(x.detach().double(), y.double(), w64)[0].sum().backward()
+    assert torch.isfinite(w.grad).all()
+    assert (w.grad.double() - w64.grad).norm() / w64.grad.norm() < 1e-4

@@ -33,8 +33,11 @@ inline void check_kabsch_backward_inputs(const at::Tensor& grad_R, const at::Ten
 
 // One problem: weight sum, weighted centroids, weighted covariance H = sum_i w_i/W (x_i - xc)(y_i - yc)^T,
 // and the solution R = V diag(1, 1, d) U^T of H = U S V^T.
+// Weights may be scaled by `wscale` before they are summed (the CPU kernel divides them by their
+// maximum, so weights of 1e300 do not overflow the sum): wsum is the sum of w_i / wscale, and the
+// normalised weight of point i is w_i / wscale / wsum whatever the scale.
 struct Procrustes {
-  double wsum = 0, src_c[3] = {0, 0, 0}, tgt_c[3] = {0, 0, 0};
+  double wscale = 1, wsum = 0, src_c[3] = {0, 0, 0}, tgt_c[3] = {0, 0, 0};
   double H[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, U[9], S[3], V[9], R[9], det_sign = 1;
 
   // Call once wsum, src_c, tgt_c (normalised) and H (normalised) are filled.
@@ -81,7 +84,7 @@ struct ProcrustesGrad {
       }
     }
     const double sigma[3] = {p.S[0], p.S[1], p.det_sign * p.S[2]};
-    const double eps = 1e-30 + 1e-9 * p.S[0];
+    const double eps = 1e-150 + 1e-9 * p.S[0];
     double G[9], Gt[9], Z[9], Y[9];
     for (int a = 0; a < 3; ++a)  // G = gR R^T
       for (int c = 0; c < 3; ++c) {
@@ -119,7 +122,7 @@ struct ProcrustesGrad {
   template <typename scalar_t>
   VRNET_HOST_DEVICE double point(const Procrustes& p, const scalar_t* x, const scalar_t* y, scalar_t w, scalar_t* gx,
                                  scalar_t* gy) const {
-    const double wi = w / p.wsum;
+    const double wi = w / p.wscale / p.wsum;
     double dx[3], dy[3], g_what = 0;
     for (int a = 0; a < 3; ++a) {
       dx[a] = x[a] - p.src_c[a];

@@ -6,6 +6,7 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <vector>
 
 #include "kabsch/kabsch.h"
 
@@ -16,18 +17,20 @@ namespace {
 template <typename scalar_t>
 Procrustes solve(const scalar_t* x, const scalar_t* y, const scalar_t* w, int64_t n) {
   Procrustes p;
-  for (int64_t i = 0; i < n; ++i) p.wsum += w[i];
+  p.wscale = 0;
+  for (int64_t i = 0; i < n; ++i) p.wscale = std::max(p.wscale, double(w[i]));
+  for (int64_t i = 0; i < n; ++i) p.wsum += w[i] / p.wscale;
   for (int64_t i = 0; i < n; ++i)
     for (int a = 0; a < 3; ++a) {
-      p.src_c[a] += w[i] * double(x[3 * i + a]);
-      p.tgt_c[a] += w[i] * double(y[3 * i + a]);
+      p.src_c[a] += w[i] / p.wscale * double(x[3 * i + a]);
+      p.tgt_c[a] += w[i] / p.wscale * double(y[3 * i + a]);
     }
   for (int a = 0; a < 3; ++a) {
     p.src_c[a] /= p.wsum;
     p.tgt_c[a] /= p.wsum;
   }
   for (int64_t i = 0; i < n; ++i) {
-    const double wi = w[i] / p.wsum;
+    const double wi = w[i] / p.wscale / p.wsum;
     for (int a = 0; a < 3; ++a)
       for (int c = 0; c < 3; ++c) p.H[3 * a + c] += wi * (x[3 * i + a] - p.src_c[a]) * (y[3 * i + c] - p.tgt_c[c]);
   }
@@ -86,13 +89,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> kabsch_backward_cpu(const at::Ten
         const scalar_t *x = xp + b * N * 3, *y = yp + b * N * 3, *w = wp + b * N;
         const Procrustes p = solve(x, y, w, N);
         const ProcrustesGrad grad(p, grp + 9 * b, gtp + 3 * b);
+        // The per-point terms stay in double until the end (in a float32 output buffer they
+        // overflow for coordinates ~1e20 and the weight gradient came out wrong).
+        std::vector<double> g_what(N);
         double weighted_mean = 0;
         for (int64_t i = 0; i < N; ++i) {
-          const double g_what = grad.point(p, x + 3 * i, y + 3 * i, w[i], gxp + (b * N + i) * 3, gyp + (b * N + i) * 3);
-          gwp[b * N + i] = static_cast<scalar_t>(g_what);
-          weighted_mean += w[i] / p.wsum * g_what;
+          g_what[i] = grad.point(p, x + 3 * i, y + 3 * i, w[i], gxp + (b * N + i) * 3, gyp + (b * N + i) * 3);
+          weighted_mean += w[i] / p.wscale / p.wsum * g_what[i];
         }
-        for (int64_t i = 0; i < N; ++i) gwp[b * N + i] = finish_weight_grad(gwp[b * N + i], weighted_mean, p.wsum);
+        const double total_weight = p.wscale * p.wsum;  // may overflow to inf: the gradient is then ~0
+        for (int64_t i = 0; i < N; ++i)
+          gwp[b * N + i] = static_cast<scalar_t>(finish_weight_grad(g_what[i], weighted_mean, total_weight));
       }
     });
   });

@@ -129,7 +129,9 @@ VRNET_HOST_DEVICE void svd3x3_backward_one(const scalar_t* gu, const scalar_t* g
       utgu[3 * i + j] = a;
       vtgv[3 * i + j] = c;
     }
-  const double eps = 1e-12 + 1e-9 * fabs(double(s[0]));
+  // Relative damping only (an absolute floor of 1e-12 spoilt the gradients of matrices whose
+  // singular values are all below ~1e-10); 1e-150 keeps eps^2 a normal double for a zero matrix.
+  const double eps = 1e-150 + 1e-9 * fabs(double(s[0]));
   double inner[9];
   for (int j = 0; j < 3; ++j)
     for (int k = 0; k < 3; ++k) {
