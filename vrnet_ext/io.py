@@ -195,7 +195,7 @@ def _read_npy(path: Path) -> np.ndarray:
     # so a header claiming 10^10 rows fails at once instead of allocating them.
     try:
         array = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
+    except Exception as exc:  # numpy's header parser raises many types (ValueError, SyntaxError, TokenError, ...)
         raise _fail(path, f"not a readable .npy array ({type(exc).__name__}: {exc})") from None
     real = np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)
     if array.ndim != 2 or array.shape[1] < 3 or not real:

@@ -1,0 +1,351 @@
+"""Property-based fuzz cases (hypothesis) for every op, the file readers and the checkpoint loader.
+
+Run by ``tests/test_fuzz.py``, one subprocess per target, so that a crash in compiled code reports
+as a failed test instead of killing the test session:
+
+    python tests/fuzz_cases.py TARGET EXAMPLES      # e.g. knn 1500
+
+Each op is compared with float64 brute force within the precision limits its docstring states
+(``PRECISION`` below mirrors them), on random shapes, dtypes, layouts (non-contiguous views),
+degenerate geometry (duplicate, collinear, coincident points), offsets and scales; malformed
+arguments must raise ``ValueError`` or ``TypeError`` naming the argument. Readers and the
+checkpoint loader get mutated files and must return a valid result or raise their own error type.
+"""
+from __future__ import annotations
+
+import io
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from vrnet_ext import ops
+
+EPS = {torch.float32: float(torch.finfo(torch.float32).eps), torch.float64: float(torch.finfo(torch.float64).eps)}
+
+
+def _settings(examples: int):
+    return settings(max_examples=examples, deadline=None, derandomize=True, database=None,
+                    suppress_health_check=list(HealthCheck))
+
+
+@st.composite
+def clouds(draw, max_batch=3, max_points=40, channels=None, min_points=1):
+    """(B, N, C) float tensors: offsets, scales, duplicates, collinear or coincident points, and
+    sometimes a non-contiguous view."""
+    dtype = draw(st.sampled_from([torch.float32, torch.float64]))
+    B = draw(st.integers(1, max_batch))
+    N = draw(st.integers(min_points, max_points))
+    C = draw(st.sampled_from(channels or [1, 2, 3, 4, 7, 33]))
+    seed = draw(st.integers(0, 2**31 - 1))
+    g = torch.Generator().manual_seed(seed)
+    points = torch.randn(B, N, C, generator=g, dtype=torch.float64)
+    shape = draw(st.sampled_from(["random", "duplicates", "collinear", "coincident", "grid"]))
+    if shape == "duplicates" and N > 1:
+        points[:, N // 2:] = points[:, : N - N // 2].clone()
+    elif shape == "collinear":
+        points = torch.linspace(-1, 1, N, dtype=torch.float64).view(1, N, 1) * torch.randn(B, 1, C, generator=g,
+                                                                                              dtype=torch.float64)
+    elif shape == "coincident":
+        points = points[:, :1].expand(B, N, C).clone()
+    elif shape == "grid":
+        points = torch.round(points * 2) / 2
+    scale = draw(st.sampled_from([1e-3, 1.0, 1e3]))
+    offset = draw(st.sampled_from([0.0, 1e2, -1e3] + ([1e5] if dtype == torch.float64 else [])))
+    points = (points * scale + offset).to(dtype)
+    if draw(st.booleans()):  # a non-contiguous view with the same values
+        points = points.transpose(1, 2).contiguous().transpose(1, 2)
+    return points
+
+
+def _brute_knn(query, ref, k, exclude_self):
+    d = ((query.double()[:, :, None] - ref.double()[:, None]) ** 2).sum(-1)
+    if exclude_self:
+        d = d + torch.diag_embed(torch.full(d.shape[:2], float("inf"), dtype=torch.float64))
+    return d.sort(dim=-1).values[..., :k]
+
+
+@st.composite
+def knn_case(draw):
+    query = draw(clouds())
+    same = draw(st.booleans())
+    ref = query if same else draw(clouds(channels=[query.shape[2]], max_batch=query.shape[0])).to(query.dtype)
+    if ref.shape[0] != query.shape[0]:
+        ref = ref[:1].expand(query.shape[0], -1, -1)
+    exclude_self = same and query.shape[1] > 1 and draw(st.booleans())
+    k = draw(st.integers(1, ref.shape[1] - int(exclude_self)))
+    return query, ref, k, exclude_self
+
+
+def check_knn(query, ref, k, exclude_self):
+    dist2, idx = ops.knn(query, ref, k, exclude_self=exclude_self)
+    assert dist2.shape == idx.shape == (query.shape[0], query.shape[1], k)
+    assert int(idx.min()) >= 0 and int(idx.max()) < ref.shape[1]
+    assert all(len(set(row.tolist())) == k for row in idx.reshape(-1, k))
+    if exclude_self:
+        assert not (idx == torch.arange(query.shape[1]).view(1, -1, 1)).any()
+    gathered = ref.double().gather(1, idx.reshape(idx.shape[0], -1, 1).expand(-1, -1, ref.shape[2]))
+    true_of_ours = ((query.double()[:, :, None] - gathered.reshape(*idx.shape, -1)) ** 2).sum(-1)
+    # documented limit: distances are exact sums of squared differences in the input dtype, so
+    # they (and the ranking) may differ from float64 by a few ulps of the squared extent
+    magnitude = (query.double() - ref.double().mean(dim=1, keepdim=True)).abs().amax() ** 2
+    magnitude = magnitude + (ref.double() - ref.double().mean(dim=1, keepdim=True)).abs().amax() ** 2
+    tolerance = 64 * query.shape[2] * EPS[query.dtype] * float(magnitude) + 1e-300
+    expected = _brute_knn(query, ref, k, exclude_self)
+    assert float((true_of_ours - expected).abs().max()) <= tolerance
+    assert float((dist2.double() - true_of_ours).abs().max()) <= tolerance
+    assert bool((dist2[..., 1:] >= dist2[..., :-1]).all())
+
+
+@st.composite
+def graph_case(draw):
+    values = draw(clouds(channels=[1, 2, 5, 16])).transpose(1, 2)  # (B, C, M)
+    B, _, M = values.shape
+    N = draw(st.integers(1, 30))
+    k = draw(st.integers(1, 8))
+    seed = draw(st.integers(0, 2**31 - 1))
+    idx = torch.randint(0, M, (B, N, k), generator=torch.Generator().manual_seed(seed))
+    return values, idx, draw(st.sampled_from(["max", "min", "sum", "mean"]))
+
+
+def check_gather_reduce(values, idx, reduce):
+    got = ops.gather_reduce(values, idx, reduce)
+    expected = ops.gather_reduce(values.double(), idx, reduce, backend="torch")
+    tolerance = 8 * idx.shape[2] * EPS[values.dtype] * float(values.double().abs().amax())
+    assert float((got.double() - expected).abs().max()) <= tolerance
+    if idx.shape[1] == values.shape[2]:
+        features = ops.edge_features(values, idx)
+        assert torch.equal(features, ops.edge_features(values, idx, backend="torch"))
+
+
+@st.composite
+def matrices(draw):
+    dtype = draw(st.sampled_from([torch.float32, torch.float64]))
+    B = draw(st.integers(1, 20))
+    seed = draw(st.integers(0, 2**31 - 1))
+    g = torch.Generator().manual_seed(seed)
+    A = torch.randn(B, 3, 3, generator=g, dtype=torch.float64)
+    kind = draw(st.sampled_from(["random", "rank1", "rank2", "zero", "repeated", "rotation"]))
+    if kind == "rank1":
+        A = torch.randn(B, 3, 1, generator=g, dtype=torch.float64) @ torch.randn(B, 1, 3, generator=g, dtype=torch.float64)
+    elif kind == "rank2":
+        A[:, 2] = A[:, 0] + A[:, 1]
+    elif kind == "zero":
+        A = torch.zeros_like(A)
+    elif kind == "repeated":
+        A = torch.diag_embed(torch.ones(B, 3, dtype=torch.float64) * 2.0)
+    elif kind == "rotation":
+        A = torch.linalg.qr(A).Q
+    return (A * draw(st.sampled_from([1e-8, 1.0, 1e8]))).to(dtype)
+
+
+def check_svd3x3(A):
+    U, S, V = ops.svd3x3(A)
+    scale = float(A.double().abs().amax()) + 1e-300
+    tolerance = 64 * EPS[A.dtype]
+    eye = torch.eye(3, dtype=torch.float64)
+    assert float((U.double().mT @ U.double() - eye).abs().max()) <= tolerance
+    assert float((V.double().mT @ V.double() - eye).abs().max()) <= tolerance
+    assert bool((S[:, :-1] >= S[:, 1:]).all()) and bool((S >= 0).all())
+    rebuilt = U.double() @ torch.diag_embed(S.double()) @ V.double().mT
+    assert float((rebuilt - A.double()).abs().max()) <= tolerance * scale
+
+
+@st.composite
+def kabsch_case(draw):
+    src = draw(clouds(channels=[3], min_points=3, max_points=30))
+    seed = draw(st.integers(0, 2**31 - 1))
+    g = torch.Generator().manual_seed(seed)
+    R = torch.linalg.qr(torch.randn(src.shape[0], 3, 3, generator=g, dtype=torch.float64)).Q
+    R = R * torch.linalg.det(R).sign().view(-1, 1, 1)
+    noise = draw(st.sampled_from([0.0, 0.01, 1.0]))
+    tgt = src.double() @ R.mT + torch.randn(src.shape[0], 1, 3, generator=g, dtype=torch.float64)
+    tgt = (tgt + noise * torch.randn(tgt.shape, generator=g, dtype=torch.float64)).to(src.dtype)
+    weights = None
+    if draw(st.booleans()):
+        weights = torch.rand(src.shape[:2], generator=g, dtype=torch.float64)
+        weights[:, 0] += 0.1  # never all zero
+        weights = (weights * draw(st.sampled_from([1e-30, 1.0, 1e30]))).to(src.dtype)
+    return src, tgt, weights
+
+
+def check_kabsch(src, tgt, weights):
+    R, t = ops.kabsch(src, tgt, weights)
+    eye = torch.eye(3, dtype=torch.float64)
+    assert float((R.double().mT @ R.double() - eye).abs().max()) <= 64 * EPS[src.dtype]
+    assert bool((torch.linalg.det(R.double()) > 0).all())
+    w = torch.ones(src.shape[:2], dtype=torch.float64) if weights is None else weights.double()
+    w = w / w.sum(dim=1, keepdim=True)
+
+    def cost(R_, t_):
+        return (w * ((src.double() @ R_.mT + t_.unsqueeze(1) - tgt.double()) ** 2).sum(-1)).sum(-1)
+
+    R_ref, t_ref = ops.kabsch(src.double(), tgt.double(), None if weights is None else weights.double(),
+                              backend="torch")
+    centred = src.double() - src.double().mean(dim=1, keepdim=True)
+    spread = float(centred.abs().amax() + tgt.double().abs().amax()) ** 2
+    # documented limit: the minimum cost is reached to ~1e3 ulps of the squared extent (degenerate
+    # inputs have many minimisers; any of them is right)
+    assert float((cost(R.double(), t.double()) - cost(R_ref, t_ref)).max()) <= 1e3 * EPS[src.dtype] * spread
+
+
+@st.composite
+def pdl_case(draw):
+    x = draw(clouds(channels=[3], min_points=2, max_points=40))
+    seed = draw(st.integers(0, 2**31 - 1))
+    y = x + torch.randn(x.shape, generator=torch.Generator().manual_seed(seed), dtype=x.dtype) * 0.1
+    return x, y
+
+
+def check_pairwise_distance_loss(x, y):
+    got = ops.pairwise_distance_loss(x, y)
+    expected = ops.pairwise_distance_loss(x.double(), y.double(), backend="torch")
+    scale = float(torch.cat([x, y], 1).double().std()) + 1e-300
+    assert float((got.double() - expected).abs().max()) <= 1e3 * EPS[x.dtype] * (scale + float(expected.abs().max()))
+
+
+MALFORMED = [
+    lambda: ops.knn(torch.randn(2, 5), torch.randn(2, 5, 3), 1),
+    lambda: ops.knn(torch.randn(2, 5, 3), torch.randn(3, 5, 3), 1),
+    lambda: ops.knn(torch.randn(2, 5, 3), torch.randn(2, 5, 3), 9),
+    lambda: ops.knn(torch.randint(0, 3, (2, 5, 3)), torch.randn(2, 5, 3), 1),
+    lambda: ops.knn(torch.full((1, 5, 3), float("nan")), torch.randn(1, 5, 3), 1),
+    lambda: ops.edge_features(torch.randn(2, 3, 5), torch.full((2, 5, 2), 7)),
+    lambda: ops.edge_features(torch.randn(2, 3, 5), torch.zeros(2, 5, 2)),
+    lambda: ops.gather_reduce(torch.randn(2, 3, 5), torch.zeros(2, 4, 2, dtype=torch.long), "median"),
+    lambda: ops.gather_reduce(torch.randn(2, 3, 0), torch.zeros(2, 4, 2, dtype=torch.long)),
+    lambda: ops.svd3x3(torch.randn(2, 3, 4)),
+    lambda: ops.svd3x3(torch.full((2, 3, 3), float("inf"))),
+    lambda: ops.kabsch(torch.randn(2, 2, 3), torch.randn(2, 2, 3)),
+    lambda: ops.kabsch(torch.randn(2, 5, 3), torch.randn(2, 5, 3), -torch.ones(2, 5)),
+    lambda: ops.kabsch(torch.randn(2, 5, 3), torch.randn(2, 5, 3), torch.zeros(2, 5)),
+    lambda: ops.pairwise_distance_loss(torch.randn(2, 5, 3), torch.randn(2, 4, 3)),
+    lambda: ops.pairwise_distance_loss(torch.randn(2, 1, 3), torch.randn(2, 1, 3)),
+]
+
+
+def run_malformed(examples: int) -> None:
+    @_settings(examples)
+    @given(st.integers(0, len(MALFORMED) - 1), st.sampled_from(["ext", "torch"]))
+    def malformed(case, backend):
+        try:
+            MALFORMED[case]()
+        except (ValueError, TypeError):
+            return
+        raise AssertionError(f"malformed call {case} was accepted")
+
+    malformed()
+
+
+def _sample_files(folder: Path) -> list[Path]:
+    from vrnet_ext.io import write_ply
+
+    points = np.random.default_rng(0).normal(size=(20, 3)).astype(np.float32)
+    write_ply(folder / "a.ply", points)
+    (folder / "b.ply").write_text("ply\nformat ascii 1.0\nelement vertex 20\nproperty float x\nproperty float y\n"
+                                  "property float z\nend_header\n" + "".join(f"{x} {y} {z}\n" for x, y, z in points))
+    (folder / "c.pcd").write_text("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 20\nHEIGHT 1\n"
+                                  "POINTS 20\nDATA ascii\n" + "".join(f"{x} {y} {z}\n" for x, y, z in points))
+    np.save(folder / "d.npy", points)
+    (folder / "e.xyz").write_text("".join(f"{x} {y} {z}\n" for x, y, z in points))
+    np.concatenate([points, np.ones((20, 1), np.float32)], 1).tofile(folder / "f.bin")
+    return [folder / n for n in ("a.ply", "b.ply", "c.pcd", "d.npy", "e.xyz", "f.bin")]
+
+
+def run_readers(examples: int) -> None:
+    from vrnet_ext.io import PointCloudError, read_points
+
+    folder = Path(tempfile.mkdtemp())
+    originals = [(path, path.read_bytes()) for path in _sample_files(folder)]
+
+    @_settings(examples)
+    @given(st.integers(0, len(originals) - 1), st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)),
+                                                        max_size=6),
+           st.one_of(st.none(), st.integers(0, 10**6)), st.sampled_from([b"", b"-", b"9999999999", b"nan", b"\xff"]))
+    def mutated(which, flips, cut, insert):
+        path, data = originals[which]
+        data = bytearray(data)
+        for position, value in flips:
+            if data:
+                data[position % len(data)] = value
+        if insert and data:
+            spot = flips[0][0] % len(data) if flips else 0
+            data[spot:spot] = insert
+        if cut is not None and data:
+            data = data[: cut % (len(data) + 1)]
+        target = folder / f"m{path.suffix}"
+        target.write_bytes(bytes(data))
+        try:
+            points = read_points(target)
+        except PointCloudError as error:
+            assert str(target) in str(error)
+            return
+        assert points.dtype == np.float32 and points.ndim == 2 and points.shape[1] == 3
+        assert points.shape[0] >= 3 and np.isfinite(points).all()
+
+    mutated()
+
+
+def run_checkpoints(examples: int) -> None:
+    from vrnet_ext import VRNet, VRNetConfig
+    from vrnet_ext.checkpoints import CheckpointError, load_model
+
+    config = VRNetConfig.small(k=4, dgcnn_channels=(8, 8), emb_dims=16, heads=2, ff_dims=16, walk_channels=(8, 3))
+    buffer = io.BytesIO()
+    torch.save({"model": VRNet(config).state_dict(), "config": {"model": config.to_dict()}}, buffer)
+    original = buffer.getvalue()
+    folder = Path(tempfile.mkdtemp())
+
+    @_settings(examples)
+    @given(st.lists(st.tuples(st.integers(0, 10**7), st.integers(0, 255)), min_size=1, max_size=8),
+           st.one_of(st.none(), st.integers(0, 10**7)))
+    def mutated(flips, cut):
+        data = bytearray(original)
+        for position, value in flips:
+            data[position % len(data)] = value
+        if cut is not None:
+            data = data[: cut % (len(data) + 1)]
+        path = folder / "m.pt"
+        path.write_bytes(bytes(data))
+        try:
+            model, _ = load_model(path)
+        except CheckpointError as error:
+            assert "weights_only=False" not in str(error)
+            return
+        assert isinstance(model, VRNet)
+
+    mutated()
+
+
+OPS = {
+    "knn": (knn_case(), check_knn),
+    "gather_reduce": (graph_case(), check_gather_reduce),
+    "svd3x3": (matrices().map(lambda A: (A,)), check_svd3x3),
+    "kabsch": (kabsch_case(), check_kabsch),
+    "pairwise_distance_loss": (pdl_case(), check_pairwise_distance_loss),
+}
+TARGETS = sorted(OPS) + ["malformed", "readers", "checkpoints"]
+
+
+def run(target: str, examples: int) -> None:
+    torch.set_num_threads(1)
+    if target in OPS:
+        strategy, check = OPS[target]
+
+        @_settings(examples)
+        @given(strategy)
+        def property_holds(case):
+            check(*case)
+
+        property_holds()
+    else:
+        {"malformed": run_malformed, "readers": run_readers, "checkpoints": run_checkpoints}[target](examples)
+    print(f"fuzz {target}: {examples} examples passed")
+
+
+if __name__ == "__main__":
+    run(sys.argv[1], int(sys.argv[2]))

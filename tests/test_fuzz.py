@@ -1,0 +1,35 @@
+"""The fuzz suite (``tests/fuzz_cases.py``): every target in its own subprocess, so that a crash in
+compiled code fails one test with the child's exit status instead of killing the session, and a
+hang fails at the timeout.
+
+CI runs a small, derandomised budget. A deep local pass: ``VRNET_FUZZ_EXAMPLES=1500 python -m pytest
+tests/test_fuzz.py`` (or ``python tests/fuzz_cases.py knn 1500`` for one target).
+"""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import requires_ext
+
+pytest.importorskip("hypothesis", reason="the fuzz suite needs hypothesis (pip install -e .[test])")
+sys.path.insert(0, str(Path(__file__).parent))
+from fuzz_cases import TARGETS  # noqa: E402
+
+EXAMPLES = int(os.environ.get("VRNET_FUZZ_EXAMPLES", "40"))
+
+
+@requires_ext
+@pytest.mark.parametrize("target", TARGETS)
+def test_fuzz(target):
+    timeout = 120 + 2 * EXAMPLES
+    try:
+        result = subprocess.run([sys.executable, str(Path(__file__).parent / "fuzz_cases.py"), target, str(EXAMPLES)],
+                                capture_output=True, text=True, timeout=timeout,
+                                env=dict(os.environ, OMP_NUM_THREADS="1"))
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"fuzz {target}: no result within {timeout} s (a hang?)")
+    assert result.returncode == 0, (f"fuzz {target} failed (exit status {result.returncode}; negative = killed "
+                                    f"by that signal):\n{result.stdout[-3000:]}\n{result.stderr[-6000:]}")
