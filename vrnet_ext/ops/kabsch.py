@@ -68,6 +68,11 @@ def kabsch(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None = 
 
     Returns:
         R (B, 3, 3) proper rotations and t (B, 3) with ``R @ src_i + t ~ tgt_i``.
+
+    Precision (fuzz suite, against float64): R is orthonormal to ~64 ulps with det +1, and the
+    weighted cost it reaches is the minimum to within ~1e3 ulps of the squared extent of the
+    clouds; degenerate inputs (collinear, coincident) return one of their minimisers. Weights are
+    scale-free (any positive scale up to the dtype's maximum gives the same result).
     """
     src, tgt, weights = (promote_low_precision(t) for t in (src, tgt, weights))
     _validate(src, tgt, weights)

@@ -68,6 +68,12 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool = Fal
         dist2 (B, N, k): squared Euclidean distances, ascending, ties by lower index;
         differentiable with respect to query and ref.
         idx (B, N, k) int64 indices into ref.
+
+    Precision (checked by the fuzz suite against float64 brute force): ``dist2`` is the sum of
+    squared coordinate differences computed in the input dtype, so distances and ranking agree
+    with float64 up to a few ulps of the squared extent of the clouds (around their mean), at any
+    offset from the origin. Distances beyond the dtype's range come out as +inf (those neighbours
+    are then ordered by index).
     """
     query, ref = promote_low_precision(query), promote_low_precision(ref)
     _validate(query, ref, k, exclude_self)

@@ -32,6 +32,8 @@ def pairwise_distance_loss(x: torch.Tensor, y: torch.Tensor, backend: str = "ext
 
     Returns:
         (B,) loss per batch element.
+
+    Precision (fuzz suite): equal to a float64 evaluation to ~1e3 ulps of the clouds' spread.
     """
     x, y = promote_low_precision(x), promote_low_precision(y)
     check_float(x, "x")
