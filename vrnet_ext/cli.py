@@ -149,8 +149,11 @@ def _run_train(args) -> int:
     if record:
         summary = ", ".join(f"{k} {record[k]:.4g}" for k in ("val_RMSE(R)", "val_MAE(R)", "val_RMSE(t)") if k in record)
         print(f"last epoch (stage {record['stage']}, epoch {record['epoch']}): {summary}")
-    print(f"wrote {out_dir}/: last.pt (to --resume), best.pt (lowest validation RMSE(R)), best_stage1.pt, "
-          f"best_stage2.pt, metrics.jsonl, metrics.csv, curves.png")
+    roles = {"last.pt": "last.pt (to --resume)", "best.pt": "best.pt (lowest validation RMSE(R))"}
+    written = [roles.get(name, name) for name in ("last.pt", "best.pt", "best_stage1.pt", "best_stage2.pt",
+                                                  "metrics.jsonl", "metrics.csv", "curves.png")
+               if (out_dir / name).exists()]
+    print(f"wrote {out_dir}/: {', '.join(written)}")
     print(f"evaluate with: vrnet eval --checkpoint {out_dir / 'best.pt'}")
     return 0
 
@@ -159,12 +162,14 @@ def _eval_parser(sub) -> None:
     p = sub.add_parser("eval", help="evaluate a checkpoint on the ModelNet40 test pairs",
                        description="Prints the paper's table (RMSE/MAE of Euler angles and translation) "
                                    "plus isotropic errors, recall, Chamfer distances and match ratios; writes JSON.")
-    p.add_argument("--checkpoint", required=True, help="best.pt / last.pt written by `vrnet train`")
+    p.add_argument("--checkpoint", required=True,
+                   help="a shipped model name (e.g. vrnet-pv-upc) or best.pt / last.pt written by `vrnet train`")
     p.add_argument("--setting", choices=SETTINGS, default=None, help="default: the checkpoint's")
     p.add_argument("--split", choices=("UPC", "UC", "ND"), default=None, help="default: the checkpoint's")
     p.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     p.add_argument("--batch-size", type=int, default=16)
-    p.add_argument("--max-items", type=int, default=None, help="evaluate the first N test shapes only")
+    p.add_argument("--max-items", type=_positive_int, default=None,
+                   help="evaluate the first N test shapes only (default: the whole test split)")
     p.add_argument("--iterations", type=int, default=None, help="ICP-like passes (paper Table 'with iteration')")
     p.add_argument("--backend", choices=("ext", "torch"), default="ext")
     p.add_argument("--device", default="cpu")
@@ -180,10 +185,11 @@ def _run_eval(args) -> int:
     cfg = state["config"]
     if args.iterations:
         model.config.iterations = args.iterations
-    setting, split = args.setting or cfg["setting"], args.split or cfg["split"]
-    spec = PairSpec(num_points=cfg["num_points"], num_subsampled=cfg["num_subsampled"])
-    data = ModelNet40Pairs(args.data_dir or cfg["data_dir"], partition="test", setting=setting, split=split,
-                           max_items=args.max_items, seed=cfg["seed"], spec=spec)
+    # the paper's protocol unless the checkpoint says otherwise (shipped weights carry no data path)
+    setting, split = args.setting or cfg.get("setting", "PV"), args.split or cfg.get("split", "UPC")
+    spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768))
+    data = ModelNet40Pairs(args.data_dir or cfg.get("data_dir"), partition="test", setting=setting, split=split,
+                           max_items=args.max_items, seed=cfg.get("seed", 1234), spec=spec)
     model.to(args.device)
     result = evaluate(model, data, args.batch_size, args.device, args.backend)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
