@@ -1,7 +1,10 @@
 """Time one training step of a VRNet preset with the compiled ops vs ``backend="torch"``.
 
     python benchmarks/bench_train_step.py [--preset paper] [--steps 2] [--stage 1 2] [--json PATH]
-                                          [--device cuda] [--inference-points 768]
+                                          [--device cuda] [--inference-points 768] [--impls ext ext-bf16]
+
+Implementations: ``ext`` (compiled ops, float32), ``torch`` (pure PyTorch, float32) and ``ext-bf16``
+(compiled ops under bfloat16 autocast, as ``vrnet train --precision bf16`` runs them).
 
 Both backends run in this process on the same random pair batch (settings: the preset's batch
 size and point counts), one warm-up step each, then ``--steps`` timed steps with the backends
@@ -28,7 +31,7 @@ from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.runtime import set_flush_denormal
 from vrnet_ext.train import PRESETS, set_stage, stage_train_mode
 
-BACKENDS = ("ext", "torch")
+IMPLS = {"ext": ("ext", False), "torch": ("torch", False), "ext-bf16": ("ext", True)}  # name: (backend, bf16)
 
 
 def _batch(batch_size: int, points: int, generator: torch.Generator) -> dict:
@@ -49,8 +52,9 @@ def _now(device: torch.device) -> float:
     return time.perf_counter()
 
 
-def make_step(model: VRNet, batch: dict, stage: int, backend: str) -> Callable[[int], float]:
-    """A closure that runs training step ``i`` of ``stage`` with ``backend`` and returns its seconds."""
+def make_step(model: VRNet, batch: dict, stage: int, impl: str) -> Callable[[int], float]:
+    """A closure that runs training step ``i`` of ``stage`` with ``impl`` and returns its seconds."""
+    backend, bf16 = IMPLS[impl]
     params = set_stage(model, stage)
     optimizer = torch.optim.Adam(params, lr=1e-4)
     device = batch["src"].device
@@ -58,12 +62,13 @@ def make_step(model: VRNet, batch: dict, stage: int, backend: str) -> Callable[[
     def step(i: int) -> float:
         stage_train_mode(model, stage)
         start = _now(device)
-        out = model(batch["src"], batch["tgt"], backend=backend)
-        if stage == 1:
-            loss = correspondence_loss(out.matching, batch["gt_idx"])
-        else:
-            loss, _ = hybrid_loss(out, batch["src"], batch["rotation"], batch["translation"], HybridLossWeights(),
-                                  torch.Generator().manual_seed(i), backend)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+            out = model(batch["src"], batch["tgt"], backend=backend)
+            if stage == 1:
+                loss = correspondence_loss(out.matching, batch["gt_idx"])
+            else:
+                loss, _ = hybrid_loss(out, batch["src"], batch["rotation"], batch["translation"], HybridLossWeights(),
+                                      torch.Generator().manual_seed(i), backend)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -72,13 +77,13 @@ def make_step(model: VRNet, batch: dict, stage: int, backend: str) -> Callable[[
     return step
 
 
-def step_seconds(model: VRNet, batch: dict, stage: int, steps: int) -> dict[str, float]:
-    """Median seconds per step for each backend, after one warm-up step each.
+def step_seconds(model: VRNet, batch: dict, stage: int, steps: int, impls: list[str]) -> dict[str, float]:
+    """Median seconds per step for each implementation, after one warm-up step each.
 
-    The backends take turns step by step, so that a slow spell of the machine falls on both.
+    The implementations take turns step by step, so that a slow spell of the machine falls on all.
     """
-    steppers = {backend: make_step(model, batch, stage, backend) for backend in BACKENDS}
-    times = {backend: [] for backend in BACKENDS}
+    steppers = {impl: make_step(model, batch, stage, impl) for impl in impls}
+    times = {impl: [] for impl in impls}
     for i in range(steps + 1):
         for backend, step in steppers.items():
             seconds = step(i)
@@ -88,13 +93,15 @@ def step_seconds(model: VRNet, batch: dict, stage: int, steps: int) -> dict[str,
 
 
 @torch.no_grad()
-def inference_seconds(model: VRNet, src: torch.Tensor, tgt: torch.Tensor, backend: str, repeats: int = 20) -> float:
+def inference_seconds(model: VRNet, src: torch.Tensor, tgt: torch.Tensor, backend: str, bf16: bool = False,
+                      repeats: int = 20) -> float:
     """Median eval-mode forward time of one pair src (1, N, 3), tgt (1, N, 3) after 3 warm-ups."""
     model.eval()
     times = []
     for i in range(repeats + 3):
         start = _now(src.device)
-        model(src, tgt, backend=backend)
+        with torch.autocast(src.device.type, dtype=torch.bfloat16, enabled=bf16):
+            model(src, tgt, backend=backend)
         if i >= 3:
             times.append(_now(src.device) - start)
     return statistics.median(times)
@@ -110,6 +117,8 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--inference-points", type=int, default=0,
                         help="also time the forward of one pair of this many points (0: skip)")
+    parser.add_argument("--impls", nargs="+", choices=sorted(IMPLS), default=["ext", "torch"],
+                        help="implementations to time (the first is the baseline of the printed ratios)")
     parser.add_argument("--no-flush-denormal", action="store_true",
                         help="leave denormal floats on (slow softmax tails; see vrnet_ext.set_flush_denormal)")
     args = parser.parse_args()
@@ -125,19 +134,21 @@ def main() -> None:
               "threads": args.threads, "flush_denormal": flush, "torch": torch.__version__}
     records = []
     for stage in args.stage:
-        row = step_seconds(model, batch, stage, args.steps)
-        for backend in BACKENDS:
-            records.append({"stage": stage, "impl": backend, "median_s": row[backend],
+        row = step_seconds(model, batch, stage, args.steps, args.impls)
+        for impl in args.impls:
+            records.append({"stage": stage, "impl": impl, "median_s": row[impl],
                             "batch_size": preset["batch_size"], "points": preset["num_subsampled"], **common})
-            print(f"stage {stage} {backend:<5} {row[backend]:.2f} s/step", flush=True)
-        print(f"stage {stage}: ext is {row['torch'] / row['ext']:.2f}x faster than backend='torch'")
+            print(f"stage {stage} {impl:<8} {row[impl]:.2f} s/step", flush=True)
+        base = args.impls[0]
+        for impl in args.impls[1:]:
+            print(f"stage {stage}: {impl} takes {row[impl] / row[base]:.2f}x the time of {base}")
     if args.inference_points:
         pair = _batch(1, args.inference_points, torch.Generator().manual_seed(1))
-        for backend in BACKENDS:
-            seconds = inference_seconds(model, pair["src"].to(device), pair["tgt"].to(device), backend)
-            records.append({"stage": "inference", "impl": backend, "median_s": seconds, "batch_size": 1,
+        for impl in args.impls:
+            seconds = inference_seconds(model, pair["src"].to(device), pair["tgt"].to(device), *IMPLS[impl])
+            records.append({"stage": "inference", "impl": impl, "median_s": seconds, "batch_size": 1,
                             "points": args.inference_points, **common})
-            print(f"inference, one pair of {args.inference_points} points, {backend:<5} {seconds * 1e3:.2f} ms")
+            print(f"inference, one pair of {args.inference_points} points, {impl:<8} {seconds * 1e3:.2f} ms")
     print(f"machine: {platform.machine()}, device {common['device']}, threads {args.threads}, preset {args.preset} "
           f"(batch {preset['batch_size']}, {preset['num_subsampled']} points), flush_denormal={flush}")
     if args.json:
