@@ -223,3 +223,15 @@ def test_a_stray_far_point_in_the_target_does_not_change_the_icp_result():
         result = register(src, stray, icp_points=5000)
         assert transform_errors(result.transform, clean.transform)["rotation_error_deg"] < 0.05, distance
         assert result.points["target_icp"] <= clean.points["target_icp"] + 1
+
+
+def test_icp_with_the_reference_knn_works_in_bounded_chunks(monkeypatch):
+    import vrnet_ext.register as register_module
+
+    monkeypatch.setattr(register_module, "REFERENCE_KNN_ELEMENTS", 5000)  # force many chunks
+    src = room(3000)
+    tgt = apply(motion(2.0, [0.05, 0.0, 0.02]), room(3000, seed=1))
+    ext = icp(src, tgt, np.eye(4), 0.3, backend="ext")
+    reference = icp(src, tgt, np.eye(4), 0.3, backend="torch")
+    np.testing.assert_allclose(reference[0], ext[0], atol=1e-9)
+    assert reference[1] == ext[1]

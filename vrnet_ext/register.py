@@ -23,6 +23,9 @@ from vrnet_ext.metrics import rotation_error_deg, translation_error
 from vrnet_ext.model import VRNet
 
 
+REFERENCE_KNN_ELEMENTS = 1 << 24  # 128 MB of float64 distances per chunk for backend="torch"
+
+
 class IcpFailure(RuntimeError):
     """ICP found too few point pairs within reach of its starting transform."""
 
@@ -179,8 +182,15 @@ def _nearest_in_reach(moved: torch.Tensor, tgt: torch.Tensor, reach: TargetReach
     candidates = reach(moved).nonzero().squeeze(1)
     if len(candidates) == 0:
         return candidates, moved.new_empty(0), candidates
-    dist2, idx = ops.knn(moved[:, candidates], tgt, 1, backend=backend)
-    return candidates, dist2[0, :, 0], idx[0, :, 0]
+    # The reference kNN builds a (queries x targets) matrix: feed it chunks of at most
+    # REFERENCE_KNN_ELEMENTS entries (the compiled grid search needs O(N) memory and takes all at once).
+    chunk = len(candidates) if backend == "ext" else max(1, REFERENCE_KNN_ELEMENTS // tgt.shape[1])
+    dist2, idx = [], []
+    for start in range(0, len(candidates), chunk):
+        d, i = ops.knn(moved[:, candidates[start:start + chunk]], tgt, 1, backend=backend)
+        dist2.append(d[0, :, 0])
+        idx.append(i[0, :, 0])
+    return candidates, torch.cat(dist2), torch.cat(idx)
 
 
 def fpfh_estimate(src: np.ndarray, tgt: np.ndarray, points: int, seed: int,
