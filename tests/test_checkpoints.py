@@ -100,3 +100,27 @@ def test_cli_reports_a_bad_checkpoint_without_a_traceback(tmp_path, capsys):
         assert main(command) == 2
         err = capsys.readouterr().err
         assert "iterations" in err and "Traceback" not in err
+
+
+def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
+    from conftest import MODELNET_DIR, requires_modelnet  # noqa: F401
+    from vrnet_ext.cli import main
+
+    if not (MODELNET_DIR / "modelnet40_1024_train.h5").exists():
+        pytest.skip(f"ModelNet40 not found under {MODELNET_DIR}")
+    run = tmp_path / "run"
+    assert main(["train", "--preset", "tiny", "--data-dir", str(MODELNET_DIR), "--out-dir", str(run),
+                 "--no-progress"]) == 0
+    test_json = tmp_path / "test.json"
+    assert main(["eval", "--checkpoint", str(run / "best.pt"), "--data-dir", str(MODELNET_DIR), "--max-items", "4",
+                 "--json", str(test_json)]) == 0
+    assert main(["export", str(run / "best.pt"), "tiny-model", "--out-dir", str(tmp_path / "weights"),
+                 "--test-json", str(test_json), "--summary", "A smoke-test model.", "--sessions", "1"]) == 0
+    shipped = read_checkpoint(tmp_path / "weights" / "tiny-model.pt")
+    assert shipped["card"]["training"]["preset"] == "tiny" and shipped["card"]["training"]["sessions"] == 1
+    assert shipped["card"]["test"]["pairs"] == 4 and "validation" in shipped["card"]["training"]
+    assert "data_dir" not in shipped["config"] and "out_dir" not in shipped["config"]
+    card = (tmp_path / "weights" / "tiny-model.md").read_text()
+    assert "A smoke-test model." in card and "RMSE(R)" in card
+    model, _ = load_model(tmp_path / "weights" / "tiny-model.pt")
+    assert not model.training

@@ -2,7 +2,9 @@
 from vrnet_ext._extension import has_extension
 from vrnet_ext import nn, ops
 from vrnet_ext.model import VRNet, VRNetConfig, VRNetOutput
+from vrnet_ext.pretrained import load_pretrained
 from vrnet_ext.runtime import set_flush_denormal
 
 __version__ = "0.1.0"
-__all__ = ["ops", "nn", "VRNet", "VRNetConfig", "VRNetOutput", "has_extension", "set_flush_denormal", "__version__"]
+__all__ = ["ops", "nn", "VRNet", "VRNetConfig", "VRNetOutput", "has_extension", "load_pretrained",
+           "set_flush_denormal", "__version__"]

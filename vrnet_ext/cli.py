@@ -333,6 +333,42 @@ def _run_demo(args) -> int:
     return 0
 
 
+def _export_parser(sub) -> None:
+    p = sub.add_parser("export", help="write a checkpoint as shipped float16 weights with a model card",
+                       description="Writes OUT_DIR/NAME.pt (float16 weights, the training config without local "
+                                   "paths, a card of training facts and metrics) and OUT_DIR/NAME.md (the model "
+                                   "card). load_pretrained(NAME) then finds it when OUT_DIR is vrnet_ext/weights.",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("checkpoint", help="best.pt / last.pt of `vrnet train` (metrics.jsonl beside it is read too)")
+    p.add_argument("name", help="model name, e.g. vrnet-pv-upc")
+    p.add_argument("--out-dir", default=None, help="folder to write to (default: the package's weights folder)")
+    p.add_argument("--test-json", default=None, help="`vrnet eval --json` output on the test split, for the card")
+    p.add_argument("--summary", default="", help="one paragraph: what the model is for")
+    p.add_argument("--machine", default=None, help="where it was trained (for the card)")
+    p.add_argument("--sessions", type=_positive_int, default=None, help="how many sessions the training took")
+    p.add_argument("--note", action="append", default=[], help="a note for the card (repeatable)")
+
+
+def _run_export(args) -> int:
+    from vrnet_ext.pretrained import WEIGHTS_DIR, export_pretrained, training_facts
+
+    training = training_facts(args.checkpoint)
+    if args.machine:
+        training["machine"] = args.machine
+    if args.sessions:
+        training["sessions"] = args.sessions
+    card = {"summary": args.summary, "training": training, "notes": args.note}
+    if args.test_json:
+        test = json.loads(Path(args.test_json).read_text())
+        card["test"] = {k: v for k, v in test.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        card["test_note"] = (f"`vrnet eval` on {test.get('pairs')} ModelNet40 test pairs ({test.get('setting')} / "
+                             f"{test.get('split')}, the whole official test split unless fewer are stated).")
+    out = Path(args.out_dir) if args.out_dir else WEIGHTS_DIR
+    path = export_pretrained(args.checkpoint, out / f"{args.name}.pt", card)
+    print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vrnet", description="VRNet point-cloud registration (vrnet_ext).")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -341,6 +377,7 @@ def build_parser() -> argparse.ArgumentParser:
     _plot_parser(sub)
     _register_parser(sub)
     _demo_parser(sub)
+    _export_parser(sub)
     return parser
 
 
@@ -348,7 +385,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         commands = {"train": _run_train, "eval": _run_eval, "plot": _run_plot, "register": _run_register,
-                    "demo": _run_demo}
+                    "demo": _run_demo, "export": _run_export}
         return commands[args.command](args)
     except (FileNotFoundError, ValueError) as exc:
         print(f"vrnet {args.command}: error: {exc}", file=sys.stderr)

@@ -54,18 +54,76 @@ def model_card(name: str | None = None) -> dict:
     return dict(read_checkpoint(weights_path(name or DEFAULT_MODEL)).get("card", {}))
 
 
+def training_facts(checkpoint: str | os.PathLike) -> dict:
+    """What a model card says about training, read from a ``vrnet train`` checkpoint and the
+    ``metrics.jsonl`` beside it: setting, split, preset, the selected epoch, steps, wall time and
+    that epoch's validation metrics."""
+    from vrnet_ext.checkpoints import read_checkpoint
+
+    state = read_checkpoint(checkpoint)
+    config = state["config"]
+    facts = {key: config.get(key) for key in ("preset", "setting", "split", "num_points", "num_subsampled",
+                                              "batch_size", "stage1_epochs", "stage2_epochs", "precision",
+                                              "max_train_items", "val_fraction", "seed")}
+    facts.update(stage=state.get("stage"), epoch=(state.get("epoch") or 0) + 1, step=state.get("step"),
+                 train_seconds=round(float(state.get("train_seconds") or 0.0), 1))
+    metrics = Path(checkpoint).with_name("metrics.jsonl")
+    if metrics.exists():
+        records = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
+        mine = [r for r in records if r.get("step") == state.get("step")]
+        if mine:
+            facts["validation"] = {k[4:]: v for k, v in mine[-1].items() if k.startswith("val_")}
+    return facts
+
+
 def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike, card: dict) -> Path:
     """Writes a training checkpoint's model as shipped weights: float16 tensors (integer buffers as
-    they are), the training config without local paths, and ``card`` (plain JSON values)."""
+    they are), the training config without local paths, and ``card`` (plain JSON values); and the
+    model card ``<out_path>.md`` beside it (:func:`model_card_markdown`)."""
     from vrnet_ext.checkpoints import read_checkpoint
 
     state = read_checkpoint(checkpoint)
     weights = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
-    config = {k: v for k, v in state["config"].items() if k not in ("data_dir", "out_dir", "resume")}
+    config = {k: v for k, v in state["config"].items() if k not in ("data_dir", "out_dir", "resume", "features_from")}
+    card = json.loads(json.dumps(card))
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"format": FORMAT, "model": weights, "config": config, "card": json.loads(json.dumps(card))}, out_path)
+    torch.save({"format": FORMAT, "model": weights, "config": config, "card": card}, out_path)
+    out_path.with_suffix(".md").write_text(model_card_markdown(out_path.stem, config, card))
     return out_path
 
 
-__all__ = ["DEFAULT_MODEL", "available", "export_pretrained", "load_pretrained", "model_card", "weights_path"]
+def _table(values: dict) -> list[str]:
+    rows = ["| metric | value |", "|---|---:|"]
+    for key, value in values.items():
+        if isinstance(value, float):
+            rows.append(f"| {key} | {value:.4g} |")
+        elif isinstance(value, int):
+            rows.append(f"| {key} | {value} |")
+    return rows
+
+
+def model_card_markdown(name: str, config: dict, card: dict) -> str:
+    """The model card of a shipped model: what it is, how it was trained and how well it does."""
+    model = config.get("model", {})
+    lines = [f"# Model card: `{name}`", "", card.get("summary", ""), "",
+             "```python", "import vrnet_ext", f"model = vrnet_ext.load_pretrained({name!r})"
+             + ("" if name != DEFAULT_MODEL else "  # the default: load_pretrained()"),
+             "out = model(src, tgt)  # src (B, N, 3), tgt (B, M, 3) in the unit sphere; R src + t ~ tgt", "```", "",
+             "## Model", ""]
+    lines += [f"- {key}: `{value}`" for key, value in model.items() if key != "backend"]
+    lines += ["", "## Training", ""]
+    lines += [f"- {key}: {value}" for key, value in card.get("training", {}).items() if not isinstance(value, dict)]
+    if "validation" in card.get("training", {}):
+        lines += ["", "Validation (pairs held out of the training split) at the selected epoch:", ""]
+        lines += _table(card["training"]["validation"])
+    for title, key in (("Test", "test"),):
+        if key in card:
+            lines += ["", f"## {title}", "", card.get(f"{key}_note", ""), ""]
+            lines += _table(card[key])
+    lines += ["", "## Notes", ""] + [f"- {note}" for note in card.get("notes", [])]
+    return "\n".join(lines) + "\n"
+
+
+__all__ = ["DEFAULT_MODEL", "available", "export_pretrained", "load_pretrained", "model_card", "model_card_markdown",
+           "training_facts", "weights_path"]
