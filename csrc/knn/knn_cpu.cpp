@@ -4,6 +4,9 @@
 #include <ATen/ops/mm.h>
 #include <ATen/ops/mean.h>
 #include <ATen/ops/sub.h>
+#include <ATen/ops/max.h>
+#include <ATen/ops/square.h>
+#include <ATen/ops/sum.h>
 #include <ATen/ops/_to_copy.h>
 #include <ATen/ops/zeros.h>
 #include <ATen/ops/zeros_like.h>
@@ -11,6 +14,7 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <cmath>
 #include <vector>
 
@@ -162,23 +166,33 @@ void knn_grid(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool ex
 constexpr int64_t kQueryBlock = 256;
 constexpr int64_t kRefBlock = 1024;
 
-// Squared norms of `count` rows of C values.
+// Exact k nearest of one query row among all M reference rows (exhaustive scan with exact
+// differences), for clouds whose squared norms overflow the dtype.
 template <typename scalar_t>
-void squared_norms(const scalar_t* rows, int64_t count, int64_t C, std::vector<scalar_t>& out) {
-  out.resize(count);
-  at::parallel_for(0, count, 256, [&](int64_t begin, int64_t end) {
-    for (int64_t i = begin; i < end; ++i) {
-      scalar_t acc = 0;
-      for (int64_t c = 0; c < C; ++c) acc += rows[i * C + c] * rows[i * C + c];
-      out[i] = acc;
+void knn_row_exhaustive(const scalar_t* q, const scalar_t* refs, int64_t M, int64_t C, int64_t self, int64_t k,
+                        scalar_t* dist, int64_t* idx) {
+  TopK<scalar_t> top{dist, idx, k};
+  top.reset(M);
+  for (int64_t j = 0; j < M; ++j) {
+    if (j == self) continue;
+    scalar_t acc = 0;
+    for (int64_t c = 0; c < C; ++c) {
+      const scalar_t diff = q[c] - refs[j * C + c];
+      acc += diff * diff;
     }
-  });
+    top.push(acc, j);
+  }
 }
 
 // GEMM-tiled kNN for any C. Both clouds are first shifted by the reference cloud's mean (computed
 // in double), so that |q|^2 + |r|^2 - 2 q.r does not cancel catastrophically for clouds far from
 // the origin; the reservoir then keeps every candidate within the rounding bound of that formula
 // and re-ranks the survivors by exact distance (see Reservoir).
+//
+// The whole call is ONE parallel region in which the threads claim (cloud, block of kQueryBlock
+// queries) tasks; inside a task the tile products run single-threaded. A fork and join per tile (thousands per call) made
+// the search 10x slower whenever another process held a core: every join waited for a
+// descheduled thread.
 template <typename scalar_t>
 void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self,
                at::Tensor& dist, at::Tensor& idx) {
@@ -186,78 +200,71 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
   // Rounding of the expanded formula: a few units in the last place of (|q|^2 + |r|^2) per term of
   // the dot product; 8 (C + 2) eps is a generous bound for any summation order the GEMM picks.
   const scalar_t relative_error = static_cast<scalar_t>(8 * (C + 2)) * std::numeric_limits<scalar_t>::epsilon();
-  std::vector<scalar_t> qn, rn;
-  std::vector<Reservoir<scalar_t>> reservoirs(std::min(N, kQueryBlock));
-  for (int64_t b = 0; b < B; ++b) {
-    const at::Tensor qb = query.select(0, b), rb = ref.select(0, b);
-    const at::Tensor shift = rb.to(at::kDouble).mean(0, /*keepdim=*/true);
-    const at::Tensor q_centred = at::sub(qb.to(at::kDouble), shift).to(qb.scalar_type()).contiguous();
-    const at::Tensor r_centred = at::sub(rb.to(at::kDouble), shift).to(rb.scalar_type()).contiguous();
-    squared_norms(q_centred.const_data_ptr<scalar_t>(), N, C, qn);
-    squared_norms(r_centred.const_data_ptr<scalar_t>(), M, C, rn);
-    const scalar_t rn_max = *std::max_element(rn.begin(), rn.end());
-    const scalar_t* q_rows = qb.const_data_ptr<scalar_t>();
-    const scalar_t* r_rows = rb.const_data_ptr<scalar_t>();
-    scalar_t* d_out = dist.mutable_data_ptr<scalar_t>() + b * N * k;
-    int64_t* i_out = idx.mutable_data_ptr<int64_t>() + b * N * k;
-    if (!std::isfinite(rn_max) || !std::isfinite(*std::max_element(qn.begin(), qn.end()))) {
-      // Squared norms overflow the dtype (coordinates spread over ~1e19 in float32): the expanded
-      // formula is meaningless, so this cloud is searched exhaustively with exact differences.
-      at::parallel_for(0, N, 16, [&](int64_t begin, int64_t end) {
-        for (int64_t n = begin; n < end; ++n) {
-          TopK<scalar_t> top{d_out + n * k, i_out + n * k, k};
-          top.reset(M);
-          for (int64_t j = 0; j < M; ++j) {
-            if (exclude_self && j == n) continue;
-            scalar_t acc = 0;
-            for (int64_t c = 0; c < C; ++c) {
-              const scalar_t diff = q_rows[n * C + c] - r_rows[j * C + c];
-              acc += diff * diff;
-            }
-            top.push(acc, j);
-          }
-        }
-      });
-      continue;
-    }
-    for (int64_t q0 = 0; q0 < N; q0 += kQueryBlock) {
-      const int64_t q1 = std::min(N, q0 + kQueryBlock);
-      const at::Tensor q_tile = q_centred.narrow(0, q0, q1 - q0);
+  const at::Tensor shift = ref.to(at::kDouble).mean(1, /*keepdim=*/true);
+  const at::Tensor q_centred = at::sub(query.to(at::kDouble), shift).to(query.scalar_type()).contiguous();
+  const at::Tensor r_centred = at::sub(ref.to(at::kDouble), shift).to(ref.scalar_type()).contiguous();
+  const at::Tensor q_norms = q_centred.square().sum(2).contiguous();   // (B, N)
+  const at::Tensor r_norms = r_centred.square().sum(2).contiguous();   // (B, M)
+  const at::Tensor r_norm_max = std::get<0>(r_norms.max(1)).contiguous();
+  const at::Tensor q_norm_max = std::get<0>(q_norms.max(1)).contiguous();
+  const scalar_t* qn_all = q_norms.const_data_ptr<scalar_t>();
+  const scalar_t* rn_all = r_norms.const_data_ptr<scalar_t>();
+  const scalar_t* rn_max = r_norm_max.const_data_ptr<scalar_t>();
+  const scalar_t* qn_max = q_norm_max.const_data_ptr<scalar_t>();
+  const scalar_t* q_all = query.const_data_ptr<scalar_t>();
+  const scalar_t* r_all = ref.const_data_ptr<scalar_t>();
+  const int64_t blocks = (N + kQueryBlock - 1) / kQueryBlock;
+  // Tasks are claimed one at a time from a shared counter, so a thread whose core is busy with
+  // another process simply does fewer of them (a static split would make everyone wait for it).
+  std::atomic<int64_t> next_task{0};
+  const int64_t tasks = B * blocks;
+  at::parallel_for(0, std::min<int64_t>(tasks, at::get_num_threads()), 1, [&](int64_t, int64_t) {
+    std::vector<Reservoir<scalar_t>> reservoirs(std::min(N, kQueryBlock));
+    std::vector<scalar_t> row_dist(std::min(M, kRefBlock));
+    for (int64_t task = next_task++; task < tasks; task = next_task++) {
+      const int64_t b = task / blocks, q0 = (task % blocks) * kQueryBlock, q1 = std::min(N, q0 + kQueryBlock);
+      const scalar_t* q_rows = q_all + b * N * C;
+      const scalar_t* r_rows = r_all + b * M * C;
+      scalar_t* d_out = dist.mutable_data_ptr<scalar_t>() + b * N * k;
+      int64_t* i_out = idx.mutable_data_ptr<int64_t>() + b * N * k;
+      if (!std::isfinite(rn_max[b]) || !std::isfinite(qn_max[b])) {
+        // Squared norms overflow the dtype (coordinates spread over ~1e19 in float32): the expanded
+        // formula is meaningless, so this cloud is searched exhaustively with exact differences.
+        for (int64_t n = q0; n < q1; ++n)
+          knn_row_exhaustive(q_rows + n * C, r_rows, M, C, exclude_self ? n : -1, k, d_out + n * k, i_out + n * k);
+        continue;
+      }
+      const scalar_t* qn = qn_all + b * N;
+      const scalar_t* rn = rn_all + b * M;
       for (int64_t n = q0; n < q1; ++n) {
-        const scalar_t slack = relative_error * (qn[n] + rn_max);
+        const scalar_t slack = relative_error * (qn[n] + rn_max[b]);
         reservoirs[n - q0].reset(k, std::isfinite(slack) ? slack : scalar_t(0));
       }
+      const at::Tensor q_tile = q_centred.select(0, b).narrow(0, q0, q1 - q0);
       for (int64_t r0 = 0; r0 < M; r0 += kRefBlock) {
-        const int64_t r1 = std::min(M, r0 + kRefBlock);
-        // dots[n, j] = q_n . r_j; then d ~ |q|^2 + |r|^2 - 2 q.r, clamped at 0, +inf if not finite.
-        const at::Tensor dots = at::mm(q_tile, r_centred.narrow(0, r0, r1 - r0).t());
+        const int64_t r1 = std::min(M, r0 + kRefBlock), width = r1 - r0;
+        // dots[n, j] = q_n . r_j (single-threaded inside this task); d ~ |q|^2 + |r|^2 - 2 q.r,
+        // clamped at 0, +inf where not finite.
+        const at::Tensor dots = at::mm(q_tile, r_centred.select(0, b).narrow(0, r0, width).t());
         const scalar_t* dp = dots.const_data_ptr<scalar_t>();
-        const int64_t width = r1 - r0;
-        at::parallel_for(q0, q1, 16, [&](int64_t begin, int64_t end) {
-          std::vector<scalar_t> row_dist(width);
-          for (int64_t n = begin; n < end; ++n) {
-            const scalar_t* row = dp + (n - q0) * width;
-            const scalar_t* rn_block = rn.data() + r0;
-            const scalar_t qn_n = qn[n];
-            scalar_t* dst = row_dist.data();
-            for (int64_t j = 0; j < width; ++j) {
-              const scalar_t d = qn_n + rn_block[j] - 2 * row[j];
-              dst[j] = std::isfinite(d) ? std::max<scalar_t>(d, 0) : std::numeric_limits<scalar_t>::infinity();
-            }
-            // NaN never passes `<= threshold`: the query itself is skipped without a per-candidate test.
-            if (exclude_self && n >= r0 && n < r1) dst[n - r0] = std::numeric_limits<scalar_t>::quiet_NaN();
-            Reservoir<scalar_t>& res = reservoirs[n - q0];
-            for (int64_t j = 0; j < width; ++j)
-              if (dst[j] <= res.threshold) res.add(dst[j], r0 + j);
+        for (int64_t n = q0; n < q1; ++n) {
+          const scalar_t* row = dp + (n - q0) * width;
+          scalar_t* dst = row_dist.data();
+          for (int64_t j = 0; j < width; ++j) {
+            const scalar_t d = qn[n] + rn[r0 + j] - 2 * row[j];
+            dst[j] = std::isfinite(d) ? std::max<scalar_t>(d, 0) : std::numeric_limits<scalar_t>::infinity();
           }
-        });
+          // NaN never passes `<= threshold`: the query itself is skipped without a per-candidate test.
+          if (exclude_self && n >= r0 && n < r1) dst[n - r0] = std::numeric_limits<scalar_t>::quiet_NaN();
+          Reservoir<scalar_t>& res = reservoirs[n - q0];
+          for (int64_t j = 0; j < width; ++j)
+            if (dst[j] <= res.threshold) res.add(dst[j], r0 + j);
+        }
       }
-      at::parallel_for(q0, q1, 16, [&](int64_t begin, int64_t end) {
-        for (int64_t n = begin; n < end; ++n)
-          reservoirs[n - q0].finish(q_rows + n * C, r_rows, C, d_out + n * k, i_out + n * k);
-      });
+      for (int64_t n = q0; n < q1; ++n)
+        reservoirs[n - q0].finish(q_rows + n * C, r_rows, C, d_out + n * k, i_out + n * k);
     }
-  }
+  });
 }
 
 std::tuple<at::Tensor, at::Tensor> knn_cpu(const at::Tensor& query_in, const at::Tensor& ref_in,
