@@ -161,3 +161,24 @@ def test_gate_scales_the_offset_and_confidence_weights_the_procrustes():
     opened = model(src, tgt)
     raw = model.walk.net(torch.cat([opened.src_embedding, torch.bmm(opened.tgt_embedding, opened.matching.mT)], 1))
     torch.testing.assert_close(opened.offset, raw[:, :3].transpose(1, 2))
+
+
+def test_robust_procrustes_ignores_gross_outliers_that_spoil_plain_kabsch():
+    from scipy.spatial.transform import Rotation
+
+    from vrnet_ext.model.vrnet import robust_procrustes
+    from vrnet_ext.metrics import rotation_error_deg
+
+    g = torch.Generator().manual_seed(0)
+    src = torch.rand(3, 200, 3, generator=g, dtype=torch.float64) * 2 - 1
+    R = torch.tensor(Rotation.from_euler("zyx", [30, -20, 10], degrees=True).as_matrix()).expand(3, 3, 3)
+    tgt = src @ R.mT + 0.3
+    tgt[:, :60] = torch.rand(3, 60, 3, generator=g, dtype=torch.float64)  # 30 % wrong correspondences
+    plain, _ = robust_procrustes(src, tgt, None, 0, 1e-3, "ext")
+    robust, t = robust_procrustes(src, tgt, None, 5, 1e-3, "ext")
+    assert rotation_error_deg(plain, R).min() > 0.5
+    assert rotation_error_deg(robust, R).max() < 1e-3 and (t - 0.3).abs().max() < 1e-5
+    weights = torch.ones(3, 200, dtype=torch.float64)
+    weights[:, :60] = 1e-6  # a confidence that already knows the outliers: one solve is enough
+    known, _ = robust_procrustes(src, tgt, weights, 0, 1e-3, "ext")
+    assert rotation_error_deg(known, R).max() < 1e-3

@@ -13,6 +13,7 @@ from vrnet_ext.losses import correspondence_loss
 from vrnet_ext.metrics import (chamfer_distance, correct_match_ratio, correspondence_error, euler_zyx_deg,
                                rotation_error_deg, summarize)
 from vrnet_ext.model import VRNet
+from vrnet_ext.model.vrnet import robust_procrustes
 from vrnet_ext.ops import kabsch
 
 PAPER_COLUMNS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)")
@@ -22,18 +23,25 @@ def to_device(batch: dict, device: torch.device) -> dict:
     return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
 
-def estimators(src: torch.Tensor, out, backend: str) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+IRLS_STEPS = 3  # reweighting steps of the "+ IRLS" estimates (robust_procrustes)
+
+
+def estimators(src: torch.Tensor, out, backend: str, min_scale: float) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
     """Every Procrustes estimate one forward pass offers, for the walk's ablation.
 
     ``VCP``: Kabsch on source <-> VCPs (DCP-v2); ``RCP``: on source <-> RCPs, unweighted (the paper's
     VRNet); with a confidence head also ``VCP weighted`` / ``RCP weighted`` (the confidences as
-    weights; ``RCP weighted`` is then the model's own estimate).
+    weights). Each also ``+ IRLS``: followed by :data:`IRLS_STEPS` Cauchy reweightings
+    (:func:`~vrnet_ext.model.vrnet.robust_procrustes`).
     """
-    result = {"VCP": kabsch(src, out.vcp, backend=backend), "RCP": kabsch(src, out.rcp, backend=backend)}
+    points = {"VCP": (out.vcp, None), "RCP": (out.rcp, None)}
     weights = getattr(out, "weights", None)
     if weights is not None:
-        result["VCP weighted"] = kabsch(src, out.vcp, weights, backend=backend)
-        result["RCP weighted"] = kabsch(src, out.rcp, weights, backend=backend)
+        points.update({"VCP weighted": (out.vcp, weights), "RCP weighted": (out.rcp, weights)})
+    result = {}
+    for name, (tgt, w) in points.items():
+        result[name] = kabsch(src, tgt, w, backend=backend)
+        result[f"{name} + IRLS"] = robust_procrustes(src, tgt, w, IRLS_STEPS, min_scale, backend)
     return result
 
 
@@ -63,7 +71,7 @@ def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str |
         batch = to_device(batch, device)
         src, tgt, R_gt, t_gt = batch["src"], batch["tgt"], batch["rotation"], batch["translation"]
         out = model(src, tgt, backend=backend)
-        solved = estimators(src, out, solver_backend)
+        solved = estimators(src, out, solver_backend, model.config.irls_min_scale)
         for name, (R_est, _) in solved.items():
             by_estimator.setdefault(name, []).append(R_est.cpu())
         R, t = (out.rotation, out.translation) if use_rcp else solved["VCP"]

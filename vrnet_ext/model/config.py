@@ -26,6 +26,10 @@ class VRNetConfig:
       ungated walk).
     * ``walk_confidence``: the walk also predicts a per-point confidence in (0, 1) that weights the
       final Procrustes (not in the paper, whose Procrustes is unweighted; False: unweighted).
+    * ``irls_iterations``: after the (weighted) Procrustes, this many reweighting steps: each point's
+      weight is multiplied by the Cauchy weight 1 / (1 + (r / s)^2) of its residual r under the
+      current estimate, s = 3 x the median residual (at least ``irls_min_scale``), and Procrustes is
+      solved again (not in the paper; 0: a single solve).
     * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.
     """
 
@@ -44,6 +48,8 @@ class VRNetConfig:
     walk_gate: bool = False
     walk_confidence: bool = False
     correction_walk: bool = True
+    irls_iterations: int = 0
+    irls_min_scale: float = 1e-3
     iterations: int = 1
     backend: str = "ext"
 
@@ -56,6 +62,8 @@ class VRNetConfig:
             raise ValueError(f"emb_dims ({self.emb_dims}) must be divisible by heads ({self.heads})")
         if self.k < 1 or self.iterations < 1:
             raise ValueError("k and iterations must be >= 1")
+        if self.irls_iterations < 0 or not self.irls_min_scale > 0:
+            raise ValueError("irls_iterations must be >= 0 and irls_min_scale > 0")
         if self.backend not in ("ext", "torch"):
             raise ValueError(f"backend must be 'ext' or 'torch', got {self.backend!r}")
 

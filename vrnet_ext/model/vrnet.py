@@ -38,6 +38,24 @@ class VRNetOutput:
         return procrustes_weights(self.confidence_logits).to(self.rcp.dtype)
 
 
+def robust_procrustes(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None, iterations: int,
+                      min_scale: float, backend: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weighted Procrustes src (B, N, 3) -> tgt (B, N, 3), then ``iterations`` Cauchy reweightings.
+
+    Each step multiplies ``weights`` (uniform when None) by 1 / (1 + (r_i / s)^2), where r_i is point
+    i's residual |R x_i + t - y_i| under the current estimate and s = max(3 median_i r_i, min_scale)
+    per pair, and solves again: correspondences far off the consensus of the rest lose their say.
+    Returns (R (B, 3, 3), t (B, 3)).
+    """
+    rotation, translation = kabsch(src, tgt, weights, backend=backend)
+    base = torch.ones(src.shape[:2], dtype=src.dtype, device=src.device) if weights is None else weights
+    for _ in range(iterations):
+        residual = (src @ rotation.mT + translation.unsqueeze(1) - tgt).norm(dim=-1)
+        scale = (3 * residual.median(dim=1, keepdim=True).values).clamp_min(min_scale)
+        rotation, translation = kabsch(src, tgt, base / (1 + (residual / scale).square()), backend=backend)
+    return rotation, translation
+
+
 def procrustes_weights(confidence_logits: torch.Tensor) -> torch.Tensor:
     """(B, N) logits -> positive weights (floored so that no pair's weights all vanish)."""
     return torch.sigmoid(confidence_logits).clamp_min(1e-6)
@@ -108,6 +126,7 @@ class VRNet(nn.Module):
             offset, gate_logits, confidence_logits = walk.offset, walk.gate_logits, walk.confidence_logits
         rcp = vcp + offset
         weights = None if confidence_logits is None else procrustes_weights(confidence_logits).to(src.dtype)
-        rotation, translation = kabsch(src, rcp, weights, backend=backend)
+        rotation, translation = robust_procrustes(src, rcp, weights, self.config.irls_iterations,
+                                                  self.config.irls_min_scale, backend)
         return VRNetOutput(rotation, translation, matching, vcp, rcp, offset, phi_x, phi_y, gate_logits,
                            confidence_logits)
