@@ -182,3 +182,15 @@ def test_robust_procrustes_ignores_gross_outliers_that_spoil_plain_kabsch():
     weights[:, :60] = 1e-6  # a confidence that already knows the outliers: one solve is enough
     known, _ = robust_procrustes(src, tgt, weights, 0, 1e-3, "ext")
     assert rotation_error_deg(known, R).max() < 1e-3
+
+
+def test_walk_match_stats_are_the_rows_peak_and_entropy():
+    model = small_model(walk_match_stats=True, walk_gate=True, walk_confidence=True).eval()
+    assert model.walk.net[0].in_channels == 2 * 32 + 2
+    src, tgt = clouds()
+    seen = {}
+    model.walk.register_forward_pre_hook(lambda module, args: seen.setdefault("seeds", args[0]))
+    out = model(src, tgt)
+    peak, entropy = seen["seeds"][:, -2], seen["seeds"][:, -1]
+    torch.testing.assert_close(peak, out.matching.max(-1).values)
+    torch.testing.assert_close(entropy, -(out.matching * out.matching.log()).sum(-1))

@@ -122,6 +122,10 @@ def _train_parser(sub) -> None:
                    help="1: the walk's offsets are gated per point (right VCPs stay exact); 0: the paper's walk")
     p.add_argument("--walk-confidence", type=_parse_bool, default=None,
                    help="1: the walk also predicts per-point confidences that weight the Procrustes; 0: unweighted")
+    p.add_argument("--walk-match-stats", type=_parse_bool, default=None,
+                   help="1: the walk also sees each point's largest matching weight and matching entropy")
+    p.add_argument("--irls-iterations", type=int, default=None,
+                   help="Cauchy reweighting steps after the Procrustes solve (0: none)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -129,7 +133,7 @@ def build_train_config(args):
     """TrainConfig from parsed ``vrnet train`` flags: the preset, then every flag given."""
     from vrnet_ext.train import PRESETS, TrainConfig
 
-    model_keys = ("emb_dims", "k", "iterations", "walk_gate", "walk_confidence")
+    model_keys = ("emb_dims", "k", "iterations", "walk_gate", "walk_confidence", "walk_match_stats", "irls_iterations")
     overrides = {k: v for k, v in vars(args).items() if k not in ("command", "preset", "no_progress") + model_keys}
     model = dict(PRESETS[args.preset]["model"])
     for key in model_keys:

@@ -26,6 +26,8 @@ class VRNetConfig:
       ungated walk).
     * ``walk_confidence``: the walk also predicts a per-point confidence in (0, 1) that weights the
       final Procrustes (not in the paper, whose Procrustes is unweighted; False: unweighted).
+    * ``walk_match_stats``: the walk also sees two statistics of each point's row of the soft
+      matching, its largest entry and its entropy (how sure the match is; not in the paper).
     * ``irls_iterations``: after the (weighted) Procrustes, this many reweighting steps: each point's
       weight is multiplied by the Cauchy weight 1 / (1 + (r / s)^2) of its residual r under the
       current estimate, s = 3 x the median residual (at least ``irls_min_scale``), and Procrustes is
@@ -47,6 +49,7 @@ class VRNetConfig:
     walk_zero_init: bool = True
     walk_gate: bool = False
     walk_confidence: bool = False
+    walk_match_stats: bool = False
     correction_walk: bool = True
     irls_iterations: int = 0
     irls_min_scale: float = 1e-3

@@ -71,7 +71,7 @@ class VRNet(nn.Module):
         self.features = DGCNN(cfg.dgcnn_channels, cfg.emb_dims, cfg.k, cfg.negative_slope)
         self.transformer = Transformer(cfg.emb_dims, cfg.heads, cfg.ff_dims, cfg.encoder_layers,
                                        cfg.decoder_layers, cfg.dropout)
-        walk_inputs = 2 * cfg.emb_dims + (6 if cfg.walk_coordinates else 0)
+        walk_inputs = 2 * cfg.emb_dims + (6 if cfg.walk_coordinates else 0) + (2 if cfg.walk_match_stats else 0)
         self.walk = (CorrectionWalk(walk_inputs, cfg.walk_channels, cfg.walk_zero_init, cfg.walk_gate,
                                     cfg.walk_confidence) if cfg.correction_walk else None)
 
@@ -122,6 +122,10 @@ class VRNet(nn.Module):
             seeds = [phi_x, torch.bmm(phi_y, matching.transpose(1, 2))]
             if self.config.walk_coordinates:
                 seeds += [src.transpose(1, 2), vcp.transpose(1, 2)]
+            if self.config.walk_match_stats:
+                peak = matching.max(dim=-1).values
+                entropy = -(matching * matching.clamp_min(1e-30).log()).sum(dim=-1)
+                seeds += [torch.stack([peak, entropy], dim=1).to(phi_x.dtype)]
             walk = self.walk(torch.cat(seeds, dim=1))
             offset, gate_logits, confidence_logits = walk.offset, walk.gate_logits, walk.confidence_logits
         rcp = vcp + offset
