@@ -194,3 +194,19 @@ def test_walk_match_stats_are_the_rows_peak_and_entropy():
     peak, entropy = seen["seeds"][:, -2], seen["seeds"][:, -1]
     torch.testing.assert_close(peak, out.matching.max(-1).values)
     torch.testing.assert_close(entropy, -(out.matching * out.matching.log()).sum(-1))
+
+
+def test_procrustes_on_vcps_with_the_walks_confidences():
+    from vrnet_ext.ops import kabsch
+
+    model = small_model(walk_gate=True, walk_confidence=True, procrustes_points="vcp").eval()
+    with torch.no_grad():
+        model.walk.net[-1].weight.normal_()  # offsets, gate and confidences all non-trivial
+    src, tgt = clouds()
+    out = model(src, tgt)
+    assert (out.rcp - out.vcp).abs().max() > 1e-3
+    R, t = kabsch(src, out.vcp, out.weights)
+    torch.testing.assert_close(out.rotation, R)
+    torch.testing.assert_close(out.translation, t)
+    with pytest.raises(ValueError, match="procrustes_points"):
+        VRNetConfig(procrustes_points="both")

@@ -351,6 +351,10 @@ def _export_parser(sub) -> None:
     p.add_argument("--machine", default=None, help="where it was trained (for the card)")
     p.add_argument("--sessions", type=_positive_int, default=None, help="how many sessions the training took")
     p.add_argument("--note", action="append", default=[], help="a note for the card (repeatable)")
+    p.add_argument("--procrustes-points", choices=("rcp", "vcp"), default=None,
+                   help="set the exported model's final Procrustes points (an inference-time choice; default: as trained)")
+    p.add_argument("--irls-iterations", type=_nonnegative_int, default=None,
+                   help="set the exported model's Cauchy reweighting steps (default: as trained)")
 
 
 def _run_export(args) -> int:
@@ -368,7 +372,8 @@ def _run_export(args) -> int:
         card["test_note"] = (f"`vrnet eval` on {test.get('pairs')} ModelNet40 test pairs ({test.get('setting')} / "
                              f"{test.get('split')}, the whole official test split unless fewer are stated).")
     out = Path(args.out_dir) if args.out_dir else WEIGHTS_DIR
-    path = export_pretrained(args.checkpoint, out / f"{args.name}.pt", card)
+    overrides = {k: getattr(args, k) for k in ("procrustes_points", "irls_iterations") if getattr(args, k) is not None}
+    path = export_pretrained(args.checkpoint, out / f"{args.name}.pt", card, overrides)
     print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")
     return 0
 

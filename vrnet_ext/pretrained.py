@@ -76,15 +76,21 @@ def training_facts(checkpoint: str | os.PathLike) -> dict:
     return facts
 
 
-def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike, card: dict) -> Path:
+def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike, card: dict,
+                      model_overrides: dict | None = None) -> Path:
     """Writes a training checkpoint's model as shipped weights: float16 tensors (integer buffers as
     they are), the training config without local paths, and ``card`` (plain JSON values); and the
-    model card ``<out_path>.md`` beside it (:func:`model_card_markdown`)."""
-    from vrnet_ext.checkpoints import read_checkpoint
+    model card ``<out_path>.md`` beside it (:func:`model_card_markdown`). ``model_overrides`` change
+    inference-time fields of the model config (``procrustes_points``, ``irls_iterations``)."""
+    from vrnet_ext.checkpoints import read_checkpoint, validate_model_config
 
     state = read_checkpoint(checkpoint)
     weights = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
     config = {k: v for k, v in state["config"].items() if k not in ("data_dir", "out_dir", "resume", "features_from")}
+    overrides = dict(model_overrides or {})
+    if set(overrides) - {"procrustes_points", "irls_iterations"}:
+        raise ValueError(f"model_overrides may set procrustes_points and irls_iterations only, got {sorted(overrides)}")
+    config["model"] = validate_model_config(dict(config["model"], **overrides), str(out_path)).to_dict()
     card = json.loads(json.dumps(card))
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)

@@ -28,6 +28,9 @@ class VRNetConfig:
       final Procrustes (not in the paper, whose Procrustes is unweighted; False: unweighted).
     * ``walk_match_stats``: the walk also sees two statistics of each point's row of the soft
       matching, its largest entry and its entropy (how sure the match is; not in the paper).
+    * ``procrustes_points``: the final Procrustes aligns the source with its RCPs (``"rcp"``, the
+      paper) or with its VCPs (``"vcp"``), weighted by the walk's confidences either way; the walk's
+      offsets then only shape the confidences (through training) and ``out.rcp``.
     * ``irls_iterations``: after the (weighted) Procrustes, this many reweighting steps: each point's
       weight is multiplied by the Cauchy weight 1 / (1 + (r / s)^2) of its residual r under the
       current estimate, s = 3 x the median residual (at least ``irls_min_scale``), and Procrustes is
@@ -51,6 +54,7 @@ class VRNetConfig:
     walk_confidence: bool = False
     walk_match_stats: bool = False
     correction_walk: bool = True
+    procrustes_points: str = "rcp"
     irls_iterations: int = 0
     irls_min_scale: float = 1e-3
     iterations: int = 1
@@ -65,6 +69,8 @@ class VRNetConfig:
             raise ValueError(f"emb_dims ({self.emb_dims}) must be divisible by heads ({self.heads})")
         if self.k < 1 or self.iterations < 1:
             raise ValueError("k and iterations must be >= 1")
+        if self.procrustes_points not in ("rcp", "vcp"):
+            raise ValueError(f"procrustes_points must be 'rcp' or 'vcp', got {self.procrustes_points!r}")
         if self.irls_iterations < 0 or not self.irls_min_scale > 0:
             raise ValueError("irls_iterations must be >= 0 and irls_min_scale > 0")
         if self.backend not in ("ext", "torch"):

@@ -22,14 +22,18 @@ class WalkOutput:
     confidence_logits: torch.Tensor | None
 
 
+GATE_CLOSED = -4.0  # initial gate logit: sigmoid(-4) = 0.018
+
+
 class CorrectionWalk(nn.Module):
     """Seeds (B, in_channels, N) -> :class:`WalkOutput`.
 
     1x1 convs with the widths of ``channels`` (ending in 3, the xyz offset); BatchNorm + ReLU after
     every layer but the last, which is a plain linear layer with bias so an offset can take any
     sign. ``gate`` and ``confidence`` each add one output channel to that layer. ``zero_init``
-    starts the last layer at zero: every offset is 0 (RCP = VCP) and every gate and confidence
-    is 0.5 until training moves them.
+    starts the last layer at zero: every offset is 0 (RCP = VCP) and every confidence 0.5 until
+    training moves them, and the gate starts nearly closed (bias ``GATE_CLOSED``, sigmoid 0.018), so
+    that the walk opens it only where moving a VCP pays.
 
     Why the gate: an MLP cannot output an exact zero, but the VCPs of well-matched points are
     already nearly exact (median error ~2e-4 of the shape's radius on ModelNet40 partial views), so
@@ -51,6 +55,8 @@ class CorrectionWalk(nn.Module):
         if zero_init:
             nn.init.zeros_(last.weight)
             nn.init.zeros_(last.bias)
+            if gate:
+                nn.init.constant_(last.bias[channels[-1]:channels[-1] + 1], GATE_CLOSED)
         layers.append(last)
         self.net = nn.Sequential(*layers)
 

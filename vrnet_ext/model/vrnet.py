@@ -130,7 +130,8 @@ class VRNet(nn.Module):
             offset, gate_logits, confidence_logits = walk.offset, walk.gate_logits, walk.confidence_logits
         rcp = vcp + offset
         weights = None if confidence_logits is None else procrustes_weights(confidence_logits).to(src.dtype)
-        rotation, translation = robust_procrustes(src, rcp, weights, self.config.irls_iterations,
+        aligned_to = rcp if self.config.procrustes_points == "rcp" else vcp
+        rotation, translation = robust_procrustes(src, aligned_to, weights, self.config.irls_iterations,
                                                   self.config.irls_min_scale, backend)
         return VRNetOutput(rotation, translation, matching, vcp, rcp, offset, phi_x, phi_y, gate_logits,
                            confidence_logits)
