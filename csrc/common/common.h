@@ -13,6 +13,7 @@
 
 #include "common/host_device.h"
 
+#include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <cstdint>
@@ -21,6 +22,30 @@
 #include <vector>
 
 namespace vrnet {
+
+// Runs fn(task) for every task in [0, tasks) inside ONE parallel region; the threads claim tasks one
+// at a time from a shared counter. A static split makes every thread wait at the join for the one
+// whose core another process is using (10x slower kernels on a shared machine); with claiming,
+// that thread simply does fewer tasks. Tasks must be independent.
+template <typename F>
+void parallel_tasks(int64_t tasks, const F& fn) {
+  std::atomic<int64_t> next{0};
+  at::parallel_for(0, std::min<int64_t>(tasks, at::get_num_threads()), 1, [&](int64_t, int64_t) {
+    for (int64_t task = next++; task < tasks; task = next++) fn(task);
+  });
+}
+
+// at::parallel_for's signature with parallel_tasks' scheduling: [0, total) is cut into chunks of at
+// least `grain` items (about 8 per thread) that the threads claim one at a time; fn(begin, end)
+// gets one chunk per call. Items must be independent (each kernel writes its own outputs).
+template <typename F>
+void parallel_ranges(int64_t total, int64_t grain, const F& fn) {
+  if (total <= 0) return;
+  const int64_t per_chunk = (total + 8 * at::get_num_threads() - 1) / (8 * at::get_num_threads());
+  const int64_t chunk = std::max<int64_t>(std::max<int64_t>(grain, 1), per_chunk);
+  const int64_t chunks = (total + chunk - 1) / chunk;
+  parallel_tasks(chunks, [&](int64_t c) { fn(c * chunk, std::min(total, (c + 1) * chunk)); });
+}
 
 // Conditions computed on an accelerator (one-element bool tensors), fetched with ONE synchronisation;
 // raises ValueError with the message of the first that is false.
@@ -49,7 +74,7 @@ inline void check_finite(const at::Tensor& t, const char* name) {
   std::atomic<bool> bad{false};
   AT_DISPATCH_FLOATING_TYPES(c.scalar_type(), "check_finite", [&] {
     const scalar_t* p = c.const_data_ptr<scalar_t>();
-    at::parallel_for(0, c.numel(), 1 << 16, [&](int64_t begin, int64_t end) {
+    parallel_ranges(c.numel(), 1 << 16, [&](int64_t begin, int64_t end) {
       bool local = false;
       for (int64_t i = begin; i < end; ++i) local |= !std::isfinite(p[i]);
       if (local) bad.store(true, std::memory_order_relaxed);
@@ -100,7 +125,7 @@ inline void check_index_range(const at::Tensor& idx, int64_t upper, const char* 
   const at::Tensor c = idx.contiguous();
   const int64_t* p = c.const_data_ptr<int64_t>();
   std::atomic<bool> bad{false};
-  at::parallel_for(0, c.numel(), 1 << 16, [&](int64_t begin, int64_t end) {
+  parallel_ranges(c.numel(), 1 << 16, [&](int64_t begin, int64_t end) {
     bool local = false;
     for (int64_t i = begin; i < end; ++i) local |= (p[i] < 0) | (p[i] >= upper);
     if (local) bad.store(true, std::memory_order_relaxed);

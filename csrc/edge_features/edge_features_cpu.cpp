@@ -17,7 +17,7 @@ at::Tensor edge_features_cpu(const at::Tensor& x_in, const at::Tensor& idx_in) {
     const scalar_t* xp = x.const_data_ptr<scalar_t>();
     const int64_t* ip = idx.const_data_ptr<int64_t>();
     scalar_t* op = out.mutable_data_ptr<scalar_t>();
-    at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
+    parallel_ranges(B * C, 1, [&](int64_t begin, int64_t end) {
       for (int64_t bc = begin; bc < end; ++bc) {
         const int64_t b = bc / C, c = bc % C;
         const scalar_t* row = xp + bc * N;
@@ -45,7 +45,7 @@ at::Tensor edge_features_backward_cpu(const at::Tensor& grad_in, const at::Tenso
     const scalar_t* gp = grad.const_data_ptr<scalar_t>();
     const int64_t* ip = idx.const_data_ptr<int64_t>();
     scalar_t* gx = grad_x.mutable_data_ptr<scalar_t>();
-    at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
+    parallel_ranges(B * C, 1, [&](int64_t begin, int64_t end) {
       for (int64_t bc = begin; bc < end; ++bc) {
         const int64_t b = bc / C, c = bc % C;
         const int64_t* ib = ip + b * N * k;

@@ -17,7 +17,7 @@ namespace {
 template <typename scalar_t, Reduce R>
 void gather_reduce_rows(const scalar_t* vp, const int64_t* ip, scalar_t* op, int64_t* ap, int64_t B, int64_t C,
                         int64_t M, int64_t N, int64_t k) {
-  at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
+  parallel_ranges(B * C, 1, [&](int64_t begin, int64_t end) {
     for (int64_t bc = begin; bc < end; ++bc) {
       const scalar_t* row = vp + bc * M;
       const int64_t* ib = ip + (bc / C) * N * k;
@@ -92,7 +92,7 @@ at::Tensor gather_reduce_backward_cpu(const at::Tensor& grad_in, const at::Tenso
     scalar_t* gv = grad_values.mutable_data_ptr<scalar_t>();
     const scalar_t scale = reduce == Reduce::kMean ? scalar_t(1) / static_cast<scalar_t>(k) : scalar_t(1);
     // One task per (batch, channel) row: the scatter has no races and a fixed order.
-    at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
+    parallel_ranges(B * C, 1, [&](int64_t begin, int64_t end) {
       for (int64_t bc = begin; bc < end; ++bc) {
         const int64_t* ib = ip + (bc / C) * N * k;
         scalar_t* row = gv + bc * M;

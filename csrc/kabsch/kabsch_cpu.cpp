@@ -62,7 +62,7 @@ std::tuple<at::Tensor, at::Tensor> kabsch_cpu(const at::Tensor& src_in, const at
     const scalar_t* wp = weights.const_data_ptr<scalar_t>();
     for (int64_t b = 0; b < B; ++b) check_weights(wp + b * N, N, b);
     scalar_t *rp = R.mutable_data_ptr<scalar_t>(), *tp = t.mutable_data_ptr<scalar_t>();
-    at::parallel_for(0, B, std::max<int64_t>(1, 4096 / N), [&](int64_t begin, int64_t end) {
+    parallel_ranges(B, std::max<int64_t>(1, 4096 / N), [&](int64_t begin, int64_t end) {
       for (int64_t b = begin; b < end; ++b)
         solve(xp + b * N * 3, yp + b * N * 3, wp + b * N, N).write(rp + 9 * b, tp + 3 * b);
     });
@@ -84,7 +84,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> kabsch_backward_cpu(const at::Ten
     const scalar_t* gtp = gt.const_data_ptr<scalar_t>();
     scalar_t *gxp = g_src.mutable_data_ptr<scalar_t>(), *gyp = g_tgt.mutable_data_ptr<scalar_t>();
     scalar_t* gwp = g_w.mutable_data_ptr<scalar_t>();
-    at::parallel_for(0, B, std::max<int64_t>(1, 4096 / N), [&](int64_t begin, int64_t end) {
+    parallel_ranges(B, std::max<int64_t>(1, 4096 / N), [&](int64_t begin, int64_t end) {
       for (int64_t b = begin; b < end; ++b) {
         const scalar_t *x = xp + b * N * 3, *y = yp + b * N * 3, *w = wp + b * N;
         const Procrustes p = solve(x, y, w, N);

@@ -139,28 +139,32 @@ struct Grid {
   }
 };
 
+constexpr int64_t kGridQueryBlock = 256;  // queries (in grid order) per task of the grid search
+
 template <typename scalar_t>
 void knn_grid(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self,
               at::Tensor& dist, at::Tensor& idx) {
   const int64_t B = query.size(0), N = query.size(1), M = ref.size(1);
-  for (int64_t b = 0; b < B; ++b) {
+  // Every cloud's grid (and the grid order of its queries, so that neighbouring queries share
+  // cached cells), then the searches: two parallel regions per call, whatever B is.
+  std::vector<Grid<scalar_t>> grids(B), query_orders(B);
+  parallel_tasks(B, [&](int64_t b) {
+    grids[b].build(ref.const_data_ptr<scalar_t>() + b * M * 3, M);
+    query_orders[b].build(query.const_data_ptr<scalar_t>() + b * N * 3, N);
+  });
+  const int64_t blocks = (N + kGridQueryBlock - 1) / kGridQueryBlock;
+  parallel_tasks(B * blocks, [&](int64_t task) {
+    const int64_t b = task / blocks, s0 = (task % blocks) * kGridQueryBlock, s1 = std::min(N, s0 + kGridQueryBlock);
     const scalar_t* q = query.const_data_ptr<scalar_t>() + b * N * 3;
-    Grid<scalar_t> grid;
-    grid.build(ref.const_data_ptr<scalar_t>() + b * M * 3, M);
-    // Visit queries in grid order so that neighbouring queries share cached cells.
-    Grid<scalar_t> query_order;
-    query_order.build(q, N);
     scalar_t* d_out = dist.mutable_data_ptr<scalar_t>() + b * N * k;
     int64_t* i_out = idx.mutable_data_ptr<int64_t>() + b * N * k;
-    at::parallel_for(0, N, 64, [&](int64_t begin, int64_t end) {
-      for (int64_t s = begin; s < end; ++s) {
-        const int64_t n = query_order.order[s];
-        TopK<scalar_t> top{d_out + n * k, i_out + n * k, k};
-        top.reset(M);
-        grid.search(q + 3 * n, exclude_self ? n : -1, top);
-      }
-    });
-  }
+    for (int64_t s = s0; s < s1; ++s) {
+      const int64_t n = query_orders[b].order[s];
+      TopK<scalar_t> top{d_out + n * k, i_out + n * k, k};
+      top.reset(M);
+      grids[b].search(q + 3 * n, exclude_self ? n : -1, top);
+    }
+  });
 }
 
 constexpr int64_t kQueryBlock = 256;
@@ -190,9 +194,9 @@ void knn_row_exhaustive(const scalar_t* q, const scalar_t* refs, int64_t M, int6
 // and re-ranks the survivors by exact distance (see Reservoir).
 //
 // The whole call is ONE parallel region in which the threads claim (cloud, block of kQueryBlock
-// queries) tasks; inside a task the tile products run single-threaded. A fork and join per tile (thousands per call) made
-// the search 10x slower whenever another process held a core: every join waited for a
-// descheduled thread.
+// queries) tasks (parallel_tasks); inside a task the tile products run single-threaded. A fork and
+// join per tile (thousands per call) made the search 10x slower whenever another process held a
+// core: every join waited for a descheduled thread.
 template <typename scalar_t>
 void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self,
                at::Tensor& dist, at::Tensor& idx) {
@@ -214,56 +218,50 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
   const scalar_t* q_all = query.const_data_ptr<scalar_t>();
   const scalar_t* r_all = ref.const_data_ptr<scalar_t>();
   const int64_t blocks = (N + kQueryBlock - 1) / kQueryBlock;
-  // Tasks are claimed one at a time from a shared counter, so a thread whose core is busy with
-  // another process simply does fewer of them (a static split would make everyone wait for it).
-  std::atomic<int64_t> next_task{0};
-  const int64_t tasks = B * blocks;
-  at::parallel_for(0, std::min<int64_t>(tasks, at::get_num_threads()), 1, [&](int64_t, int64_t) {
+  parallel_tasks(B * blocks, [&](int64_t task) {
     std::vector<Reservoir<scalar_t>> reservoirs(std::min(N, kQueryBlock));
     std::vector<scalar_t> row_dist(std::min(M, kRefBlock));
-    for (int64_t task = next_task++; task < tasks; task = next_task++) {
-      const int64_t b = task / blocks, q0 = (task % blocks) * kQueryBlock, q1 = std::min(N, q0 + kQueryBlock);
-      const scalar_t* q_rows = q_all + b * N * C;
-      const scalar_t* r_rows = r_all + b * M * C;
-      scalar_t* d_out = dist.mutable_data_ptr<scalar_t>() + b * N * k;
-      int64_t* i_out = idx.mutable_data_ptr<int64_t>() + b * N * k;
-      if (!std::isfinite(rn_max[b]) || !std::isfinite(qn_max[b])) {
-        // Squared norms overflow the dtype (coordinates spread over ~1e19 in float32): the expanded
-        // formula is meaningless, so this cloud is searched exhaustively with exact differences.
-        for (int64_t n = q0; n < q1; ++n)
-          knn_row_exhaustive(q_rows + n * C, r_rows, M, C, exclude_self ? n : -1, k, d_out + n * k, i_out + n * k);
-        continue;
-      }
-      const scalar_t* qn = qn_all + b * N;
-      const scalar_t* rn = rn_all + b * M;
-      for (int64_t n = q0; n < q1; ++n) {
-        const scalar_t slack = relative_error * (qn[n] + rn_max[b]);
-        reservoirs[n - q0].reset(k, std::isfinite(slack) ? slack : scalar_t(0));
-      }
-      const at::Tensor q_tile = q_centred.select(0, b).narrow(0, q0, q1 - q0);
-      for (int64_t r0 = 0; r0 < M; r0 += kRefBlock) {
-        const int64_t r1 = std::min(M, r0 + kRefBlock), width = r1 - r0;
-        // dots[n, j] = q_n . r_j (single-threaded inside this task); d ~ |q|^2 + |r|^2 - 2 q.r,
-        // clamped at 0, +inf where not finite.
-        const at::Tensor dots = at::mm(q_tile, r_centred.select(0, b).narrow(0, r0, width).t());
-        const scalar_t* dp = dots.const_data_ptr<scalar_t>();
-        for (int64_t n = q0; n < q1; ++n) {
-          const scalar_t* row = dp + (n - q0) * width;
-          scalar_t* dst = row_dist.data();
-          for (int64_t j = 0; j < width; ++j) {
-            const scalar_t d = qn[n] + rn[r0 + j] - 2 * row[j];
-            dst[j] = std::isfinite(d) ? std::max<scalar_t>(d, 0) : std::numeric_limits<scalar_t>::infinity();
-          }
-          // NaN never passes `<= threshold`: the query itself is skipped without a per-candidate test.
-          if (exclude_self && n >= r0 && n < r1) dst[n - r0] = std::numeric_limits<scalar_t>::quiet_NaN();
-          Reservoir<scalar_t>& res = reservoirs[n - q0];
-          for (int64_t j = 0; j < width; ++j)
-            if (dst[j] <= res.threshold) res.add(dst[j], r0 + j);
-        }
-      }
+    const int64_t b = task / blocks, q0 = (task % blocks) * kQueryBlock, q1 = std::min(N, q0 + kQueryBlock);
+    const scalar_t* q_rows = q_all + b * N * C;
+    const scalar_t* r_rows = r_all + b * M * C;
+    scalar_t* d_out = dist.mutable_data_ptr<scalar_t>() + b * N * k;
+    int64_t* i_out = idx.mutable_data_ptr<int64_t>() + b * N * k;
+    if (!std::isfinite(rn_max[b]) || !std::isfinite(qn_max[b])) {
+      // Squared norms overflow the dtype (coordinates spread over ~1e19 in float32): the expanded
+      // formula is meaningless, so this cloud is searched exhaustively with exact differences.
       for (int64_t n = q0; n < q1; ++n)
-        reservoirs[n - q0].finish(q_rows + n * C, r_rows, C, d_out + n * k, i_out + n * k);
+        knn_row_exhaustive(q_rows + n * C, r_rows, M, C, exclude_self ? n : -1, k, d_out + n * k, i_out + n * k);
+      return;
     }
+    const scalar_t* qn = qn_all + b * N;
+    const scalar_t* rn = rn_all + b * M;
+    for (int64_t n = q0; n < q1; ++n) {
+      const scalar_t slack = relative_error * (qn[n] + rn_max[b]);
+      reservoirs[n - q0].reset(k, std::isfinite(slack) ? slack : scalar_t(0));
+    }
+    const at::Tensor q_tile = q_centred.select(0, b).narrow(0, q0, q1 - q0);
+    for (int64_t r0 = 0; r0 < M; r0 += kRefBlock) {
+      const int64_t r1 = std::min(M, r0 + kRefBlock), width = r1 - r0;
+      // dots[n, j] = q_n . r_j (single-threaded inside this task); d ~ |q|^2 + |r|^2 - 2 q.r,
+      // clamped at 0, +inf where not finite.
+      const at::Tensor dots = at::mm(q_tile, r_centred.select(0, b).narrow(0, r0, width).t());
+      const scalar_t* dp = dots.const_data_ptr<scalar_t>();
+      for (int64_t n = q0; n < q1; ++n) {
+        const scalar_t* row = dp + (n - q0) * width;
+        scalar_t* dst = row_dist.data();
+        for (int64_t j = 0; j < width; ++j) {
+          const scalar_t d = qn[n] + rn[r0 + j] - 2 * row[j];
+          dst[j] = std::isfinite(d) ? std::max<scalar_t>(d, 0) : std::numeric_limits<scalar_t>::infinity();
+        }
+        // NaN never passes `<= threshold`: the query itself is skipped without a per-candidate test.
+        if (exclude_self && n >= r0 && n < r1) dst[n - r0] = std::numeric_limits<scalar_t>::quiet_NaN();
+        Reservoir<scalar_t>& res = reservoirs[n - q0];
+        for (int64_t j = 0; j < width; ++j)
+          if (dst[j] <= res.threshold) res.add(dst[j], r0 + j);
+      }
+    }
+    for (int64_t n = q0; n < q1; ++n)
+      reservoirs[n - q0].finish(q_rows + n * C, r_rows, C, d_out + n * k, i_out + n * k);
   });
 }
 
@@ -300,7 +298,7 @@ std::tuple<at::Tensor, at::Tensor> knn_backward_cpu(const at::Tensor& grad_in, c
     const int64_t* ix = idx.const_data_ptr<int64_t>();
     scalar_t* gq = grad_q.mutable_data_ptr<scalar_t>();
     scalar_t* gr = grad_r.mutable_data_ptr<scalar_t>();
-    at::parallel_for(0, B * N, 64, [&](int64_t begin, int64_t end) {
+    parallel_ranges(B * N, 64, [&](int64_t begin, int64_t end) {
       for (int64_t bn = begin; bn < end; ++bn) {
         const int64_t b = bn / N;
         for (int64_t j = 0; j < k; ++j) {
@@ -311,7 +309,7 @@ std::tuple<at::Tensor, at::Tensor> knn_backward_cpu(const at::Tensor& grad_in, c
       }
     });
     // Each task owns one (batch, channel) column of grad_r: no races, deterministic order.
-    at::parallel_for(0, B * C, 1, [&](int64_t begin, int64_t end) {
+    parallel_ranges(B * C, 1, [&](int64_t begin, int64_t end) {
       for (int64_t bc = begin; bc < end; ++bc) {
         const int64_t b = bc / C, c = bc % C;
         for (int64_t n = 0; n < N; ++n) {

@@ -30,7 +30,7 @@ at::Tensor pairwise_distance_loss_cpu(const at::Tensor& x_in, const at::Tensor& 
   std::vector<double> partial(B * tasks, 0.0);
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "pairwise_distance_loss_cpu", [&] {
     const scalar_t *xp = x.const_data_ptr<scalar_t>(), *yp = y.const_data_ptr<scalar_t>();
-    at::parallel_for(0, B * tasks, 8, [&](int64_t begin, int64_t end) {
+    parallel_ranges(B * tasks, 8, [&](int64_t begin, int64_t end) {
       for (int64_t bt = begin; bt < end; ++bt) {
         const int64_t b = bt / tasks, t = bt % tasks;
         const scalar_t *xb = xp + b * N * 3, *yb = yp + b * N * 3;
@@ -68,7 +68,7 @@ std::tuple<at::Tensor, at::Tensor> pairwise_distance_loss_backward_cpu(const at:
     const scalar_t *xp = x.const_data_ptr<scalar_t>(), *yp = y.const_data_ptr<scalar_t>();
     const scalar_t *gp = grad.const_data_ptr<scalar_t>(), *lp = loss.const_data_ptr<scalar_t>();
     scalar_t *gxp = gx.mutable_data_ptr<scalar_t>(), *gyp = gy.mutable_data_ptr<scalar_t>();
-    at::parallel_for(0, B * N, 16, [&](int64_t begin, int64_t end) {
+    parallel_ranges(B * N, 16, [&](int64_t begin, int64_t end) {
       for (int64_t bi = begin; bi < end; ++bi) {
         const int64_t b = bi / N, i = bi % N;
         const scalar_t *xb = xp + b * N * 3, *yb = yp + b * N * 3;

@@ -19,7 +19,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> svd3x3_cpu(const at::Tensor& A_in
     const scalar_t* ap = A.const_data_ptr<scalar_t>();
     scalar_t *up = U.mutable_data_ptr<scalar_t>(), *sp = S.mutable_data_ptr<scalar_t>();
     scalar_t* vp = V.mutable_data_ptr<scalar_t>();
-    at::parallel_for(0, B, 256, [&](int64_t begin, int64_t end) {
+    parallel_ranges(B, 256, [&](int64_t begin, int64_t end) {
       for (int64_t b = begin; b < end; ++b) svd3x3_one(ap + 9 * b, up + 9 * b, sp + 3 * b, vp + 9 * b);
     });
   });
@@ -38,7 +38,7 @@ at::Tensor svd3x3_backward_cpu(const at::Tensor& gU_in, const at::Tensor& gS_in,
     const scalar_t *gvp = gV.const_data_ptr<scalar_t>(), *up = U.const_data_ptr<scalar_t>();
     const scalar_t *sp = S.const_data_ptr<scalar_t>(), *vp = V.const_data_ptr<scalar_t>();
     scalar_t* gap = gA.mutable_data_ptr<scalar_t>();
-    at::parallel_for(0, B, 256, [&](int64_t begin, int64_t end) {
+    parallel_ranges(B, 256, [&](int64_t begin, int64_t end) {
       for (int64_t b = begin; b < end; ++b)
         svd3x3_backward_one(gup + 9 * b, gsp + 3 * b, gvp + 9 * b, up + 9 * b, sp + 3 * b, vp + 9 * b, gap + 9 * b);
     });
