@@ -261,11 +261,25 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--only", default=None, help="comma-separated op names to run")
     parser.add_argument("--no-memory", action="store_true", help="skip the peak-memory measurements")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where inputs live (default cpu)")
+    parser.add_argument("--beside-busy", action="store_true",
+                        help="time while another process keeps one core busy (a shared machine, a DDP rank, a "
+                             "data-loader worker); compare --threads 2 with --threads 1 under it")
     parser.add_argument("--measure-memory", nargs=3, metavar=("OP", "CASE", "IMPL"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    busy = None
+    if args.beside_busy:
+        busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        _run(args)
+    finally:
+        if busy is not None:
+            busy.kill()
+
+
+def _run(args) -> None:
     torch.set_num_threads(args.threads)
     if args.device == "cuda" and not torch.cuda.is_available():
-        parser.error("--device cuda: no CUDA device is available")
+        raise SystemExit("bench_ops: --device cuda: no CUDA device is available")
     cases = all_cases(args.device)
     if args.measure_memory:
         op, name, impl = args.measure_memory
@@ -295,10 +309,12 @@ def main(argv: list[str] | None = None) -> None:
     print()
     gpu = f", GPU {torch.cuda.get_device_name()}" if args.device == "cuda" else ""
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus{gpu}, torch {torch.__version__}, "
-          f"device {args.device}, threads {args.threads}, repeats {repeats}")
+          f"device {args.device}, threads {args.threads}, repeats {repeats}"
+          + (", beside a busy process" if args.beside_busy else ""))
     print(_format_table(records))
     if args.json:
         meta = {"torch": torch.__version__, "threads": args.threads, "repeats": repeats, "cpu_count": os.cpu_count(),
+                "beside_busy": args.beside_busy,
                 "device": torch.cuda.get_device_name() if args.device == "cuda" else platform.machine()}
         with open(args.json, "w") as f:
             json.dump([dict(r, **meta) for r in records], f, indent=1)
