@@ -235,3 +235,29 @@ def test_icp_with_the_reference_knn_works_in_bounded_chunks(monkeypatch):
     reference = icp(src, tgt, np.eye(4), 0.3, backend="torch")
     np.testing.assert_allclose(reference[0], ext[0], atol=1e-9)
     assert reference[1] == ext[1]
+
+
+def test_a_network_estimate_that_fits_worse_than_no_motion_is_dropped_with_a_warning():
+    src = room(6000)
+    tgt = apply(motion(2.0, [0.05, 0.02, 0.0]), room(6000, seed=1))
+
+    class Wrong(torch.nn.Module):  # stands in for a model that does not transfer: a 90 deg turn
+        config = type("Config", (), {"backend": "ext"})()
+
+        def forward(self, src, tgt, backend=None):
+            R = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).expand(src.shape[0], 3, 3)
+            return type("Out", (), dict(rotation=R, translation=torch.zeros(src.shape[0], 3)))()
+
+    result = register(src, tgt, model=Wrong(), icp_points=3000)
+    assert any("does not fit these scans" in w for w in result.warnings), result.warnings
+    np.testing.assert_allclose(result.initial, np.eye(4))
+    assert transform_errors(result.transform, motion(2.0, [0.05, 0.02, 0.0]))["rotation_error_deg"] < 0.5
+
+
+def test_low_fitness_and_unconverged_icp_are_reported():
+    src = room(4000)
+    far_off = apply(motion(40.0, [1.0, 0.5, 0.0]), room(4000, seed=1))
+    result = register(src, far_off, icp_points=2000, icp_iterations=2)
+    assert any("did not converge" in w for w in result.warnings), result.warnings
+    assert any("low fitness" in w for w in result.warnings) or result.fitness >= 0.2
+    assert result.to_dict()["warnings"] == result.warnings

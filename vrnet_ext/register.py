@@ -238,9 +238,22 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
             break
     _, dist2, _ = _nearest_in_reach(src_t @ T[:3, :3].T + T[:3, 3], tgt_t, reach, backend)
     close = dist2[dist2 <= max_distance ** 2]
-    fitness = len(close) / src_t.shape[1]
+    share_within = len(close) / src_t.shape[1]
     rmse = float(close.mean().sqrt()) if len(close) else float("nan")
-    return T.cpu().numpy(), done, fitness, rmse
+    return T.cpu().numpy(), done, share_within, rmse
+
+
+LOW_FITNESS = 0.2  # below this share of source points with a target point within reach, warn
+
+
+def fitness(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: float, backend: str = "ext") -> float:
+    """Share of the points of src (N, 3), moved by the 4x4 ``transform``, that have a point of
+    tgt (M, 3) within ``reach``: a score of any transform on a pair (Open3D's fitness)."""
+    src_t = torch.as_tensor(src, dtype=torch.float64).unsqueeze(0)
+    tgt_t = torch.as_tensor(tgt, dtype=torch.float64).unsqueeze(0)
+    T = torch.as_tensor(transform, dtype=torch.float64)
+    _, dist2, _ = _nearest_in_reach(src_t @ T[:3, :3].T + T[:3, 3], tgt_t, TargetReach(tgt_t, reach), backend)
+    return int((dist2 <= reach ** 2).sum()) / len(src)
 
 
 def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, network_points: int = 1024,
@@ -282,16 +295,31 @@ def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, netwo
     src_icp, tgt_icp = voxel_downsample(src, voxel), voxel_downsample(tgt, voxel)
     seconds["downsample"] = time.perf_counter() - start
     points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))
+    reach = max_distance if max_distance is not None else 3.0 * voxel
+    warnings = []
+    if model is not None:
+        # A network trained on ModelNet40 objects may not transfer to a pair of scans: keep its
+        # estimate only if it brings at least as many source points within reach as no motion does.
+        learned, unmoved = (fitness(src_icp, tgt_icp, T, reach, backend) for T in (initial, np.eye(4)))
+        if learned < unmoved:
+            warnings.append(f"the VRNet estimate brings fewer source points within reach of the target than no "
+                            f"motion ({learned:.1%} vs {unmoved:.1%}); it does not fit these scans, so ICP "
+                            "starts from the identity instead")
+            initial = np.eye(4)
     start = time.perf_counter()
     try:
-        reach = max_distance if max_distance is not None else 3.0 * voxel
-        T, iterations, fitness, rmse = icp(src_icp, tgt_icp, initial, reach, icp_iterations,
-                                           device=device, backend=backend)
+        T, iterations, final_fitness, rmse = icp(src_icp, tgt_icp, initial, reach, icp_iterations,
+                                                 device=device, backend=backend)
     except IcpFailure as failure:
         return RegistrationResult(initial, initial, 0, 0.0, float("nan"), seconds, points,
-                                  [f"{failure}; returning the unrefined initial estimate"])
+                                  warnings + [f"{failure}; returning the unrefined initial estimate"])
     seconds["icp"] = time.perf_counter() - start
-    return RegistrationResult(T, initial, iterations, fitness, rmse, seconds, points)
+    if iterations >= icp_iterations:
+        warnings.append(f"ICP did not converge within {icp_iterations} iterations (raise --icp-iterations)")
+    if final_fitness < LOW_FITNESS:
+        warnings.append(f"low fitness: only {final_fitness:.1%} of the source points have a target point within "
+                        f"{reach:.3g}; the scans may overlap little or the result may be wrong")
+    return RegistrationResult(T, initial, iterations, final_fitness, rmse, seconds, points, warnings)
 
 
 def transform_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
