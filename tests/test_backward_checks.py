@@ -10,7 +10,7 @@ from conftest import requires_ext
 
 HOSTILE_CALLS = textwrap.dedent('''
     import torch
-    import vrnet_ext  # registers torch.ops.vrnet_ext
+    import vrnet_ext.ops  # loads the compiled module: registers torch.ops.vrnet_ext
     ops = torch.ops.vrnet_ext
     f, l = torch.randn, torch.long
     idx = torch.randint(0, 10, (2, 10, 4))

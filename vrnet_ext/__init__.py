@@ -1,10 +1,13 @@
-"""vrnet_ext: VRNet point-cloud registration on fused C++/OpenMP kernels."""
-from vrnet_ext._extension import has_extension
-from vrnet_ext import nn, ops
-from vrnet_ext.model import VRNet, VRNetConfig, VRNetOutput
-from vrnet_ext.pretrained import load_pretrained
-from vrnet_ext.runtime import set_flush_denormal
+"""vrnet_ext: VRNet point-cloud registration on fused C++/OpenMP kernels.
+
+Attributes load on first use (``vrnet_ext.ops`` imports torch and the compiled kernels)."""
+from vrnet_ext._lazy import lazy_attributes
 
 __version__ = "0.1.0"
 __all__ = ["ops", "nn", "VRNet", "VRNetConfig", "VRNetOutput", "has_extension", "load_pretrained",
            "set_flush_denormal", "__version__"]
+__getattr__ = lazy_attributes(__name__, {
+    "ops": "vrnet_ext.ops", "nn": "vrnet_ext.nn", "VRNet": "vrnet_ext.model", "VRNetConfig": "vrnet_ext.model",
+    "VRNetOutput": "vrnet_ext.model", "has_extension": "vrnet_ext._extension",
+    "load_pretrained": "vrnet_ext.pretrained", "set_flush_denormal": "vrnet_ext.runtime",
+})

@@ -10,7 +10,7 @@ import typing
 from dataclasses import fields
 from pathlib import Path
 
-from vrnet_ext.data import SETTINGS
+from vrnet_ext.data.protocol import SETTINGS
 
 
 def _parse_bool(text: str) -> bool:
@@ -80,7 +80,7 @@ DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNE
 
 
 def _train_parser(sub) -> None:
-    from vrnet_ext.train import FIELD_HELP, PRECISIONS, PRESETS, TrainConfig, preset_values
+    from vrnet_ext.train_config import FIELD_HELP, PRECISIONS, PRESETS, TrainConfig, preset_values
 
     p = sub.add_parser("train", help="two-stage training on ModelNet40 (DDP under torchrun)",
                        description="Two-stage VRNet training. Start from a preset; any flag overrides it. "
@@ -131,7 +131,7 @@ def _train_parser(sub) -> None:
 
 def build_train_config(args):
     """TrainConfig from parsed ``vrnet train`` flags: the preset, then every flag given."""
-    from vrnet_ext.train import PRESETS, TrainConfig
+    from vrnet_ext.train_config import PRESETS, TrainConfig
 
     model_keys = ("emb_dims", "k", "iterations", "walk_gate", "walk_confidence", "walk_match_stats", "irls_iterations")
     overrides = {k: v for k, v in vars(args).items() if k not in ("command", "preset", "no_progress") + model_keys}

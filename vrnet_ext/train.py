@@ -28,7 +28,7 @@ import os
 import signal
 import threading
 import time
-from dataclasses import MISSING, asdict, dataclass, field, fields
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -45,117 +45,7 @@ from vrnet_ext.losses import HybridLossWeights, correspondence_loss, hybrid_loss
 from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.plots import plot_metrics
 from vrnet_ext.runtime import set_flush_denormal
-
-PRESETS = {
-    "paper": dict(model=VRNetConfig().to_dict(), batch_size=28, stage1_epochs=100, stage2_epochs=100,
-                  num_points=1024, num_subsampled=768),
-    "small": dict(model=VRNetConfig.small().to_dict(), batch_size=8, stage1_epochs=3, stage2_epochs=2,
-                  num_points=512, num_subsampled=384, max_train_items=480, max_val_items=96),
-    "cpu": dict(model=VRNetConfig.small().to_dict(), batch_size=16, stage1_epochs=30, stage2_epochs=10,
-                num_points=1024, num_subsampled=768, lr_milestones=[20]),
-    "tiny": dict(model=VRNetConfig.small(k=8, dgcnn_channels=(16, 16), emb_dims=32, heads=2, ff_dims=64,
-                                         walk_channels=(32, 16, 3)).to_dict(),
-                 batch_size=4, stage1_epochs=1, stage2_epochs=1, num_points=96, num_subsampled=64,
-                 max_train_items=16, max_val_items=8),
-}
-
-
-PRECISIONS = ("bf16", "fp32")
-
-# What each training option means (``vrnet train --help`` adds every preset's value).
-FIELD_HELP = {
-    "data_dir": "folder holding modelnet40_1024_{train,test}.h5",
-    "out_dir": "where checkpoints, metrics.jsonl/csv and curves.png go",
-    "setting": "CO | PV | RS | PV+RS",
-    "split": "UPC | UC | ND",
-    "batch_size": "pairs per step (per process under DDP)",
-    "stage1_epochs": "epochs of stage 1 (features, L0)",
-    "stage2_epochs": "epochs of stage 2 (frozen features, correction walk, hybrid loss)",
-    "lr_stage1": "Adam learning rate of stage 1",
-    "lr_stage2": "Adam learning rate of stage 2",
-    "weight_decay": "Adam weight decay",
-    "lr_milestones": "epochs (counted within each stage) at which the learning rate is multiplied by lr_gamma",
-    "lr_gamma": "learning-rate factor at each milestone",
-    "num_points": "points per shape before the crop",
-    "num_subsampled": "points per cloud after the PV / RS crop",
-    "classes": "keep only these ModelNet40 labels",
-    "max_train_items": "use at most this many training shapes (default: all)",
-    "max_val_items": "validate on at most this many held-out shapes (default: all)",
-    "val_fraction": "share of the training shapes held out for validation",
-    "seed": "seed of pairs, batch order and initialisation",
-    "device": "auto | cpu | cuda",
-    "backend": "ext (compiled ops) | torch (pure PyTorch)",
-    "num_workers": "DataLoader worker processes",
-    "loss_l4": "weight of L4 (amendment offset) in the hybrid loss",
-    "precision": "bf16: forward and loss under bfloat16 autocast (ops, matching and Procrustes stay float32) | fp32",
-    "checkpoint_minutes": "also write last.pt every this many minutes inside an epoch",
-    "resume": "continue from this last.pt (same options as the run that wrote it)",
-    "features_from": "start from the feature extractor of this checkpoint (e.g. stage 2 on another run's features)",
-    "flush_denormal": "flush denormal floats to zero (1/0; much faster soft matching on x86)",
-}
-
-
-def preset_values(name: str) -> dict[str, object]:
-    """Every preset's value of one training option (``preset -> value``)."""
-    default = {f.name: (f.default if f.default_factory is MISSING else f.default_factory())
-               for f in fields(TrainConfig)}[name]
-    return {preset: values.get(name, default) for preset, values in PRESETS.items()}
-
-
-@dataclass
-class TrainConfig:
-    """Everything a run needs; every field is a ``vrnet train`` flag."""
-
-    preset: str = "paper"
-    data_dir: str | None = None
-    out_dir: str = "runs/vrnet"
-    setting: str = "PV"
-    split: str = "UPC"
-    model: dict = field(default_factory=lambda: VRNetConfig().to_dict())
-    batch_size: int = 28
-    stage1_epochs: int = 100
-    stage2_epochs: int = 100
-    lr_stage1: float = 1e-3
-    lr_stage2: float = 1e-4
-    weight_decay: float = 1e-4
-    lr_milestones: list[int] = field(default_factory=lambda: [75])
-    lr_gamma: float = 0.1
-    num_points: int = 1024
-    num_subsampled: int = 768
-    classes: list[int] | None = None
-    max_train_items: int | None = None
-    max_val_items: int | None = None
-    val_fraction: float = 0.1
-    seed: int = 1234
-    device: str = "auto"
-    backend: str = "ext"
-    num_workers: int = 0
-    loss_l4: float = 100.0
-    precision: str = "bf16"
-    checkpoint_minutes: float = 10.0
-    resume: str | None = None
-    features_from: str | None = None
-    flush_denormal: bool = True
-    progress: bool = True
-
-    @classmethod
-    def from_preset(cls, preset: str, **overrides) -> "TrainConfig":
-        if preset not in PRESETS:
-            raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
-        values = dict(PRESETS[preset], preset=preset)
-        values.update({k: v for k, v in overrides.items() if v is not None})
-        known = {f.name for f in fields(cls)}
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown training options: {sorted(unknown)}")
-        return cls(**values)
-
-    def __post_init__(self) -> None:
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
-        if not self.checkpoint_minutes > 0:
-            raise ValueError(f"checkpoint_minutes must be > 0, got {self.checkpoint_minutes}")
-
+from vrnet_ext.train_config import FIELD_HELP, PRECISIONS, PRESETS, TrainConfig, preset_values  # noqa: F401
 
 class _Run:
     """Distributed context: rank, world size, device."""
