@@ -17,7 +17,7 @@ import torch
 from vrnet_ext.model import VRNet
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-DEFAULT_MODEL = "vrnet-pv-upc"
+DEFAULT_MODEL = "vrnet-pv-upc-weighted-vcp"
 FORMAT = "vrnet_ext.pretrained/1"
 
 
@@ -44,7 +44,7 @@ def load_pretrained(name: str | None = None, device: str | torch.device = "cpu")
     """
     from vrnet_ext.checkpoints import load_model
 
-    return load_model(name or DEFAULT_MODEL, device)[0]
+    return load_model(weights_path(name or DEFAULT_MODEL), device)[0]
 
 
 def model_card(name: str | None = None) -> dict:

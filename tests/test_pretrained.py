@@ -1,0 +1,63 @@
+"""The shipped weights: present, small, float16, loadable, and working on the paper's partial views."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import MODELNET_DIR
+from vrnet_ext import load_pretrained
+from vrnet_ext.checkpoints import read_checkpoint
+from vrnet_ext.data import PairSpec, make_pair
+from vrnet_ext.data.procedural import chair
+from vrnet_ext.metrics import rotation_error_deg
+from vrnet_ext.pretrained import DEFAULT_MODEL, WEIGHTS_DIR, available, model_card, weights_path
+
+
+def test_the_default_model_ships_as_small_float16_weights_with_a_card():
+    assert DEFAULT_MODEL in available()
+    total = sum(path.stat().st_size for path in WEIGHTS_DIR.glob("*.pt"))
+    assert total <= 20 * 2**20, f"shipped weights take {total / 2**20:.1f} MB"
+    for name in available():
+        state = read_checkpoint(weights_path(name))
+        assert all(v.dtype == torch.float16 for v in state["model"].values() if v.is_floating_point())
+        assert weights_path(name).with_suffix(".md").exists(), f"{name} has no model card"
+        card = model_card(name)
+        assert card["training"]["setting"] and "test" in card and card["test"]["pairs"] >= 2468
+
+
+def test_load_pretrained_registers_a_partial_view_pair():
+    model = load_pretrained()
+    assert not model.training and all(p.dtype == torch.float32 for p in model.parameters())
+    rng = np.random.default_rng(7)
+    pairs = [make_pair(chair(rng), PairSpec(setting="PV"), rng) for _ in range(4)]
+    src = torch.from_numpy(np.stack([p["src"] for p in pairs]))
+    tgt = torch.from_numpy(np.stack([p["tgt"] for p in pairs]))
+    assert src.shape == tgt.shape == (4, 768, 3)
+    with torch.no_grad():
+        out = model(src, tgt)
+    assert out.rotation.shape == (4, 3, 3) and torch.isfinite(out.translation).all()
+    with pytest.raises(ValueError, match="no shipped model"):
+        load_pretrained("no-such-model")
+
+
+@pytest.mark.skipif(not (MODELNET_DIR / "modelnet40_1024_test.h5").exists(), reason="ModelNet40 not found")
+def test_the_default_model_is_accurate_on_modelnet40_test_pairs():
+    from vrnet_ext.data import ModelNet40Pairs
+
+    data = ModelNet40Pairs(MODELNET_DIR, partition="test", setting="PV", split="UPC", max_items=48)
+    batch = {k: torch.stack([data[i][k] for i in range(len(data))]) for k in ("src", "tgt", "rotation")}
+    with torch.no_grad():
+        out = load_pretrained()(batch["src"], batch["tgt"])
+    errors = rotation_error_deg(out.rotation, batch["rotation"])
+    assert float(errors.median()) < 3.0, errors
+
+
+def test_vrnet_demo_runs_without_data(tmp_path, capsys):
+    from vrnet_ext.cli import main
+
+    out = tmp_path / "demo.png"
+    assert main(["demo", "--pairs", "2", "--out", str(out), "--json", str(tmp_path / "demo.json")]) == 0
+    assert out.stat().st_size > 20_000
+    result = json.loads((tmp_path / "demo.json").read_text())
+    assert len(result["pairs"]) == 2 and "rotation error" in capsys.readouterr().out
