@@ -22,24 +22,23 @@ def _parse_bool(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"expected 1/0/true/false, got {text!r}")
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
+def _int_at_least(low: int):
+    """An argparse type: an integer >= ``low``, with an error that says so."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {value}")
+        return value
+
+    parse.__name__ = f"integer >= {low}"
+    return parse
 
 
-def _nonnegative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
-    return value
+_positive_int = _int_at_least(1)
+_nonnegative_int = _int_at_least(0)
 
 
 def _positive_float(text: str) -> float:
@@ -200,8 +199,7 @@ def _run_eval(args) -> int:
     result.update(setting=setting, split=split, checkpoint=str(args.checkpoint), iterations=model.config.iterations)
     print(format_table({k: v for k, v in result.items() if isinstance(v, (int, float))}, f"VRNet {setting} {split}"))
     out = Path(args.json) if args.json else Path(args.checkpoint).with_name(f"eval_{setting}_{split}.json".replace("+", ""))
-    out.write_text(json.dumps(result, indent=1))
-    print(f"wrote {out}")
+    _write_json(out, result)
     return 0
 
 
@@ -293,9 +291,13 @@ def _run_register(args) -> int:
         views = {"initial": result.initial, "final": result.transform}
         print(f"wrote {plot_registration(src, tgt, views, args.plot)}")
     if args.json:
-        Path(args.json).write_text(json.dumps(record, indent=1))
-        print(f"wrote {args.json}")
+        _write_json(args.json, record)
     return 0
+
+
+def _write_json(path: str | Path, record: dict) -> None:
+    Path(path).write_text(json.dumps(record, indent=1))
+    print(f"wrote {path}")
 
 
 def _demo_parser(sub) -> None:
@@ -332,8 +334,7 @@ def _run_demo(args) -> int:
     if result.get("plot"):
         print(f"wrote {result['plot']}")
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1))
-        print(f"wrote {args.json}")
+        _write_json(args.json, result)
     return 0
 
 
