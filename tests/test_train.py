@@ -132,21 +132,22 @@ def test_resume_from_a_mid_epoch_checkpoint_continues_bit_exactly(tmp_path, monk
 @requires_modelnet
 def test_a_stop_signal_saves_a_mid_epoch_checkpoint_that_resumes_bit_exactly(tmp_path):
     import signal
-    import subprocess
+    import time
 
-    straight = tmp_path / "straight"
-    train(tiny(tmp_path, "straight", stage1_epochs=2, stage2_epochs=0, max_train_items=40, batch_size=2))
-    run = tmp_path / "run"
-    cmd = [sys.executable, "-m", "vrnet_ext.cli", "train", "--preset", "tiny", "--data-dir", str(MODELNET_DIR),
-           "--out-dir", str(run), "--stage1-epochs", "2", "--stage2-epochs", "0", "--max-train-items", "40",
-           "--batch-size", "2", "--no-progress"]
+    # Every run in its own process with one thread: bit-exactness needs the same summation orders.
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    process = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    # wait until the first epoch has ended, then ask for a stop in the middle of the second
-    for _ in range(600):
+
+    def command(out_dir, *extra):
+        return [sys.executable, "-m", "vrnet_ext.cli", "train", "--preset", "tiny", "--data-dir", str(MODELNET_DIR),
+                "--out-dir", str(out_dir), "--stage1-epochs", "2", "--stage2-epochs", "0", "--max-train-items", "40",
+                "--batch-size", "2", "--no-progress", *extra]
+
+    straight, run = tmp_path / "straight", tmp_path / "run"
+    subprocess.run(command(straight), check=True, capture_output=True, env=env, timeout=300)
+    process = subprocess.Popen(command(run), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    for _ in range(600):  # wait until the first epoch has ended, then ask for a stop in the second
         if (run / "metrics.jsonl").exists():
             break
-        import time
         time.sleep(0.1)
     process.send_signal(signal.SIGTERM)
     out, err = process.communicate(timeout=300)
@@ -155,8 +156,8 @@ def test_a_stop_signal_saves_a_mid_epoch_checkpoint_that_resumes_bit_exactly(tmp
     if stopped["partial"] is None:
         pytest.skip("the run finished before the signal arrived")
     assert "--resume" in out and stopped["partial"]["epoch"] == 1
-    train(tiny(tmp_path, "run", stage1_epochs=2, stage2_epochs=0, max_train_items=40, batch_size=2,
-               resume=str(run / "last.pt")))
+    subprocess.run(command(run, "--resume", str(run / "last.pt")), check=True, capture_output=True, env=env,
+                   timeout=300)
     expected, resumed = load_checkpoint(straight / "last.pt"), load_checkpoint(run / "last.pt")
     assert expected["step"] == resumed["step"]
     for key, value in expected["model"].items():
