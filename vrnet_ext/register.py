@@ -266,8 +266,10 @@ def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, netwo
     FPFH features + RANSAC on about this many points per scan. Neither: ICP starts from the identity.
     network_points: points per cloud fed to the network. icp_points: ICP works on voxel-downsampled
     clouds of about this many points (``voxel_size`` overrides). max_distance: ICP inlier reach
-    (default 3 voxels). icp_iterations=0 skips ICP. If ICP finds no pairs within reach, the result
-    is the initial estimate with a message in ``warnings``.
+    (default 3 voxels). icp_iterations=0 skips ICP. With a model, ICP runs from its estimate and
+    from no motion, and the refinement with the higher fitness wins (``initial`` is then the start
+    it came from; a warning says when that was not the network's). If ICP finds no pairs within
+    reach, the result is the initial estimate with a message in ``warnings``.
     """
     if model is not None and fpfh_points:
         raise ValueError("give one initial estimate: a VRNet model or fpfh_points, not both")
@@ -297,22 +299,28 @@ def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, netwo
     points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))
     reach = max_distance if max_distance is not None else 3.0 * voxel
     warnings = []
-    if model is not None:
-        # A network trained on ModelNet40 objects may not transfer to a pair of scans: keep its
-        # estimate only if it brings at least as many source points within reach as no motion does.
-        learned, unmoved = (fitness(src_icp, tgt_icp, T, reach, backend) for T in (initial, np.eye(4)))
-        if learned < unmoved:
-            warnings.append(f"the VRNet estimate brings fewer source points within reach of the target than no "
-                            f"motion ({learned:.1%} vs {unmoved:.1%}); it does not fit these scans, so ICP "
-                            "starts from the identity instead")
-            initial = np.eye(4)
+    # A network trained on ModelNet40 objects may not fit a pair of scans: with a network estimate,
+    # ICP also runs from no motion, and the refinement with the higher fitness (then the lower inlier
+    # RMSE) wins, with a warning when that is not the network's.
+    starts = {"the VRNet estimate": initial, "no motion": np.eye(4)} if model is not None else {"start": initial}
     start = time.perf_counter()
-    try:
-        T, iterations, final_fitness, rmse = icp(src_icp, tgt_icp, initial, reach, icp_iterations,
-                                                 device=device, backend=backend)
-    except IcpFailure as failure:
+    refined, failures = {}, []
+    for label, guess in starts.items():
+        try:
+            refined[label] = (guess, *icp(src_icp, tgt_icp, guess, reach, icp_iterations, device=device,
+                                          backend=backend))
+        except IcpFailure as failure:
+            failures.append(f"{failure} (from {label})")
+    if not refined:
         return RegistrationResult(initial, initial, 0, 0.0, float("nan"), seconds, points,
-                                  warnings + [f"{failure}; returning the unrefined initial estimate"])
+                                  [f"{'; '.join(failures)}; returning the unrefined initial estimate"])
+    label = max(refined, key=lambda name: (refined[name][3], -refined[name][4]))
+    initial, T, iterations, final_fitness, rmse = refined[label]
+    if model is not None and label == "no motion":
+        learned = refined.get("the VRNet estimate")
+        from_network = f"fitness {learned[3]:.1%}" if learned else "no pairs within reach"
+        warnings.append(f"the VRNet estimate does not fit these scans (ICP from it: {from_network}; from no "
+                        f"motion: {final_fitness:.1%}); returning the refinement that started from no motion")
     seconds["icp"] = time.perf_counter() - start
     if iterations >= icp_iterations:
         warnings.append(f"ICP did not converge within {icp_iterations} iterations (raise --icp-iterations)")
