@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch.nn import functional as F
 
+from vrnet_ext.metrics import correspondence_error
 from vrnet_ext.model.vrnet import VRNetOutput
 from vrnet_ext.ops import kabsch, pairwise_distance_loss
 
@@ -92,12 +93,12 @@ def hybrid_loss(out: VRNetOutput, src: torch.Tensor, gt_rotation: torch.Tensor, 
     total = w.l1 * l1 + w.l2 * l2 + w.l3 * l3 + w.l4 * l4
     parts = {"L1": float(l1.detach()), "L2": float(l2.detach()), "L3": float(l3.detach()), "L4": float(l4.detach())}
     if out.gate_logits is not None:
-        needs_correction = (out.vcp.detach() - truth).norm(dim=-1) > w.correct_within
+        needs_correction = correspondence_error(out.vcp.detach(), src, gt_rotation, gt_translation) > w.correct_within
         lg = F.binary_cross_entropy_with_logits(out.gate_logits.float(), needs_correction.float())
         total = total + w.gate * lg
         parts["LG"] = float(lg.detach())
     if out.confidence_logits is not None:
-        correct = (out.rcp.detach() - truth).norm(dim=-1) < w.correct_within
+        correct = correspondence_error(out.rcp.detach(), src, gt_rotation, gt_translation) < w.correct_within
         lc = F.binary_cross_entropy_with_logits(out.confidence_logits.float(), correct.float())
         total = total + w.confidence * lc
         parts["LC"] = float(lc.detach())
