@@ -134,6 +134,25 @@ def _pdl_case(N, quick=True, skip_torch=None):
     return Case("pairwise_distance_loss", f"fwd+bwd B=1 N={N}", make, impls, quick, skip)
 
 
+def _soft_match_case(B, N, c, D, backward=True, quick=True, skip_torch=None):
+    """The best existing tool is torch's scaled_dot_product_attention (a flash-attention kernel on
+    CPU and GPU): the same product, without the log-normaliser VRNet's matching statistics need."""
+    def make():
+        tensors = (_clouds(B, N, c), _clouds(B, N, c, seed=1), _clouds(B, N, D, seed=2))
+        return _grad(*tensors) if backward else tensors
+
+    def sdpa(q, k, v):
+        return torch.nn.functional.scaled_dot_product_attention(q, k, v)
+
+    impls = {b: (lambda q, k, v, b=b: ops.soft_match(q, k, v, backend=b)) for b in ("ext", "torch")}
+    impls["sdpa"] = sdpa
+    if backward:
+        impls = {name: _fwd_bwd(fn) for name, fn in impls.items()}
+    skip = {"torch": skip_torch} if skip_torch else None
+    kind = "fwd+bwd" if backward else "fwd"
+    return Case("soft_match", f"{kind} B={B} N=M={N} c={c} D={D}", make, impls, quick, skip)
+
+
 def cuda_cases() -> list[Case]:
     return [
         _knn_case(8, 16384, 3, 20),
@@ -147,6 +166,8 @@ def cuda_cases() -> list[Case]:
         _kabsch_case(1 << 20, 16),
         _pdl_case(4096),
         _pdl_case(65536, skip_torch="the reference needs ~70 GB of N x N matrices"),
+        _soft_match_case(28, 768, 512, 515),
+        _soft_match_case(1, 50000, 32, 35, backward=False, skip_torch="the reference needs ~20 GB (50k x 50k)"),
     ]
 
 
@@ -165,6 +186,10 @@ def all_cases(device: str = "cpu") -> list[Case]:
         _kabsch_case(65536, 16),
         _pdl_case(4096),
         _pdl_case(16384, quick=False, skip_torch="the reference needs ~7 GB of N x N matrices"),
+        _soft_match_case(16, 768, 128, 131),
+        _soft_match_case(1, 8192, 32, 35, backward=False),
+        _soft_match_case(1, 50000, 32, 35, backward=False, quick=False,
+                         skip_torch="the reference needs ~20 GB (two 50k x 50k matrices)"),
     ]
 
 

@@ -63,7 +63,7 @@ def make_step(model: VRNet, batch: dict, stage: int, impl: str) -> Callable[[int
         stage_train_mode(model, stage)
         start = _now(device)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-            out = model(batch["src"], batch["tgt"], backend=backend)
+            out = model(batch["src"], batch["tgt"], backend=backend, return_matching=stage == 1)
             if stage == 1:
                 loss = correspondence_loss(out.matching, batch["gt_idx"])
             else:

@@ -37,7 +37,7 @@ def main() -> None:
     with torch.no_grad():
         for batch in DataLoader(data, batch_size=16):
             src, vcp = batch["src"], None
-            out = model(src, batch["tgt"])
+            out = model(src, batch["tgt"], return_matching=True)
             vcp = out.vcp
             truth = src @ batch["rotation"].mT + batch["translation"].unsqueeze(1)
             error = (vcp - truth).norm(dim=-1)

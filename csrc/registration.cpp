@@ -17,6 +17,8 @@ TORCH_LIBRARY(vrnet_ext, m) {
   m.def("kabsch_backward(Tensor grad_R, Tensor grad_t, Tensor src, Tensor tgt, Tensor weights) -> (Tensor, Tensor, Tensor)");
   m.def("pairwise_distance_loss(Tensor x, Tensor y) -> Tensor");
   m.def("pairwise_distance_loss_backward(Tensor grad_loss, Tensor x, Tensor y, Tensor loss) -> (Tensor, Tensor)");
+  m.def("soft_match(Tensor query, Tensor key, Tensor values, float scale) -> (Tensor, Tensor, Tensor)");
+  m.def("soft_match_backward(Tensor grad_out, Tensor grad_lse, Tensor query, Tensor key, Tensor values, Tensor out, Tensor lse, float scale) -> (Tensor, Tensor, Tensor)");
 }
 
 extern "C" PyObject* PyInit__C(void) {

@@ -64,7 +64,7 @@ def test_vrnet_trains_under_bf16_autocast_with_a_float32_matching():
                                     walk_channels=(8, 3)))
     src, tgt = torch.rand(2, 40, 3), torch.rand(2, 40, 3)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        out = model(src, tgt)
+        out = model(src, tgt, return_matching=True)
         loss = correspondence_loss(out.matching, torch.arange(40).expand(2, 40))
     assert out.matching.dtype == out.vcp.dtype == out.rotation.dtype == torch.float32
     torch.testing.assert_close(out.matching.sum(-1), torch.ones(2, 40))

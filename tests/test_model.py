@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from conftest import compile_fullgraph, requires_ext
-from vrnet_ext import VRNet, VRNetConfig
+from vrnet_ext import VRNet, VRNetConfig, has_extension
 
 
 def small_model(**overrides):
@@ -26,7 +26,7 @@ def test_paper_defaults():
 def test_output_shapes_and_invariants(device):
     model = small_model().train()
     src, tgt = clouds()
-    out = model(src, tgt)
+    out = model(src, tgt, return_matching=True)
     assert out.rotation.shape == (2, 3, 3) and out.translation.shape == (2, 3)
     assert out.matching.shape == (2, 60, 50)
     assert out.vcp.shape == out.rcp.shape == out.offset.shape == (2, 60, 3)
@@ -42,9 +42,9 @@ def test_backends_agree(device, train):
     model = small_model().train(train)
     src, tgt = clouds()
     state = {k: v.clone() for k, v in model.state_dict().items()}
-    fast = model(src, tgt, backend="ext")
+    fast = model(src, tgt, backend="ext", return_matching=True)
     model.load_state_dict(state)
-    slow = model(src, tgt, backend="torch")
+    slow = model(src, tgt, backend="torch", return_matching=True)
     for name in ("rotation", "translation", "matching", "vcp", "rcp"):
         torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=1e-3, atol=2e-4, msg=name)
 
@@ -54,8 +54,8 @@ def test_permutation_equivariance_sanity(device):
     src, tgt = clouds()
     perm_src, perm_tgt = torch.randperm(60), torch.randperm(50)
     with torch.no_grad():
-        base = model(src, tgt)
-        moved = model(src[:, perm_src], tgt[:, perm_tgt])
+        base = model(src, tgt, return_matching=True)
+        moved = model(src[:, perm_src], tgt[:, perm_tgt], return_matching=True)
     torch.testing.assert_close(moved.rotation, base.rotation, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(moved.translation, base.translation, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(moved.rcp, base.rcp[:, perm_src], rtol=1e-4, atol=1e-5)
@@ -158,7 +158,7 @@ def test_gate_scales_the_offset_and_confidence_weights_the_procrustes():
     assert (out.rotation - R_plain).abs().max() > 1e-4, "the weights must change the estimate"
     with torch.no_grad():
         last.bias[3] = 40.0  # gate open: the raw offsets pass unchanged
-    opened = model(src, tgt)
+    opened = model(src, tgt, return_matching=True)
     raw = model.walk.net(torch.cat([opened.src_embedding, torch.bmm(opened.tgt_embedding, opened.matching.mT)], 1))
     torch.testing.assert_close(opened.offset, raw[:, :3].transpose(1, 2))
 
@@ -190,7 +190,7 @@ def test_walk_match_stats_are_the_rows_peak_and_entropy():
     src, tgt = clouds()
     seen = {}
     model.walk.register_forward_pre_hook(lambda module, args: seen.setdefault("seeds", args[0]))
-    out = model(src, tgt)
+    out = model(src, tgt, return_matching=True)
     peak, entropy = seen["seeds"][:, -2], seen["seeds"][:, -1]
     torch.testing.assert_close(peak, out.matching.max(-1).values)
     torch.testing.assert_close(entropy, -(out.matching * out.matching.log()).sum(-1))
@@ -210,3 +210,28 @@ def test_procrustes_on_vcps_with_the_walks_confidences():
     torch.testing.assert_close(out.translation, t)
     with pytest.raises(ValueError, match="procrustes_points"):
         VRNetConfig(procrustes_points="both")
+
+
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_streamed_matching_equals_the_dense_matrix_path(device, backend):
+    """Without return_matching the VCPs, matched features and row statistics come from
+    ops.soft_match; outputs and every parameter's gradient equal the dense path's."""
+    if backend == "ext" and not has_extension():
+        pytest.skip("compiled module vrnet_ext._C is not built")
+    model = small_model(walk_match_stats=True, walk_gate=True, walk_confidence=True).train()
+    with torch.no_grad():
+        model.walk.net[-1].bias.normal_()  # an open, non-trivial walk
+    src, tgt = clouds()
+    runs = []
+    for dense in (False, True):
+        model.zero_grad()
+        out = model(src, tgt, backend=backend, return_matching=dense)
+        (out.rcp.square().sum() + out.rotation.sum() + out.confidence_logits.sum()).backward()
+        runs.append((out, {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}))
+    (streamed, streamed_grads), (dense, dense_grads) = runs
+    assert streamed.matching is None and dense.matching is not None
+    for name in ("rotation", "translation", "vcp", "rcp", "gate_logits", "confidence_logits"):
+        torch.testing.assert_close(getattr(streamed, name), getattr(dense, name), rtol=1e-4, atol=1e-5, msg=name)
+    assert streamed_grads.keys() == dense_grads.keys() and len(dense_grads) > 10
+    for name, grad in dense_grads.items():  # float32 rounding, relative to each gradient's size
+        assert (streamed_grads[name] - grad).abs().max() <= 1e-4 * grad.abs().max() + 1e-7, name

@@ -79,7 +79,7 @@ DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNE
 
 
 def _train_parser(sub) -> None:
-    from vrnet_ext.train_config import FIELD_HELP, PRECISIONS, PRESETS, TrainConfig, preset_values
+    from vrnet_ext.train_config import FIELD_HELP, L4_FORMS, PRECISIONS, PRESETS, TrainConfig, preset_values
 
     p = sub.add_parser("train", help="two-stage training on ModelNet40 (DDP under torchrun)",
                        description="Two-stage VRNet training. Start from a preset; any flag overrides it. "
@@ -109,6 +109,8 @@ def _train_parser(sub) -> None:
             p.add_argument(flag, choices=PRECISIONS, default=None, help=description)
         elif f.name == "backend":
             p.add_argument(flag, choices=("ext", "torch"), default=None, help=description)
+        elif f.name == "loss_l4_form":
+            p.add_argument(flag, choices=L4_FORMS, default=None, help=description)
         elif kind is bool:
             p.add_argument(flag, type=_parse_bool, default=None, help=description)
         else:

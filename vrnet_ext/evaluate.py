@@ -70,7 +70,7 @@ def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str |
     for batch in tqdm(loader, desc="eval", disable=not progress, leave=False):
         batch = to_device(batch, device)
         src, tgt, R_gt, t_gt = batch["src"], batch["tgt"], batch["rotation"], batch["translation"]
-        out = model(src, tgt, backend=backend)
+        out = model(src, tgt, backend=backend, return_matching=True)  # L0 needs the matrix
         solved = estimators(src, out, solver_backend, model.config.irls_min_scale)
         for name, (R_est, _) in solved.items():
             by_estimator.setdefault(name, []).append(R_est.cpu())

@@ -216,7 +216,7 @@ def train(cfg: TrainConfig) -> dict:
     if state is not None:
         _check_resumable(state, model_cfg, cfg.resume)
         model.load_state_dict(state["model"])
-    loss_weights = HybridLossWeights(l4=cfg.loss_l4)
+    loss_weights = HybridLossWeights(l4=cfg.loss_l4, l4_form=cfg.loss_l4_form)
     step = state["step"] if state else 0
     best_rmse = state.get("best_rmse", float("inf")) if state else float("inf")
     train_seconds = state.get("train_seconds", 0.0) if state else 0.0
@@ -265,7 +265,7 @@ def _train_stages(cfg, run, model, train_set, val_set, sampler, state, loss_weig
             for batch in bar:
                 batch = to_device(batch, run.device)
                 with autocast:
-                    out = wrapped(batch["src"], batch["tgt"])
+                    out = wrapped(batch["src"], batch["tgt"], return_matching=stage == 1)
                     if stage == 1:
                         loss = correspondence_loss(out.matching, batch["gt_idx"])
                         parts = {"L0": float(loss.detach())}

@@ -23,6 +23,7 @@ PRESETS = {
 
 
 PRECISIONS = ("bf16", "fp32")
+L4_FORMS = ("rmse", "log")
 
 # What each training option means (``vrnet train --help`` adds every preset's value).
 FIELD_HELP = {
@@ -49,6 +50,8 @@ FIELD_HELP = {
     "backend": "ext (compiled ops) | torch (pure PyTorch)",
     "num_workers": "DataLoader worker processes",
     "loss_l4": "weight of L4 (amendment offset) in the hybrid loss",
+    "loss_l4_form": "rmse: the paper's L4 (outliers dominate) | log: mean log(1 + error / 0.01) per point "
+                    "(small errors count as much as large ones)",
     "precision": "bf16: forward and loss under bfloat16 autocast (ops, matching and Procrustes stay float32) | fp32",
     "checkpoint_minutes": "also write last.pt every this many minutes inside an epoch",
     "resume": "continue from this last.pt (same options as the run that wrote it)",
@@ -93,6 +96,7 @@ class TrainConfig:
     backend: str = "ext"
     num_workers: int = 0
     loss_l4: float = 100.0
+    loss_l4_form: str = "rmse"
     precision: str = "bf16"
     checkpoint_minutes: float = 10.0
     resume: str | None = None
@@ -115,8 +119,10 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+        if self.loss_l4_form not in L4_FORMS:
+            raise ValueError(f"loss_l4_form must be one of {L4_FORMS}, got {self.loss_l4_form!r}")
         if not self.checkpoint_minutes > 0:
             raise ValueError(f"checkpoint_minutes must be > 0, got {self.checkpoint_minutes}")
 
 
-__all__ = ["FIELD_HELP", "PRECISIONS", "PRESETS", "TrainConfig", "preset_values"]
+__all__ = ["FIELD_HELP", "L4_FORMS", "PRECISIONS", "PRESETS", "TrainConfig", "preset_values"]

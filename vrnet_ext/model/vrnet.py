@@ -11,7 +11,7 @@ from vrnet_ext.model.config import VRNetConfig
 from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
-from vrnet_ext.ops import kabsch
+from vrnet_ext.ops import kabsch, soft_match
 from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
 
 
@@ -21,7 +21,7 @@ class VRNetOutput:
 
     rotation: torch.Tensor     # (B, 3, 3): R src + t ~ tgt
     translation: torch.Tensor  # (B, 3)
-    matching: torch.Tensor     # (B, N, M) row-stochastic soft matching M
+    matching: torch.Tensor | None  # (B, N, M) row-stochastic soft matching M, only when asked for
     vcp: torch.Tensor          # (B, N, 3) virtual corresponding points Y' = M Y
     rcp: torch.Tensor          # (B, N, 3) rectified points Y'' = Y' + offset
     offset: torch.Tensor       # (B, N, 3) correction walk (zeros without it)
@@ -56,6 +56,43 @@ def robust_procrustes(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tenso
     return rotation, translation
 
 
+@dataclass
+class CloudMatch:
+    """The soft matching of src features against tgt (shapes for N source and M target points)."""
+
+    vcp: torch.Tensor                # (B, N, 3) M Y
+    matched_features: torch.Tensor   # (B, c, N) (M Phi_Y^T)^T
+    peak: torch.Tensor               # (B, N) max_j M_ij
+    entropy: torch.Tensor            # (B, N) -sum_j M_ij log M_ij
+    matching: torch.Tensor | None    # (B, N, M) M, only when asked for
+
+
+def match_clouds(phi_x: torch.Tensor, phi_y: torch.Tensor, tgt: torch.Tensor, backend: str,
+                 return_matching: bool) -> CloudMatch:
+    """M = softmax(Phi_X^T Phi_Y / sqrt(c)) applied to [Y | Phi_Y^T] in one streamed pass.
+
+    The row statistics need no matrix either: with s_ij = scale phi_i . psi_j and lse_i the row's
+    log-normaliser, peak_i = exp(s_i,argmax - lse_i) and entropy_i = lse_i - sum_j M_ij s_ij =
+    lse_i - scale phi_i . (M Phi_Y^T)_i. All are differentiable in both feature sets.
+    """
+    channels = phi_x.shape[1]
+    scale = 1.0 / math.sqrt(channels)
+    query, key = phi_x.transpose(1, 2), phi_y.transpose(1, 2)
+    if return_matching:
+        matching = torch.softmax(torch.bmm(query, phi_y) * scale, dim=-1)
+        matched = torch.bmm(matching, torch.cat([tgt, key], dim=-1))
+        peak = matching.max(dim=-1).values
+        entropy = -(matching * matching.clamp_min(1e-30).log()).sum(dim=-1)
+    else:
+        out, lse, argmax = soft_match(query, key, torch.cat([tgt, key], dim=-1), scale, backend=backend,
+                                      return_stats=True)
+        matched, matching = out, None
+        peak_key = key.gather(1, argmax.unsqueeze(-1).expand(-1, -1, channels))
+        peak = torch.exp(scale * (query * peak_key).sum(-1) - lse)
+        entropy = lse - scale * (query * out[..., 3:]).sum(-1)
+    return CloudMatch(matched[..., :3], matched[..., 3:].transpose(1, 2), peak, entropy, matching)
+
+
 def procrustes_weights(confidence_logits: torch.Tensor) -> torch.Tensor:
     """(B, N) logits -> positive weights (floored so that no pair's weights all vanish)."""
     return torch.sigmoid(confidence_logits).clamp_min(1e-6)
@@ -79,8 +116,14 @@ class VRNet(nn.Module):
         """The feature extractor (DGCNN + Transformer): trained in stage 1, frozen in stage 2."""
         return [self.features, self.transformer]
 
-    def forward(self, src: torch.Tensor, tgt: torch.Tensor, backend: str | None = None) -> VRNetOutput:
-        """src (B, N, 3), tgt (B, M, 3) -> :class:`VRNetOutput` with R src + t ~ tgt."""
+    def forward(self, src: torch.Tensor, tgt: torch.Tensor, backend: str | None = None,
+                return_matching: bool = False) -> VRNetOutput:
+        """src (B, N, 3), tgt (B, M, 3) -> :class:`VRNetOutput` with R src + t ~ tgt.
+
+        The VCPs and the matched target features come from the streamed ``ops.soft_match``
+        (memory O((N + M) c)); the (B, N, M) matching matrix is built only with
+        ``return_matching=True`` (L0 in training, pictures).
+        """
         check_float(src, "src")
         check_float(tgt, "tgt")
         check_shape(src, "src", 3, "(B, N, 3)", last=3)
@@ -99,7 +142,7 @@ class VRNet(nn.Module):
         translation = src.new_zeros(src.shape[0], 3)
         moved = src
         for _ in range(self.config.iterations):
-            out = self._single_pass(moved, tgt, backend)
+            out = self._single_pass(moved, tgt, backend, return_matching)
             with torch.autocast(src.device.type, enabled=False):  # compose the motions in src's dtype
                 rotation = out.rotation @ rotation
                 translation = (out.rotation @ translation.unsqueeze(-1)).squeeze(-1) + out.translation
@@ -107,27 +150,25 @@ class VRNet(nn.Module):
         out.rotation, out.translation = rotation, translation
         return out
 
-    def _single_pass(self, src: torch.Tensor, tgt: torch.Tensor, backend: str) -> VRNetOutput:
+    def _single_pass(self, src: torch.Tensor, tgt: torch.Tensor, backend: str,
+                     return_matching: bool) -> VRNetOutput:
         phi_x, phi_y = self.transformer(self.features(src, backend), self.features(tgt, backend))
         # The soft matching decides where every VCP lands: it runs in float32 even under autocast
         # (a bfloat16 score carries ~3 significant digits, a visible error on sharp softmax rows).
         with torch.autocast(src.device.type, enabled=False):
             phi_x, phi_y = phi_x.to(src.dtype), phi_y.to(src.dtype)
-            scores = torch.bmm(phi_x.transpose(1, 2), phi_y) / math.sqrt(phi_x.shape[1])
-            matching = torch.softmax(scores, dim=-1)
-            vcp = torch.bmm(matching, tgt)
+            match = match_clouds(phi_x, phi_y, tgt, backend, return_matching)
         if self.walk is None:
-            offset, gate_logits, confidence_logits = torch.zeros_like(vcp), None, None
+            offset, gate_logits, confidence_logits = torch.zeros_like(match.vcp), None, None
         else:
-            seeds = [phi_x, torch.bmm(phi_y, matching.transpose(1, 2))]
+            seeds = [phi_x, match.matched_features]
             if self.config.walk_coordinates:
-                seeds += [src.transpose(1, 2), vcp.transpose(1, 2)]
+                seeds += [src.transpose(1, 2), match.vcp.transpose(1, 2)]
             if self.config.walk_match_stats:
-                peak = matching.max(dim=-1).values
-                entropy = -(matching * matching.clamp_min(1e-30).log()).sum(dim=-1)
-                seeds += [torch.stack([peak, entropy], dim=1).to(phi_x.dtype)]
+                seeds += [torch.stack([match.peak, match.entropy], dim=1).to(phi_x.dtype)]
             walk = self.walk(torch.cat(seeds, dim=1))
             offset, gate_logits, confidence_logits = walk.offset, walk.gate_logits, walk.confidence_logits
+        vcp, matching = match.vcp, match.matching
         rcp = vcp + offset
         weights = None if confidence_logits is None else procrustes_weights(confidence_logits).to(src.dtype)
         aligned_to = rcp if self.config.procrustes_points == "rcp" else vcp

@@ -5,6 +5,7 @@ from vrnet_ext.ops.gather_reduce import gather_reduce
 from vrnet_ext.ops.kabsch import kabsch
 from vrnet_ext.ops.knn import knn
 from vrnet_ext.ops.pairwise_distance_loss import pairwise_distance_loss
+from vrnet_ext.ops.soft_match import soft_match
 from vrnet_ext.ops.svd3x3 import svd3x3
 
-__all__ = ["knn", "edge_features", "gather_reduce", "svd3x3", "kabsch", "pairwise_distance_loss"]
+__all__ = ["knn", "edge_features", "gather_reduce", "svd3x3", "kabsch", "pairwise_distance_loss", "soft_match"]

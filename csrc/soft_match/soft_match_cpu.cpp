@@ -1,0 +1,211 @@
+// Streamed soft matching: out_i = sum_j softmax_j(scale q_i . k_j) v_j by the online-softmax
+// recurrence over tiles of kTile key points, so memory is O((N + M) (c + D)) plus one
+// kRowBlock x kTile score tile per thread, never the N x M matrix.
+//
+// Forward, per block of query rows: for each key tile, S = scale Q K^T; the running row maximum m
+// and normaliser l are updated (l <- l e^(m_old - m_new) + sum_j e^(s_j - m_new)) and the
+// accumulated sum_j e^(s_j - m) v_j is rescaled the same way before adding the tile's share.
+//
+// Backward (P = e^(S - lse), D_i = dO_i . O_i):
+//   dS_ij = P_ij (dO_i . v_j - D_i + dlse_i),  dQ = scale dS K,  dK = scale dS^T Q,  dV = P^T dO.
+// dQ is accumulated per query block; dK and dV per key block, in a second pass that recomputes P
+// (no atomics, a fixed summation order).
+//
+// The whole call is one parallel region (parallel_tasks); the tile products are single-threaded
+// GEMMs inside a task.
+#include <ATen/ops/empty.h>
+#include <ATen/ops/mm.h>
+#include <ATen/ops/mul.h>
+#include <ATen/ops/sub.h>
+#include <ATen/ops/sum.h>
+#include <ATen/ops/zeros_like.h>
+#include <torch/library.h>
+
+#include <cmath>
+#include <limits>
+#include <vector>
+
+#include "soft_match/soft_match.h"
+
+namespace vrnet {
+namespace {
+
+constexpr int64_t kRowBlock = 128;  // rows one task owns (query rows forward, key rows in backward pass 2)
+constexpr int64_t kTile = 512;      // rows of the other side streamed per step
+
+// A (rows, width) contiguous view on the first rows * width elements of a flat buffer.
+at::Tensor tile_view(const at::Tensor& buffer, int64_t rows, int64_t width) {
+  return buffer.narrow(0, 0, rows * width).view({rows, width});
+}
+
+template <typename scalar_t>
+void soft_match_forward(const at::Tensor& query, const at::Tensor& key, const at::Tensor& values, scalar_t scale,
+                        at::Tensor& out, at::Tensor& lse, at::Tensor& argmax) {
+  const int64_t B = query.size(0), N = query.size(1), M = key.size(1), D = values.size(2);
+  const int64_t blocks = (N + kRowBlock - 1) / kRowBlock;
+  parallel_tasks(B * blocks, [&](int64_t task) {
+    const int64_t b = task / blocks, q0 = (task % blocks) * kRowBlock, rows = std::min(N, q0 + kRowBlock) - q0;
+    const at::Tensor q_rows = query.select(0, b).narrow(0, q0, rows);
+    at::Tensor acc = out.select(0, b).narrow(0, q0, rows);  // contiguous (rows, D)
+    acc.zero_();
+    const at::Tensor buffer = at::empty({rows * std::min(M, kTile)}, query.options());
+    std::vector<scalar_t> row_max(rows, -std::numeric_limits<scalar_t>::infinity()), row_sum(rows, 0);
+    std::vector<scalar_t> rescale(rows);
+    int64_t* arg = argmax.mutable_data_ptr<int64_t>() + b * N + q0;
+    scalar_t* acc_p = acc.mutable_data_ptr<scalar_t>();
+    for (int64_t k0 = 0; k0 < M; k0 += kTile) {
+      const int64_t width = std::min(M, k0 + kTile) - k0;
+      at::Tensor scores = tile_view(buffer, rows, width);
+      at::mm_out(scores, q_rows, key.select(0, b).narrow(0, k0, width).t());
+      scalar_t* s = scores.mutable_data_ptr<scalar_t>();
+      for (int64_t i = 0; i < rows; ++i) {
+        scalar_t* row = s + i * width;
+        scalar_t tile_max = -std::numeric_limits<scalar_t>::infinity();
+        int64_t tile_arg = 0;
+        for (int64_t j = 0; j < width; ++j) {
+          row[j] *= scale;
+          if (row[j] > tile_max) tile_max = row[j], tile_arg = j;
+        }
+        if (k0 == 0 || tile_max > row_max[i]) arg[i] = k0 + tile_arg;  // the first maximum wins ties
+        const scalar_t new_max = std::max(row_max[i], tile_max);
+        rescale[i] = k0 == 0 ? scalar_t(0) : std::exp(row_max[i] - new_max);
+        row_max[i] = new_max;
+        for (int64_t j = 0; j < width; ++j) row[j] -= new_max;
+      }
+      scores.exp_();
+      for (int64_t i = 0; i < rows; ++i) {
+        const scalar_t* row = s + i * width;
+        scalar_t tile_sum = 0;
+        for (int64_t j = 0; j < width; ++j) tile_sum += row[j];
+        row_sum[i] = row_sum[i] * rescale[i] + tile_sum;
+        for (int64_t d = 0; d < D; ++d) acc_p[i * D + d] *= rescale[i];
+      }
+      acc.addmm_(scores, values.select(0, b).narrow(0, k0, width));
+    }
+    scalar_t* lse_p = lse.mutable_data_ptr<scalar_t>() + b * N + q0;
+    for (int64_t i = 0; i < rows; ++i) {
+      for (int64_t d = 0; d < D; ++d) acc_p[i * D + d] /= row_sum[i];
+      lse_p[i] = row_max[i] + std::log(row_sum[i]);
+    }
+  });
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> soft_match_cpu(const at::Tensor& query_in, const at::Tensor& key_in,
+                                                              const at::Tensor& values_in, double scale) {
+  check_soft_match_inputs(query_in, key_in, values_in, scale);
+  const at::Tensor query = query_in.contiguous(), key = key_in.contiguous(), values = values_in.contiguous();
+  check_finite(query, "query");
+  check_finite(key, "key");
+  check_finite(values, "values");
+  const int64_t B = query.size(0), N = query.size(1), D = values.size(2);
+  at::Tensor out = at::empty({B, N, D}, query.options());
+  at::Tensor lse = at::empty({B, N}, query.options());
+  at::Tensor argmax = at::empty({B, N}, query.options().dtype(at::kLong));
+  AT_DISPATCH_FLOATING_TYPES(query.scalar_type(), "soft_match_cpu", [&] {
+    soft_match_forward<scalar_t>(query, key, values, static_cast<scalar_t>(scale), out, lse, argmax);
+  });
+  TORCH_CHECK_VALUE(at::isfinite(lse).all().item<bool>(),
+                    "soft_match scores overflow: scale * query . key is not finite (scale ", scale, ")");
+  return {out, lse, argmax};
+}
+
+// probs <- exp(scale * probs - lse_row[i]) for a (rows, width) tile of raw products, then
+// grads <- probs * (grads + shift_row[i]) (grads holds dO_i . v_j on entry, dS_ij on exit).
+// With `by_column`, lse and shift are indexed by the column instead (the transposed pass).
+template <typename scalar_t>
+void probabilities_and_score_grads(at::Tensor& probs, at::Tensor& grads, const scalar_t* lse, const scalar_t* shift,
+                                   scalar_t scale, bool by_column) {
+  const int64_t rows = probs.size(0), width = probs.size(1);
+  scalar_t* p = probs.mutable_data_ptr<scalar_t>();
+  for (int64_t i = 0; i < rows; ++i)
+    for (int64_t j = 0; j < width; ++j) p[i * width + j] = p[i * width + j] * scale - lse[by_column ? j : i];
+  probs.exp_();
+  scalar_t* g = grads.mutable_data_ptr<scalar_t>();
+  for (int64_t i = 0; i < rows; ++i)
+    for (int64_t j = 0; j < width; ++j)
+      g[i * width + j] = p[i * width + j] * (g[i * width + j] + shift[by_column ? j : i]);
+}
+
+template <typename scalar_t>
+void soft_match_backward_kernel(const at::Tensor& grad_out, const at::Tensor& query, const at::Tensor& key,
+                                const at::Tensor& values, const at::Tensor& lse, const at::Tensor& shift,
+                                scalar_t scale, at::Tensor& grad_query, at::Tensor& grad_key,
+                                at::Tensor& grad_values) {
+  const int64_t B = query.size(0), N = query.size(1), M = key.size(1);
+  const scalar_t* lse_all = lse.const_data_ptr<scalar_t>();
+  const scalar_t* shift_all = shift.const_data_ptr<scalar_t>();
+  // Pass 1: dQ, one task per (cloud, block of query rows), streaming the keys.
+  const int64_t query_blocks = (N + kRowBlock - 1) / kRowBlock;
+  parallel_tasks(B * query_blocks, [&](int64_t task) {
+    const int64_t b = task / query_blocks, q0 = (task % query_blocks) * kRowBlock;
+    const int64_t rows = std::min(N, q0 + kRowBlock) - q0;
+    const at::Tensor q_rows = query.select(0, b).narrow(0, q0, rows);
+    const at::Tensor g_rows = grad_out.select(0, b).narrow(0, q0, rows);
+    at::Tensor dq = grad_query.select(0, b).narrow(0, q0, rows);
+    const at::Tensor prob_buffer = at::empty({rows * std::min(M, kTile)}, query.options());
+    const at::Tensor grad_buffer = at::empty({rows * std::min(M, kTile)}, query.options());
+    for (int64_t k0 = 0; k0 < M; k0 += kTile) {
+      const int64_t width = std::min(M, k0 + kTile) - k0;
+      const at::Tensor k_rows = key.select(0, b).narrow(0, k0, width);
+      at::Tensor probs = tile_view(prob_buffer, rows, width), grads = tile_view(grad_buffer, rows, width);
+      at::mm_out(probs, q_rows, k_rows.t());
+      at::mm_out(grads, g_rows, values.select(0, b).narrow(0, k0, width).t());
+      probabilities_and_score_grads<scalar_t>(probs, grads, lse_all + b * N + q0, shift_all + b * N + q0, scale,
+                                              false);
+      dq.addmm_(grads, k_rows, 1, scale);
+    }
+  });
+  // Pass 2: dK and dV, one task per (cloud, block of key rows), streaming the queries.
+  const int64_t key_blocks = (M + kRowBlock - 1) / kRowBlock;
+  parallel_tasks(B * key_blocks, [&](int64_t task) {
+    const int64_t b = task / key_blocks, k0 = (task % key_blocks) * kRowBlock;
+    const int64_t rows = std::min(M, k0 + kRowBlock) - k0;
+    const at::Tensor k_rows = key.select(0, b).narrow(0, k0, rows);
+    const at::Tensor v_rows = values.select(0, b).narrow(0, k0, rows);
+    at::Tensor dk = grad_key.select(0, b).narrow(0, k0, rows);
+    at::Tensor dv = grad_values.select(0, b).narrow(0, k0, rows);
+    const at::Tensor prob_buffer = at::empty({rows * std::min(N, kTile)}, query.options());
+    const at::Tensor grad_buffer = at::empty({rows * std::min(N, kTile)}, query.options());
+    for (int64_t q0 = 0; q0 < N; q0 += kTile) {
+      const int64_t width = std::min(N, q0 + kTile) - q0;
+      const at::Tensor q_rows = query.select(0, b).narrow(0, q0, width);
+      const at::Tensor g_rows = grad_out.select(0, b).narrow(0, q0, width);
+      at::Tensor probs = tile_view(prob_buffer, rows, width), grads = tile_view(grad_buffer, rows, width);
+      at::mm_out(probs, k_rows, q_rows.t());
+      at::mm_out(grads, v_rows, g_rows.t());
+      probabilities_and_score_grads<scalar_t>(probs, grads, lse_all + b * N + q0, shift_all + b * N + q0, scale,
+                                              true);
+      dk.addmm_(grads, q_rows, 1, scale);
+      dv.addmm_(probs, g_rows);
+    }
+  });
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> soft_match_backward_cpu(
+    const at::Tensor& grad_out_in, const at::Tensor& grad_lse_in, const at::Tensor& query_in,
+    const at::Tensor& key_in, const at::Tensor& values_in, const at::Tensor& out_in, const at::Tensor& lse_in,
+    double scale) {
+  check_soft_match_backward_inputs(grad_out_in, grad_lse_in, query_in, key_in, values_in, out_in, lse_in, scale);
+  const at::Tensor query = query_in.contiguous(), key = key_in.contiguous(), values = values_in.contiguous();
+  const at::Tensor grad_out = grad_out_in.contiguous(), lse = lse_in.contiguous();
+  // shift_i = dlse_i - dO_i . O_i
+  const at::Tensor shift = at::sub(grad_lse_in, at::mul(grad_out, out_in).sum(2)).contiguous();
+  at::Tensor grad_query = at::zeros_like(query), grad_key = at::zeros_like(key);
+  at::Tensor grad_values = at::zeros_like(values);
+  if (query.size(1) > 0) {
+    AT_DISPATCH_FLOATING_TYPES(query.scalar_type(), "soft_match_backward_cpu", [&] {
+      soft_match_backward_kernel<scalar_t>(grad_out, query, key, values, lse, shift, static_cast<scalar_t>(scale),
+                                           grad_query, grad_key, grad_values);
+    });
+  }
+  return {grad_query, grad_key, grad_values};
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(vrnet_ext, CPU, m) {
+  m.impl("soft_match", &soft_match_cpu);
+  m.impl("soft_match_backward", &soft_match_backward_cpu);
+}
+
+}  // namespace vrnet

@@ -1,0 +1,171 @@
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import torch
+
+from conftest import DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext, tolerances
+from vrnet_ext import ops
+from vrnet_ext.ops.soft_match import soft_match_reference
+
+
+def dense64(query, key, values, scale):
+    """Float64 brute force: the matrix, then its products."""
+    scores = query.double() @ key.double().mT * scale
+    return torch.softmax(scores, -1) @ values.double(), torch.logsumexp(scores, -1)
+
+
+@requires_ext
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("B,N,M,c,D", [(1, 1, 1, 1, 1), (2, 129, 513, 32, 35), (1, 300, 1100, 5, 3),
+                                       (3, 7, 1025, 64, 1), (1, 513, 40, 3, 4)])
+def test_matches_float64_dense_values_and_gradients(device, dtype, B, N, M, c, D):
+    query = non_contiguous(torch.randn(B, N, c, dtype=dtype)).requires_grad_()
+    key = non_contiguous(torch.randn(B, M, c, dtype=dtype)).requires_grad_()
+    values = torch.randn(B, M, D, dtype=dtype).requires_grad_()
+    scale = 0.7
+    result = ops.soft_match(query, key, values, scale, return_stats=True)
+    want_out, want_lse = dense64(query, key, values, scale)
+    tol = tolerances(dtype)
+    torch.testing.assert_close(result.out, want_out.to(dtype), **tol)
+    torch.testing.assert_close(result.lse, want_lse.to(dtype), **tol)
+    grad_out, grad_lse = torch.randn(B, N, D, dtype=dtype), torch.randn(B, N, dtype=dtype)
+    got = torch.autograd.grad((result.out * grad_out).sum() + (result.lse * grad_lse).sum(), (query, key, values))
+    want = torch.autograd.grad((want_out * grad_out.double()).sum() + (want_lse * grad_lse.double()).sum(),
+                               (query, key, values))
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w.to(dtype), **tol)
+
+
+@requires_ext
+def test_default_scale_and_backends_agree(device):
+    query, key, values = torch.randn(2, 50, 16), torch.randn(2, 70, 16), torch.randn(2, 70, 6)
+    torch.testing.assert_close(ops.soft_match(query, key, values),
+                               torch.softmax(query @ key.mT / 4.0, -1) @ values, rtol=1e-5, atol=1e-6)
+    ext = ops.soft_match(query, key, values, return_stats=True)
+    ref = ops.soft_match(query, key, values, backend="torch", return_stats=True)
+    torch.testing.assert_close(ext.out, ref.out)
+    torch.testing.assert_close(ext.lse, ref.lse)
+    assert torch.equal(ext.argmax, ref.argmax)
+
+
+@requires_ext
+def test_gradcheck_and_opcheck(device):
+    query = torch.randn(2, 9, 4, dtype=torch.float64, requires_grad=True)
+    key = torch.randn(2, 13, 4, dtype=torch.float64, requires_grad=True)
+    values = torch.randn(2, 13, 5, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda q, k, v: tuple(ops.soft_match(q, k, v, 0.9, return_stats=True)[:2]),
+                                    (query, key, values))
+    assert torch.autograd.gradgradcheck(lambda q, k, v: ops.soft_match(q, k, v, 0.9, backend="torch"),
+                                        (query, key, values))
+    opcheck(torch.ops.vrnet_ext.soft_match.default,
+            (query.float().detach().requires_grad_(), key.float().detach().requires_grad_(),
+             values.float().detach().requires_grad_(), 0.5))
+
+
+@requires_ext
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_degenerate_inputs(device, backend):
+    query, key, values = torch.randn(1, 6, 3), torch.randn(1, 1, 3), torch.randn(1, 1, 2)
+    # one candidate: every row takes it whole
+    torch.testing.assert_close(ops.soft_match(query, key, values, backend=backend), values.expand(1, 6, 2))
+    # equal keys or scale 0: the plain mean of the values; ties: the first maximum is the peak
+    key, values = torch.ones(1, 600, 3), torch.randn(1, 600, 2)
+    result = ops.soft_match(query, key, values, backend=backend, return_stats=True)
+    torch.testing.assert_close(result.out, values.mean(1, keepdim=True).expand(1, 6, 2))
+    assert result.argmax.eq(0).all()
+    torch.testing.assert_close(ops.soft_match(query, torch.randn(1, 600, 3), values, 0.0, backend=backend),
+                               values.mean(1, keepdim=True).expand(1, 6, 2))
+    # scores up to 1e6 (exp overflows float32): stable, and a one-hot row picks its best key
+    angles = torch.arange(700.0) * (6.283185 / 700)  # unit keys on a circle: q . k is largest for k = q
+    key = torch.stack([angles.cos(), angles.sin(), torch.zeros(700)], -1).unsqueeze(0)
+    best = key[0, 650]
+    sharp = ops.soft_match(best.expand(1, 4, 3).contiguous(), key, torch.arange(700.0).reshape(1, 700, 1), 1e6,
+                           backend=backend, return_stats=True)
+    torch.testing.assert_close(sharp.out, torch.full((1, 4, 1), 650.0))
+    assert sharp.argmax.eq(650).all() and torch.isfinite(sharp.lse).all()
+    # no query rows, no value channels
+    assert ops.soft_match(query[:, :0], key, torch.randn(1, 700, 2), backend=backend).shape == (1, 0, 2)
+    assert ops.soft_match(query, key, torch.randn(1, 700, 0), backend=backend).shape == (1, 6, 0)
+
+
+@requires_ext
+def test_unused_outputs_get_no_gradient_work(device):
+    query = torch.randn(1, 20, 8, requires_grad=True)
+    key, values = torch.randn(1, 30, 8), torch.randn(1, 30, 3)
+    ops.soft_match(query, key, values, return_stats=True).lse.sum().backward()
+    # d lse_i / d q_i = scale sum_j P_ij k_j
+    expected = ops.soft_match(query.detach(), key, key) / 8 ** 0.5
+    torch.testing.assert_close(query.grad, expected)
+
+
+@requires_ext
+def test_torch_compile_fullgraph(device):
+    query, key, values = torch.randn(2, 40, 8), torch.randn(2, 50, 8), torch.randn(2, 50, 3)
+    fn = compile_fullgraph(lambda q, k, v: ops.soft_match(q, k, v) * 2)
+    torch.testing.assert_close(fn(query, key, values), ops.soft_match(query, key, values) * 2)
+
+
+@requires_ext
+def test_low_precision_inputs_compute_in_float32(device):
+    query, key, values = torch.randn(1, 30, 8), torch.randn(1, 40, 8), torch.randn(1, 40, 3)
+    out = ops.soft_match(query.bfloat16(), key.bfloat16(), values.bfloat16())
+    assert out.dtype == torch.float32
+    torch.testing.assert_close(out, ops.soft_match(query.bfloat16().float(), key.bfloat16().float(),
+                                                   values.bfloat16().float()))
+    with torch.autocast(device.type, dtype=torch.bfloat16):
+        assert ops.soft_match(query, key, values).dtype == torch.float32
+
+
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_bad_input(device, backend):
+    query, key, values = torch.randn(2, 5, 4), torch.randn(2, 7, 4), torch.randn(2, 7, 3)
+    cases = [
+        ((query[0], key, values), ValueError, "query"),
+        ((query, key[..., :3], values), ValueError, "feature size"),
+        ((query, key, values[:, :6]), ValueError, "values"),
+        ((query, key[:1], values[:1]), ValueError, "batch"),
+        ((query, key[:, :0], values[:, :0]), ValueError, "at least one point"),
+        ((query[..., :0], key[..., :0], values), ValueError, "feature channel"),
+        ((query.long(), key, values), TypeError, "query"),
+        ((query, key.double(), values), TypeError, "key"),
+        ((query, key, values, float("nan")), ValueError, "scale"),
+        ((query.masked_fill(query > 1, float("nan")), key, values), ValueError, "query"),
+        ((query, key, values.masked_fill(values > 1, float("inf"))), ValueError, "values"),
+        ((query * 1e30, key * 1e30, values), ValueError, "overflow"),
+    ]
+    for args, error, name in cases:
+        with pytest.raises(error, match=name):
+            ops.soft_match(*args, backend=backend)
+
+
+@requires_ext
+def test_reference_is_the_dense_formula():
+    query, key, values = torch.randn(1, 4, 2, dtype=torch.float64), torch.randn(1, 5, 2, dtype=torch.float64), \
+        torch.randn(1, 5, 3, dtype=torch.float64)
+    out, lse = dense64(query, key, values, 1.3)
+    ref = soft_match_reference(query, key, values, 1.3)
+    torch.testing.assert_close(ref.out, out)
+    torch.testing.assert_close(ref.lse, lse)
+
+
+@requires_ext
+def test_50k_points_forward_within_100mb_of_its_inputs():
+    """Issue 10's floor: N = M = 50,000, c = 32, D = 35 (the dense matrix would be 10 GB)."""
+    script = textwrap.dedent("""
+        import resource, torch
+        from vrnet_ext import ops
+        torch.manual_seed(0)
+        q, k, v = torch.randn(1, 50000, 32), torch.randn(1, 50000, 32), torch.randn(1, 50000, 35)
+        ops.soft_match(q[:, :10], k[:, :600], v[:, :600])  # warm-up: allocator, thread pool
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        out = ops.soft_match(q, k, v)
+        after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        assert torch.isfinite(out).all()
+        print((after - before) / 1024)
+    """)
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    growth_mb = float(run.stdout.strip().splitlines()[-1])
+    assert growth_mb < 100, f"peak RSS grew {growth_mb:.0f} MB"
