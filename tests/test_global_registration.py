@@ -10,7 +10,8 @@ from vrnet_ext.cli import main
 from vrnet_ext.global_registration import (_enough_hypotheses, estimate_normals, fpfh, fpfh_ransac, mutual_matches,
                                           ransac)
 from vrnet_ext.io import write_ply
-from vrnet_ext.register import apply, register, transform_errors, voxel_downsample
+from vrnet_ext.preprocessing import voxel_downsample
+from vrnet_ext.register import apply, register, transform_errors
 
 KITCHEN = DATA_DIR / "scenes" / "3dmatch_redkitchen"
 
@@ -115,7 +116,7 @@ def test_fpfh_ransac_finds_a_large_motion_that_icp_from_the_identity_cannot():
     estimate, _ = fpfh_ransac(*down, voxel, iterations=20_000)
     errors = transform_errors(estimate.numpy(), truth)
     assert errors["rotation_error_deg"] < 3.0 and errors["translation_error"] < 0.15, errors
-    refined = register(src, tgt, fpfh_points=3000, icp_points=6000)
+    refined = register(src, tgt, method="fpfh", global_points=3000, icp_points=6000)
     assert transform_errors(refined.transform, truth)["rotation_error_deg"] < 1.0
     identity_start = register(src, tgt, icp_points=6000)
     assert transform_errors(identity_start.transform, truth)["rotation_error_deg"] > 10.0
@@ -123,10 +124,12 @@ def test_fpfh_ransac_finds_a_large_motion_that_icp_from_the_identity_cannot():
 
 def test_one_initial_estimate_at_a_time(tmp_path, capsys):
     src = room(500)
-    with pytest.raises(ValueError, match="not both"):
-        register(src, src, model=torch.nn.Identity(), fpfh_points=1000)
-    with pytest.raises(ValueError, match="fpfh_points must be at least 3"):
-        register(src, src, fpfh_points=-5)
+    with pytest.raises(ValueError, match="model is only used by method 'vrnet'"):
+        register(src, src, method="fpfh", model=torch.nn.Identity())
+    with pytest.raises(ValueError, match="global_points must be a positive integer"):
+        register(src, src, method="fpfh", global_points=-5)
+    with pytest.raises(ValueError, match="method must be one of"):
+        register(src, src, method="ransac")
     write_ply(tmp_path / "a.ply", src)
     with pytest.raises(SystemExit) as exit_info:
         main(["register", str(tmp_path / "a.ply"), str(tmp_path / "a.ply"), "--fpfh", "--checkpoint", "x.pt"])

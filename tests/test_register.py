@@ -9,8 +9,9 @@ from conftest import DATA_DIR, MODELNET_DIR, requires_modelnet
 from vrnet_ext import ops
 from vrnet_ext.cli import main
 from vrnet_ext.io import read_points, read_transform, write_ply
+from vrnet_ext.preprocessing import voxel_downsample
 from vrnet_ext.register import (IcpFailure, TargetReach, apply, icp, network_estimate, register,
-                                to_homogeneous, transform_errors, voxel_downsample)
+                                to_homogeneous, transform_errors)
 
 LIDAR = DATA_DIR / "scenes" / "lidar_pair"
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from vrnet_ext.model import VRNet, VRNetConfig
+from vrnet_ext.model.scene import SCENE_FORMAT, SceneConfig, SceneVRNet
 
 # Inclusive (low, high) bounds on the model configuration a file may ask for. The paper's model
 # (k 20, emb 512, ff 1024, widths <= 512, one encoder and decoder layer) is far inside them.
@@ -54,9 +55,10 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         raise CheckpointError(f"{path}: not a vrnet checkpoint (it cannot be read as a weights-only torch "
                               f"file: {type(exc).__name__})") from None
     if not isinstance(state, dict) or not isinstance(state.get("model"), dict) \
-            or not isinstance(state.get("config"), dict) or not isinstance(state["config"].get("model"), dict):
-        raise CheckpointError(f"{path}: not a vrnet checkpoint (it lacks the 'model' weights or the "
-                              f"'config' with a 'model' section)")
+            or not isinstance(state.get("config"), dict):
+        raise CheckpointError(f"{path}: not a vrnet checkpoint (it lacks the 'model' weights or the 'config')")
+    if state.get("format") != SCENE_FORMAT and not isinstance(state["config"].get("model"), dict):
+        raise CheckpointError(f"{path}: not a vrnet checkpoint (its 'config' has no 'model' section)")
     return state
 
 
@@ -80,10 +82,16 @@ def validate_model_config(values: dict, source: str = "config") -> VRNetConfig:
     return config
 
 
-def model_from_state(state: dict, source: str) -> VRNet:
-    """The float32 model described by a checkpoint dict (float16 shipped weights are widened)."""
-    config = validate_model_config(state["config"]["model"], source)
-    model = VRNet(config)
+def model_from_state(state: dict, source: str) -> VRNet | SceneVRNet:
+    """The float32 model described by a checkpoint dict (float16 shipped weights are widened): a
+    :class:`SceneVRNet` for a scene-model file (``format`` SCENE_FORMAT), else a :class:`VRNet`."""
+    if state.get("format") == SCENE_FORMAT:
+        try:
+            model = SceneVRNet(SceneConfig.from_dict(state["config"]))
+        except (TypeError, ValueError) as exc:
+            raise CheckpointError(f"{source}: invalid scene-model configuration: {exc}") from None
+    else:
+        model = VRNet(validate_model_config(state["config"]["model"], source))
     weights = {k: v.float() if isinstance(v, torch.Tensor) and v.dtype == torch.float16 else v
                for k, v in state["model"].items()}
     try:
@@ -94,7 +102,8 @@ def model_from_state(state: dict, source: str) -> VRNet:
     return model
 
 
-def load_model(checkpoint: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[VRNet, dict]:
+def load_model(checkpoint: str | os.PathLike,
+               map_location: str | torch.device = "cpu") -> tuple[VRNet | SceneVRNet, dict]:
     """(model in eval mode, checkpoint dict) from a checkpoint path or a shipped name
     (:func:`vrnet_ext.pretrained.available`)."""
     from vrnet_ext.pretrained import available, weights_path

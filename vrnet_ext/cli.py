@@ -51,6 +51,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _memory_size(text: str) -> int:
+    """A memory size such as 2GB, 512MB, 1.5G or a plain byte count -> bytes."""
+    from vrnet_ext.memory_plan import parse_memory_size
+
+    try:
+        return parse_memory_size(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _device(text: str) -> str:
     """A device name torch knows and this machine has (checked before any work starts)."""
     import torch
@@ -220,19 +230,26 @@ def _run_plot(args) -> int:
 def _register_parser(sub) -> None:
     p = sub.add_parser(
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
-        description="Estimates the rigid transform taking SOURCE onto TARGET: an initial estimate (VRNet on "
-                    "a subsample with --checkpoint, FPFH + RANSAC with --fpfh, else the identity), refined by "
-                    "point-to-point ICP on voxel-downsampled clouds. Prints the 4x4 transform and writes JSON.",
+        description="Estimates the rigid transform taking SOURCE onto TARGET: a global estimate (--method vrnet: "
+                    "the shipped scene model, FPFH descriptors under VRNet's head, or --checkpoint; --method fpfh: "
+                    "FPFH + RANSAC; --method icp: none), refined by point-to-point ICP on voxel-downsampled "
+                    "clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform and "
+                    "writes JSON.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("source", help="point-cloud file to move")
     p.add_argument("target", help="point-cloud file to align to (same unit)")
+    p.add_argument("--method", choices=("vrnet", "fpfh", "icp"), default=None,
+                   help="global estimate (default: vrnet; fpfh with --fpfh)")
     initial = p.add_mutually_exclusive_group()
     initial.add_argument("--checkpoint", default=None,
-                         help="shipped model name or best.pt of `vrnet train` for the initial estimate")
-    initial.add_argument("--fpfh", action="store_true",
-                         help="initial estimate from FPFH features + RANSAC (no checkpoint needed), for scans far apart")
-    p.add_argument("--fpfh-points", type=_positive_int, default=5000,
-                   help="with --fpfh: about this many points per scan for the features")
+                         help="with --method vrnet: shipped model name or checkpoint (a scene model of `vrnet "
+                              "train-scene`, or best.pt of `vrnet train`); default: the shipped scene model")
+    initial.add_argument("--fpfh", action="store_true", help="the same as --method fpfh")
+    p.add_argument("--global-points", "--fpfh-points", dest="global_points", type=_positive_int, default=5000,
+                   help="about this many points per scan for the global estimate (scene model, FPFH)")
+    p.add_argument("--max-memory", type=_memory_size, default=None,
+                   help="peak memory budget of the whole run, e.g. 2GB or 512MB: sizes the point counts "
+                        "and fails at once if the budget cannot be met")
     p.add_argument("--network-points", type=_positive_int, default=1024, help="points per cloud fed to VRNet")
     p.add_argument("--icp-points", type=_positive_int, default=50_000,
                    help="about this many points per cloud for ICP")
@@ -250,27 +267,39 @@ def _register_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
 
 
+INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "icp": "identity"}
+
+
 def _run_register(args) -> int:
     import numpy as np
 
     from vrnet_ext.io import read_points, read_transform, write_ply
     from vrnet_ext.register import apply, register, transform_errors
 
-    model = None
-    if args.checkpoint:  # before the scans: a bad checkpoint fails at once
-        from vrnet_ext.checkpoints import load_model
+    if args.max_memory is not None:
+        from vrnet_ext.memory_plan import require_headroom
 
-        model = load_model(args.checkpoint, args.device)[0]
+        require_headroom(args.max_memory)
+    method = args.method or ("fpfh" if args.fpfh else "vrnet")
+    if args.fpfh and method != "fpfh" or args.checkpoint and method != "vrnet":
+        raise ValueError(f"--method {method} does not take {'--fpfh' if args.fpfh else '--checkpoint'}")
+    model = None
+    if method == "vrnet":  # before the scans: a bad checkpoint fails at once
+        from vrnet_ext.checkpoints import load_model
+        from vrnet_ext.pretrained import DEFAULT_SCENE_MODEL
+
+        model = load_model(args.checkpoint or DEFAULT_SCENE_MODEL, args.device)[0]
     src, tgt = read_points(args.source), read_points(args.target)
     truth = read_transform(args.gt) if args.gt else None
-    result = register(src, tgt, model, args.network_points, args.icp_points, args.voxel_size, args.max_distance,
-                      args.icp_iterations, args.seed, args.device, args.backend,
-                      args.fpfh_points if args.fpfh else None)
+    result = register(src, tgt, method=method, model=model, global_points=args.global_points,
+                      network_points=args.network_points, icp_points=args.icp_points, voxel_size=args.voxel_size,
+                      max_distance=args.max_distance, icp_iterations=args.icp_iterations, seed=args.seed,
+                      device=args.device, backend=args.backend, max_memory=args.max_memory)
     record = result.to_dict()
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     record.update(source=str(args.source), target=str(args.target), checkpoint=args.checkpoint, peak_rss_mb=peak_mb)
     print(f"source {len(src)} points, target {len(tgt)} points; "
-          f"initial estimate: {'VRNet' if model is not None else 'FPFH + RANSAC' if args.fpfh else 'identity'}; "
+          f"initial estimate: {INITIAL_NAMES[method]}; "
           f"ICP iterations {result.icp_iterations}, "
           f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}; "
           f"{sum(result.seconds.values()):.1f} s, peak memory {peak_mb:.0f} MB")
@@ -381,6 +410,35 @@ def _run_export(args) -> int:
     return 0
 
 
+def _train_scene_parser(sub) -> None:
+    p = sub.add_parser("train-scene", help="train the scene model (FPFH + VRNet head) on real scans",
+                       description="Self-supervised: each step cuts two overlapping views out of one of the scans, "
+                                   "turns each by a random rotation and resamples it on its own grid; the network "
+                                   "learns to match them. No pair of different scans is used. Resumes from --out "
+                                   "when it exists.",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("scans", nargs="+", help="point-cloud files (sensor at the origin), e.g. 3DMatch fragments")
+    p.add_argument("--out", required=True, type=_writable_path, help="checkpoint to write (and resume)")
+    p.add_argument("--steps", type=_positive_int, default=600, help="training pairs")
+    p.add_argument("--points", type=_positive_int, default=3000, help="about this many points per training view")
+    p.add_argument("--lr", type=_positive_float, default=2e-3, help="Adam learning rate")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _run_train_scene(args) -> int:
+    from vrnet_ext.io import read_points
+    from vrnet_ext.scene_training import SceneTrainConfig, train_scene_model
+
+    scans = {Path(path).name: read_points(path) for path in args.scans}
+    if len(scans) != len(args.scans):
+        raise ValueError("scans: give each file once (file names must differ)")
+    cfg = SceneTrainConfig(steps=args.steps, points=args.points, lr=args.lr, seed=args.seed)
+    path = train_scene_model(scans, args.out, cfg, progress=not args.no_progress)
+    print(f"wrote {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vrnet", description="VRNet point-cloud registration (vrnet_ext).")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -390,6 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
     _register_parser(sub)
     _demo_parser(sub)
     _export_parser(sub)
+    _train_scene_parser(sub)
     return parser
 
 
@@ -397,7 +456,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         commands = {"train": _run_train, "eval": _run_eval, "plot": _run_plot, "register": _run_register,
-                    "demo": _run_demo, "export": _run_export}
+                    "demo": _run_demo, "export": _run_export, "train-scene": _run_train_scene}
         return commands[args.command](args)
     except (FileNotFoundError, ValueError) as exc:
         print(f"vrnet {args.command}: error: {exc}", file=sys.stderr)

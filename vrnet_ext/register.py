@@ -18,9 +18,12 @@ import numpy as np
 import torch
 
 from vrnet_ext import ops
-from vrnet_ext.global_registration import fpfh_ransac
+from vrnet_ext.global_registration import fpfh_ransac, ransac
 from vrnet_ext.metrics import rotation_error_deg, translation_error
 from vrnet_ext.model import VRNet
+from vrnet_ext.model.scene import SceneVRNet
+from vrnet_ext.memory_plan import plan_registration
+from vrnet_ext.preprocessing import subsample, voxel_downsample, voxel_size_for
 
 
 REFERENCE_KNN_ELEMENTS = 1 << 24  # 128 MB of float64 distances per chunk for backend="torch"
@@ -60,57 +63,6 @@ def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
-def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """Mean of the points in each occupied voxel of edge ``voxel_size`` -> (V, 3)."""
-    if voxel_size <= 0:
-        raise ValueError(f"voxel_size must be positive, got {voxel_size}")
-    if not np.isfinite(voxel_size):
-        raise ValueError(f"voxel_size must be finite, got {voxel_size}")
-    cells_float = np.floor((points - points.min(0)) / voxel_size)
-    if float(cells_float.max(initial=0.0)) >= 2.0 ** 62:
-        raise ValueError(f"voxel_size {voxel_size:g} is too small for a cloud of extent "
-                         f"{np.ptp(points, axis=0).tolist()} (more than 2^62 voxels along an axis)")
-    cells = cells_float.astype(np.int64)
-    sizes = cells.max(0) + 1
-    if float(np.prod(sizes.astype(np.float64))) < 2.0 ** 62:
-        keys = (cells[:, 0] * sizes[1] + cells[:, 1]) * sizes[2] + cells[:, 2]  # row-major voxel number
-        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    else:  # a far-flung cloud (stray points km away): number the occupied voxels row by row instead
-        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    sums = np.stack([np.bincount(inverse, weights=points[:, axis], minlength=len(counts)) for axis in range(3)], 1)
-    return (sums / counts[:, None]).astype(points.dtype)
-
-
-STRAY_POINTS = 2  # extreme points per axis end that voxel_size_for ignores
-
-
-def voxel_size_for(points: np.ndarray, target_points: int) -> float:
-    """A voxel edge that leaves roughly ``target_points`` of a scan (surface scaling: V ~ 1/size^2).
-
-    The search starts from a thousandth of the diagonal of the scan's box without its two most extreme
-    points at each end of each axis, so one or two stray points far away (a reflection, a bad range
-    reading) do not make the voxels coarse."""
-    if target_points < 1:
-        raise ValueError(f"target_points must be >= 1, got {target_points}")
-    trim = min(STRAY_POINTS, (len(points) - 1) // 2)
-    ordered = np.sort(points, axis=0)
-    extent = float(np.linalg.norm(ordered[len(points) - 1 - trim] - ordered[trim])) or 1.0
-    size = extent / 1000.0
-    for _ in range(30):
-        count = len(voxel_downsample(points, size))
-        if count <= target_points:
-            return size
-        size *= max(1.1, (count / target_points) ** 0.5)
-    return size
-
-
-def subsample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
-    if len(points) <= count:
-        return points
-    return points[np.sort(rng.choice(len(points), count, replace=False))]
-
-
 def network_estimate(model: VRNet, src: np.ndarray, tgt: np.ndarray, network_points: int, seed: int,
                      device: torch.device, backend: str = "ext") -> np.ndarray:
     """VRNet's 4x4 estimate for a pair of scans given in metres: src (N, 3), tgt (M, 3)."""
@@ -129,6 +81,29 @@ def network_estimate(model: VRNet, src: np.ndarray, tgt: np.ndarray, network_poi
     t_normalised = out.translation[0].double().cpu().numpy()
     # y_n = R x_n + t_n with p_n = (p - c) / s  =>  y = R x + s t_n + c - R c
     return to_homogeneous(R, scale * t_normalised + centre - R @ centre)
+
+
+SCENE_PAIRS = 1000  # most confident (source, RCP) pairs the scene model hands to RANSAC
+
+
+def scene_estimate(model: SceneVRNet, src: np.ndarray, tgt: np.ndarray, points: int, seed: int,
+                   backend: str = "ext") -> np.ndarray:
+    """4x4 estimate from the scene model (:mod:`vrnet_ext.model.scene`): both scans voxel-downsampled
+    to about ``points`` points, FPFH, VRNet's head, then RANSAC (inliers within 1.5 voxels) over
+    the ``SCENE_PAIRS`` (source point, RCP) pairs of highest confidence."""
+    from vrnet_ext.data.scans import describe
+
+    voxel = voxel_size_for(tgt, points)
+    src_view, tgt_view = (describe(voxel_downsample(cloud, voxel), voxel) for cloud in (src, tgt))
+    model.eval()
+    with torch.no_grad():
+        out = model(src_view.network_points()[None], src_view.descriptors[None], tgt_view.network_points()[None],
+                    tgt_view.descriptors[None], backend=backend)
+    keep = out.confidence_logits[0].argsort(descending=True)[:SCENE_PAIRS]
+    src_pairs = torch.as_tensor(src_view.points, dtype=torch.float64)[keep]
+    rcp_pairs = out.rcp[0, keep].double() * voxel
+    pairs = torch.arange(len(keep)).unsqueeze(1).expand(-1, 2)
+    return ransac(src_pairs, rcp_pairs, pairs, 1.5 * voxel, seed=seed)[0].cpu().numpy()
 
 
 class TargetReach:
@@ -256,53 +231,82 @@ def fitness(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: floa
     return int((dist2 <= reach ** 2).sum()) / len(src)
 
 
-def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, network_points: int = 1024,
+METHODS = ("vrnet", "fpfh", "icp")
+
+
+def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
+             model: VRNet | SceneVRNet | None = None, global_points: int = 5000, network_points: int = 1024,
              icp_points: int = 50_000, voxel_size: float | None = None, max_distance: float | None = None,
              icp_iterations: int = 50, seed: int = 0, device: str | torch.device = "cpu",
-             backend: str = "ext", fpfh_points: int | None = None) -> RegistrationResult:
+             backend: str = "ext", max_memory: int | None = None) -> RegistrationResult:
     """Estimates the rigid transform taking src (N, 3) onto tgt (M, 3), both in the same unit.
 
-    model: a trained VRNet for the initial estimate. fpfh_points: instead, a global estimate from
-    FPFH features + RANSAC on about this many points per scan. Neither: ICP starts from the identity.
-    network_points: points per cloud fed to the network. icp_points: ICP works on voxel-downsampled
-    clouds of about this many points (``voxel_size`` overrides). max_distance: ICP inlier reach
-    (default 3 voxels). icp_iterations=0 skips ICP. With a model, ICP runs from its estimate and
-    from no motion, and the refinement with the higher fitness wins (``initial`` is then the start
-    it came from; a warning says when that was not the network's). If ICP finds no pairs within
-    reach, the result is the initial estimate with a message in ``warnings``.
+    method: ``"vrnet"``: a learned initial estimate from ``model`` (a :class:`SceneVRNet` on about
+    ``global_points`` points per scan, or a ModelNet40 :class:`VRNet` on ``network_points``
+    subsampled points; default: the shipped scene model); ``"fpfh"``: FPFH features + RANSAC on
+    about ``global_points`` points per scan; ``"icp"``: ICP from no motion. None: ``"vrnet"`` when a
+    model is given, else ``"icp"``. icp_points: ICP works on voxel-downsampled clouds of about this
+    many points (``voxel_size`` overrides). max_distance: ICP inlier reach (default 3 voxels).
+    icp_iterations=0 skips ICP. With a learned estimate, ICP runs from it and from no motion, and
+    the refinement with the higher fitness wins (``initial`` is then the start it came from; a
+    warning says when that was not the network's). If ICP finds no pairs within reach, the result
+    is the initial estimate with a message in ``warnings``. max_memory: a budget in bytes for the
+    process's peak resident memory; the point counts are lowered to fit it
+    (:func:`vrnet_ext.memory_plan.plan_registration`, notes in ``warnings``) or MemoryBudgetError
+    says at once what would fit.
     """
-    if model is not None and fpfh_points:
-        raise ValueError("give one initial estimate: a VRNet model or fpfh_points, not both")
-    if fpfh_points is not None and fpfh_points < 3:
-        raise ValueError(f"fpfh_points must be at least 3, got {fpfh_points}")
-    for name, value in (("network_points", network_points), ("icp_points", icp_points)):
+    method = method or ("vrnet" if model is not None else "icp")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if model is not None and method != "vrnet":
+        raise ValueError(f"model is only used by method 'vrnet', not {method!r}")
+    for name, value in (("global_points", global_points), ("network_points", network_points),
+                        ("icp_points", icp_points)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    if global_points < 3:
+        raise ValueError(f"global_points must be at least 3, got {global_points}")
     for name, value in (("voxel_size", voxel_size), ("max_distance", max_distance)):
         if value is not None and not (np.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be a finite number > 0 (or None for the default), got {value!r}")
+    if max_memory is not None and voxel_size is not None:
+        raise ValueError("give max_memory or voxel_size, not both (the budget chooses the ICP voxel)")
+    if method == "vrnet" and model is None:
+        from vrnet_ext.pretrained import DEFAULT_SCENE_MODEL, load_pretrained
+
+        model = load_pretrained(DEFAULT_SCENE_MODEL, device)
+    plan_notes = []
+    if max_memory is not None:
+        learned = None if method != "vrnet" else "scene" if isinstance(model, SceneVRNet) else "modelnet"
+        plan = plan_registration(max_memory, method, learned, len(src), len(tgt), global_points, network_points,
+                                 icp_points)
+        global_points, network_points, icp_points = plan.global_points, plan.network_points, plan.icp_points
+        plan_notes = plan.notes
     device = torch.device(device)
     seconds, start = {}, time.perf_counter()
     initial = np.eye(4)
-    if model is not None:
+    if isinstance(model, SceneVRNet):
+        initial = scene_estimate(model, src, tgt, global_points, seed, backend)
+    elif model is not None:
         initial = network_estimate(model, src, tgt, network_points, seed, device, backend)
-    elif fpfh_points:
-        initial = fpfh_estimate(src, tgt, fpfh_points, seed, device)
+    elif method == "fpfh":
+        initial = fpfh_estimate(src, tgt, global_points, seed, device)
     seconds["initial"] = time.perf_counter() - start
     points = {"source": len(src), "target": len(tgt)}
     if icp_iterations <= 0:
-        return RegistrationResult(initial, initial, 0, float("nan"), float("nan"), seconds, points)
+        return RegistrationResult(initial, initial, 0, float("nan"), float("nan"), seconds, points, plan_notes)
     start = time.perf_counter()
     voxel = voxel_size if voxel_size is not None else voxel_size_for(tgt, icp_points)
     src_icp, tgt_icp = voxel_downsample(src, voxel), voxel_downsample(tgt, voxel)
     seconds["downsample"] = time.perf_counter() - start
     points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))
     reach = max_distance if max_distance is not None else 3.0 * voxel
-    warnings = []
-    # A network trained on ModelNet40 objects may not fit a pair of scans: with a network estimate,
-    # ICP also runs from no motion, and the refinement with the higher fitness (then the lower inlier
+    warnings = list(plan_notes)
+    # A network trained on ModelNet40 objects may not fit a pair of scans: with its estimate, ICP
+    # also runs from no motion, and the refinement with the higher fitness (then the lower inlier
     # RMSE) wins, with a warning when that is not the network's.
-    starts = {"the VRNet estimate": initial, "no motion": np.eye(4)} if model is not None else {"start": initial}
+    two_starts = isinstance(model, VRNet)
+    starts = {"the VRNet estimate": initial, "no motion": np.eye(4)} if two_starts else {"start": initial}
     start = time.perf_counter()
     refined, failures = {}, []
     for label, guess in starts.items():
@@ -316,7 +320,7 @@ def register(src: np.ndarray, tgt: np.ndarray, model: VRNet | None = None, netwo
                                   [f"{'; '.join(failures)}; returning the unrefined initial estimate"])
     label = max(refined, key=lambda name: (refined[name][3], -refined[name][4]))
     initial, T, iterations, final_fitness, rmse = refined[label]
-    if model is not None and label == "no motion":
+    if two_starts and label == "no motion":
         learned = refined.get("the VRNet estimate")
         from_network = f"fitness {learned[3]:.1%}" if learned else "no pairs within reach"
         warnings.append(f"the VRNet estimate does not fit these scans (ICP from it: {from_network}; from no "

@@ -1,0 +1,143 @@
+"""Sizing a registration run to a memory budget (``vrnet register --max-memory 2GB``).
+
+The budget bounds the peak resident memory of the whole process: what it already holds (Python,
+torch, the scans just read) plus the largest transient of the stages that follow. Those transients
+grow linearly with the point counts; the coefficients below were measured on this project's CPU
+machine (peak-RSS growth of each stage alone, in a fresh process, on room-like synthetic scans of
+0.1-1M points and on the 3DMatch kitchen fragments; ``benchmarks/bench_large_scene.py`` checks the
+resulting peaks) and carry a 25 % safety factor. The plan keeps the requested point counts when
+they fit, else lowers them (never below the ``MIN_*`` counts), and raises :class:`MemoryBudgetError`
+before any heavy work when even the smallest run would not fit, saying what would.
+"""
+from __future__ import annotations
+
+import re
+import resource
+from dataclasses import dataclass, field
+
+MB = 2 ** 20
+SAFETY = 1.25
+MARGIN_MB = 40.0     # allocator slack, small tensors, the result
+# Peak growth of each stage, in MB: intercept + bytes per point / MB.
+VOXEL_BYTES_PER_INPUT_POINT = 110.0          # voxel_downsample of the larger scan
+ICP_MB, ICP_BYTES_PER_POINT = 25.0, 80.0     # per point of source + target after downsampling
+FPFH_MB, FPFH_BYTES_PER_POINT = 95.0, 2200.0  # normals, FPFH (100 neighbours), RANSAC, per point per scan
+SCENE_MB, SCENE_BYTES_PER_POINT = 60.0, 18000.0  # FPFH + the scene network's context graph, per point per scan
+NETWORK_MB, NETWORK_BYTES_PER_POINT = 50.0, 50000.0  # the ModelNet40 VRNet (DGCNN k-graphs), per point per cloud
+MIN_GLOBAL_POINTS, MIN_ICP_POINTS, MIN_NETWORK_POINTS = 1000, 5000, 256
+
+_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)(i?b?)\s*$", re.IGNORECASE)
+
+
+class MemoryBudgetError(ValueError):
+    """The budget cannot be met; the message says what the smallest run would need."""
+
+
+def parse_memory_size(text: str) -> int:
+    """'2GB', '512MB', '1.5G', '4096' (bytes) -> bytes (K/M/G/T are powers of 1024)."""
+    match = _SIZE.match(str(text))
+    if not match:
+        raise ValueError(f"not a memory size: {text!r} (e.g. 2GB, 512MB, 1.5G)")
+    number, unit = float(match.group(1)), match.group(2).lower()
+    value = int(number * 1024 ** " kmgt".index(unit or " "))
+    if value <= 0:
+        raise ValueError(f"a memory size must be > 0, got {text!r}")
+    return value
+
+
+def resident_mb() -> tuple[float, float]:
+    """(current, peak) resident memory of this process in MB."""
+    try:
+        status = open("/proc/self/status").read()
+        now = int(re.search(r"VmRSS:\s+(\d+)", status).group(1)) / 1024.0
+        peak = int(re.search(r"VmHWM:\s+(\d+)", status).group(1)) / 1024.0
+        return now, peak
+    except (OSError, AttributeError):  # not Linux: the peak is the best bound we have
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        return peak, peak
+
+
+def require_headroom(budget_bytes: int) -> None:
+    """MemoryBudgetError at once if this process alone (Python, torch) already needs more than
+    the budget plus room for the smallest run; called before any scan is read."""
+    now_mb, peak_mb = resident_mb()
+    floor_mb = max(now_mb, peak_mb) + MARGIN_MB + SAFETY * ICP_MB
+    if budget_bytes / MB < floor_mb:
+        raise MemoryBudgetError(f"max_memory {budget_bytes / MB:.0f} MB cannot be met: Python and torch alone "
+                                f"hold {max(now_mb, peak_mb):.0f} MB; allow at least {floor_mb:.0f} MB plus "
+                                f"room for the scans")
+
+
+@dataclass
+class RegistrationPlan:
+    """Point counts for one run and the peak they are expected to reach."""
+
+    global_points: int
+    network_points: int
+    icp_points: int
+    predicted_peak_mb: float
+    budget_mb: float
+    notes: list[str] = field(default_factory=list)
+
+
+def _stage_mb(method: str, learned: str | None, largest_scan: int, global_points: int, network_points: int,
+              icp_points: int) -> float:
+    """Largest transient of the run's stages (MB), safety factor included."""
+    stages = [VOXEL_BYTES_PER_INPUT_POINT * largest_scan / MB,
+              ICP_MB + ICP_BYTES_PER_POINT * 2 * icp_points / MB]
+    if method == "fpfh":
+        stages.append(FPFH_MB + FPFH_BYTES_PER_POINT * global_points / MB)
+    elif method == "vrnet" and learned == "scene":
+        stages.append(SCENE_MB + SCENE_BYTES_PER_POINT * global_points / MB)
+    elif method == "vrnet":
+        stages.append(NETWORK_MB + NETWORK_BYTES_PER_POINT * network_points / MB)
+    return SAFETY * max(stages)
+
+
+def plan_registration(budget_bytes: int, method: str, learned: str | None, source_points: int, target_points: int,
+                      global_points: int, network_points: int, icp_points: int) -> RegistrationPlan:
+    """Point counts that keep the process's peak within ``budget_bytes``.
+
+    learned: ``"scene"`` or ``"modelnet"`` for method ``"vrnet"`` (which network), else None.
+    Raises :class:`MemoryBudgetError` when the process already holds too much or when even the
+    smallest counts would not fit.
+    """
+    budget_mb = budget_bytes / MB
+    now_mb, peak_mb = resident_mb()
+    if peak_mb > budget_mb:
+        raise MemoryBudgetError(f"max_memory {budget_mb:.0f} MB cannot be met: this process already reached "
+                                f"{peak_mb:.0f} MB (Python, torch and the scans of {source_points} + "
+                                f"{target_points} points); allow at least "
+                                f"{_smallest_mb(now_mb, method, learned, source_points, target_points):.0f} MB")
+    largest = max(source_points, target_points)
+    counts = {"global_points": global_points, "network_points": network_points, "icp_points": icp_points}
+    floors = {"global_points": MIN_GLOBAL_POINTS, "network_points": MIN_NETWORK_POINTS,
+              "icp_points": MIN_ICP_POINTS}
+    used = {"icp_points"} | ({"global_points"} if method == "fpfh" or learned == "scene" else set()) \
+        | ({"network_points"} if method == "vrnet" and learned == "modelnet" else set())
+    notes = []
+
+    def predicted() -> float:
+        return now_mb + MARGIN_MB + _stage_mb(method, learned, largest, **counts)
+
+    while predicted() > budget_mb:
+        shrinkable = [name for name in sorted(used) if counts[name] > floors[name]]
+        if not shrinkable:
+            raise MemoryBudgetError(
+                f"max_memory {budget_mb:.0f} MB cannot be met: the smallest run (global estimate on "
+                f"{MIN_GLOBAL_POINTS} points, ICP on {MIN_ICP_POINTS}) needs about "
+                f"{_smallest_mb(now_mb, method, learned, source_points, target_points):.0f} MB, "
+                f"{now_mb:.0f} MB of it held already (Python, torch and the scans)")
+        for name in shrinkable:
+            counts[name] = max(floors[name], int(counts[name] * 0.8))
+    for name, requested in (("global_points", global_points), ("network_points", network_points),
+                            ("icp_points", icp_points)):
+        if counts[name] < requested:
+            notes.append(f"{name} {counts[name]} instead of {requested} to stay within {budget_mb:.0f} MB")
+    return RegistrationPlan(counts["global_points"], counts["network_points"], counts["icp_points"], predicted(),
+                            budget_mb, notes)
+
+
+def _smallest_mb(now_mb: float, method: str, learned: str | None, source_points: int, target_points: int) -> float:
+    return now_mb + MARGIN_MB + _stage_mb(method, learned, max(source_points, target_points), MIN_GLOBAL_POINTS,
+                                          MIN_NETWORK_POINTS, MIN_ICP_POINTS)
