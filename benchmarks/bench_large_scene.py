@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from vrnet_ext.data.procedural import room_scan
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "scenes"
 KITCHEN_PAIRS = [(0, 4), (0, 10), (4, 10)]
@@ -62,29 +64,6 @@ def pairs(data: Path, workdir: Path) -> list[dict]:
         found.append({"name": "LiDAR", "source": lidar / "source.ply", "target": lidar / "target.ply",
                       "gt": lidar / "T_target_source.txt", "heldout_fragment": None})
     return found
-
-
-def room_scan(points: int, seed: int) -> np.ndarray:
-    """A 10 x 8 x 3 m room with a table and two boxes, sampled uniformly by area, 3 mm noise."""
-    rng = np.random.default_rng(seed)
-    boxes = [((0, 0, 0), (10, 8, 3)), ((2, 2, 0), (4, 3, 0.8)), ((6, 5, 0), (6.6, 5.8, 1.5)),
-             ((7.5, 1, 0), (8.5, 1.5, 2.2))]
-    faces = []
-    for low, high in boxes:
-        low, high = np.array(low, float), np.array(high, float)
-        for axis in range(3):
-            for side in (low, high):
-                others = [a for a in range(3) if a != axis]
-                faces.append((axis, side[axis], low[others], high[others], others))
-    areas = np.array([np.prod(h - l) for _, _, l, h, _ in faces])
-    counts = rng.multinomial(points, areas / areas.sum())
-    cloud = []
-    for (axis, level, low, high, others), count in zip(faces, counts):
-        p = np.empty((count, 3))
-        p[:, axis] = level
-        p[:, others] = rng.uniform(low, high, (count, 2))
-        cloud.append(p)
-    return np.concatenate(cloud) + rng.normal(0.0, 0.003, (points, 3))
 
 
 def synthetic_pair(workdir: Path, points: int) -> dict:

@@ -258,6 +258,8 @@ def _register_parser(sub) -> None:
     p.add_argument("--max-distance", type=_positive_float, default=None,
                    help="ICP inlier reach, in the scans' unit (default: 3 voxels)")
     p.add_argument("--icp-iterations", type=_nonnegative_int, default=50, help="0: no ICP")
+    p.add_argument("--estimator", choices=("point_to_point", "point_to_plane", "gicp"), default="point_to_point",
+                   help="ICP step: point-to-point (Kabsch), point-to-plane, or plane-to-plane (GICP)")
     p.add_argument("--gt", default=None, help="ground-truth 4x4 transform file: report the errors")
     p.add_argument("--json", type=_writable_path, default=None, help="write the result here")
     p.add_argument("--out", type=_writable_path, default=None, help="write the moved source as a PLY here")
@@ -294,7 +296,8 @@ def _run_register(args) -> int:
     result = register(src, tgt, method=method, model=model, global_points=args.global_points,
                       network_points=args.network_points, icp_points=args.icp_points, voxel_size=args.voxel_size,
                       max_distance=args.max_distance, icp_iterations=args.icp_iterations, seed=args.seed,
-                      device=args.device, backend=args.backend, max_memory=args.max_memory)
+                      device=args.device, backend=args.backend, max_memory=args.max_memory,
+                      icp_estimator=args.estimator)
     record = result.to_dict()
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     record.update(source=str(args.source), target=str(args.target), checkpoint=args.checkpoint, peak_rss_mb=peak_mb)
@@ -378,7 +381,7 @@ def _export_parser(sub) -> None:
     p.add_argument("checkpoint", help="best.pt / last.pt of `vrnet train` (metrics.jsonl beside it is read too)")
     p.add_argument("name", help="model name, e.g. vrnet-pv-upc-weighted-vcp")
     p.add_argument("--out-dir", default=None, help="folder to write to (default: the package's weights folder)")
-    p.add_argument("--test-json", default=None, help="`vrnet eval --json` output on the test split, for the card")
+    p.add_argument("--test-json", default=None, help="`vrnet eval --json` output on the test split (a VRNet), or a Markdown results table (a scene model), for the card")
     p.add_argument("--summary", default="", help="one paragraph: what the model is for")
     p.add_argument("--machine", default=None, help="where it was trained (for the card)")
     p.add_argument("--sessions", type=_positive_int, default=None, help="how many sessions the training took")
@@ -390,8 +393,20 @@ def _export_parser(sub) -> None:
 
 
 def _run_export(args) -> int:
-    from vrnet_ext.pretrained import WEIGHTS_DIR, export_pretrained, training_facts
+    from vrnet_ext.checkpoints import read_checkpoint
+    from vrnet_ext.model.scene import SCENE_FORMAT
+    from vrnet_ext.pretrained import WEIGHTS_DIR, export_pretrained, export_scene_model, training_facts
 
+    out = Path(args.out_dir) if args.out_dir else WEIGHTS_DIR
+    if read_checkpoint(args.checkpoint).get("format") == SCENE_FORMAT:
+        card = {"summary": args.summary, "notes": args.note,
+                "training": {k: v for k, v in (("machine", args.machine), ("sessions", args.sessions)) if v}}
+        if args.test_json:
+            card["results"] = Path(args.test_json).read_text().splitlines()
+            card["results_note"] = f"From {Path(args.test_json).name}."
+        path = export_scene_model(args.checkpoint, out / f"{args.name}.pt", card)
+        print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")
+        return 0
     training = training_facts(args.checkpoint)
     if args.machine:
         training["machine"] = args.machine
@@ -403,7 +418,6 @@ def _run_export(args) -> int:
         card["test"] = {k: v for k, v in test.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
         card["test_note"] = (f"`vrnet eval` on {test.get('pairs')} ModelNet40 test pairs ({test.get('setting')} / "
                              f"{test.get('split')}, the whole official test split unless fewer are stated).")
-    out = Path(args.out_dir) if args.out_dir else WEIGHTS_DIR
     overrides = {k: getattr(args, k) for k in ("procrustes_points", "irls_iterations") if getattr(args, k) is not None}
     path = export_pretrained(args.checkpoint, out / f"{args.name}.pt", card, overrides)
     print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")

@@ -23,7 +23,7 @@ VOXEL_BYTES_PER_INPUT_POINT = 110.0          # voxel_downsample of the larger sc
 ICP_MB, ICP_BYTES_PER_POINT = 25.0, 80.0     # per point of source + target after downsampling
 FPFH_MB, FPFH_BYTES_PER_POINT = 95.0, 2200.0  # normals, FPFH (100 neighbours), RANSAC, per point per scan
 SCENE_MB, SCENE_BYTES_PER_POINT = 60.0, 18000.0  # FPFH + the scene network's context graph, per point per scan
-NETWORK_MB, NETWORK_BYTES_PER_POINT = 50.0, 50000.0  # the ModelNet40 VRNet (DGCNN k-graphs), per point per cloud
+NETWORK_MB, NETWORK_BYTES_PER_POINT = 40.0, 20000.0  # the ModelNet40 VRNet (streamed matching), per point per cloud
 MIN_GLOBAL_POINTS, MIN_ICP_POINTS, MIN_NETWORK_POINTS = 1000, 5000, 256
 
 _SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)(i?b?)\s*$", re.IGNORECASE)

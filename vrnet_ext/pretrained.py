@@ -36,6 +36,7 @@ def weights_path(name: str) -> Path:
 
 def load_pretrained(name: str | None = None, device: str | torch.device = "cpu") -> VRNet:
     """A shipped VRNet in eval mode, float32, on ``device``; ``name=None`` is the PV/UPC model.
+    A scene model's name (``DEFAULT_SCENE_MODEL``) returns a :class:`~vrnet_ext.model.scene.SceneVRNet`.
 
     Example::
 
@@ -100,6 +101,35 @@ def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike
     return out_path
 
 
+def export_scene_model(run: str | os.PathLike, out_path: str | os.PathLike, card: dict) -> Path:
+    """Writes a ``vrnet train-scene`` run as shipped weights (float16, the run's facts in the card)
+    and its model card ``<out_path>.md``."""
+    from vrnet_ext.checkpoints import model_from_state, read_checkpoint
+    from vrnet_ext.model.scene import SCENE_FORMAT
+
+    state = read_checkpoint(run)
+    if state.get("format") != SCENE_FORMAT:
+        raise ValueError(f"{run}: not a scene-model run of `vrnet train-scene`")
+    model_from_state(state, str(run))  # the weights match the configuration
+    training = {"scans": ", ".join(state.get("scans", [])), "steps": state.get("step"),
+                "train_seconds": round(float(state.get("train_seconds") or 0.0), 1)}
+    training.update({k: v for k, v in (state.get("train_config") or {}).items() if k != "checkpoint_every"})
+    card = json.loads(json.dumps(dict(card, training=dict(training, **card.get("training", {})))))
+    weights = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"format": SCENE_FORMAT, "model": weights, "config": state["config"], "card": card}, out_path)
+    lines = [f"# Model card: `{out_path.stem}`", "", card.get("summary", ""), "", "```bash",
+             f"vrnet register SOURCE TARGET --method vrnet --checkpoint {out_path.stem}", "```", "", "## Model", ""]
+    lines += [f"- {key}: `{value}`" for key, value in state["config"].items()]
+    lines += ["", "## Training", ""] + [f"- {key}: {value}" for key, value in card["training"].items()]
+    if "results" in card:
+        lines += ["", "## Results", "", card.get("results_note", ""), ""] + card["results"]
+    lines += ["", "## Notes", ""] + [f"- {note}" for note in card.get("notes", [])]
+    out_path.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    return out_path
+
+
 def _table(values: dict) -> list[str]:
     rows = ["| metric | value |", "|---|---:|"]
     for key, value in values.items():
@@ -132,5 +162,5 @@ def model_card_markdown(name: str, config: dict, card: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["DEFAULT_MODEL", "available", "export_pretrained", "load_pretrained", "model_card", "model_card_markdown",
+__all__ = ["DEFAULT_MODEL", "DEFAULT_SCENE_MODEL", "available", "export_pretrained", "export_scene_model", "load_pretrained", "model_card", "model_card_markdown",
            "training_facts", "weights_path"]

@@ -24,6 +24,7 @@ from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.memory_plan import plan_registration
 from vrnet_ext.preprocessing import subsample, voxel_downsample, voxel_size_for
+from vrnet_ext.registration.estimators import make_estimator
 
 
 REFERENCE_KNN_ELEMENTS = 1 << 24  # 128 MB of float64 distances per chunk for backend="torch"
@@ -182,9 +183,10 @@ def fpfh_estimate(src: np.ndarray, tgt: np.ndarray, points: int, seed: int,
 
 def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: float, iterations: int = 50,
         tolerance: float = 1e-6, device: torch.device = torch.device("cpu"),
-        backend: str = "ext") -> tuple[np.ndarray, int, float, float]:
-    """Point-to-point ICP: nearest target neighbour of each moved source point, pairs farther than
-    ``max_distance`` get weight 0, weighted Kabsch; stops when the transform changes by less than
+        backend: str = "ext", estimator: str = "point_to_point") -> tuple[np.ndarray, int, float, float]:
+    """ICP: nearest target neighbour of each moved source point, pairs farther than ``max_distance``
+    get weight 0, then one step of ``estimator`` (:mod:`vrnet_ext.registration.estimators`:
+    point_to_point, point_to_plane, gicp); stops when the transform changes by less than
     ``tolerance`` (rotation in radians, translation in metres). Points that :class:`TargetReach`
     rules out are not searched (they would get weight 0 anyway).
 
@@ -193,6 +195,8 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
     """
     src_t = torch.as_tensor(src, dtype=torch.float64, device=device).unsqueeze(0)
     tgt_t = torch.as_tensor(tgt, dtype=torch.float64, device=device).unsqueeze(0)
+    step = make_estimator(estimator)
+    step.prepare(src_t[0], tgt_t[0])
     reach = TargetReach(tgt_t, max_distance)
     T = torch.as_tensor(initial, dtype=torch.float64, device=device)
     done = 0
@@ -203,12 +207,10 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
         if int(inliers.sum()) < 3:
             raise IcpFailure(f"ICP: fewer than 3 point pairs within max_distance={max_distance:g} of the initial "
                              "estimate (too far off; raise --max-distance or check the inputs)")
-        R, t = ops.kabsch(src_t[:, candidates], tgt_t[:, idx], inliers.unsqueeze(0), backend=backend)
-        step = torch.eye(4, dtype=T.dtype, device=device)
-        step[:3, :3], step[:3, 3] = R[0], t[0]
-        change_rotation = torch.linalg.matrix_norm(step[:3, :3] - T[:3, :3]).item()
-        change_translation = torch.linalg.vector_norm(step[:3, 3] - T[:3, 3]).item()
-        T = step
+        new = step.step(T, candidates, idx, inliers)
+        change_rotation = torch.linalg.matrix_norm(new[:3, :3] - T[:3, :3]).item()
+        change_translation = torch.linalg.vector_norm(new[:3, 3] - T[:3, 3]).item()
+        T = new
         if change_rotation < tolerance and change_translation < tolerance:
             break
     _, dist2, _ = _nearest_in_reach(src_t @ T[:3, :3].T + T[:3, 3], tgt_t, reach, backend)
@@ -238,7 +240,8 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
              model: VRNet | SceneVRNet | None = None, global_points: int = 5000, network_points: int = 1024,
              icp_points: int = 50_000, voxel_size: float | None = None, max_distance: float | None = None,
              icp_iterations: int = 50, seed: int = 0, device: str | torch.device = "cpu",
-             backend: str = "ext", max_memory: int | None = None) -> RegistrationResult:
+             backend: str = "ext", max_memory: int | None = None,
+             icp_estimator: str = "point_to_point") -> RegistrationResult:
     """Estimates the rigid transform taking src (N, 3) onto tgt (M, 3), both in the same unit.
 
     method: ``"vrnet"``: a learned initial estimate from ``model`` (a :class:`SceneVRNet` on about
@@ -247,7 +250,8 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
     about ``global_points`` points per scan; ``"icp"``: ICP from no motion. None: ``"vrnet"`` when a
     model is given, else ``"icp"``. icp_points: ICP works on voxel-downsampled clouds of about this
     many points (``voxel_size`` overrides). max_distance: ICP inlier reach (default 3 voxels).
-    icp_iterations=0 skips ICP. With a learned estimate, ICP runs from it and from no motion, and
+    icp_iterations=0 skips ICP; icp_estimator: its step (point_to_point, point_to_plane, gicp:
+    :mod:`vrnet_ext.registration.estimators`). With a learned estimate, ICP runs from it and from no motion, and
     the refinement with the higher fitness wins (``initial`` is then the start it came from; a
     warning says when that was not the network's). If ICP finds no pairs within reach, the result
     is the initial estimate with a message in ``warnings``. max_memory: a budget in bytes for the
@@ -255,6 +259,7 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
     (:func:`vrnet_ext.memory_plan.plan_registration`, notes in ``warnings``) or MemoryBudgetError
     says at once what would fit.
     """
+    make_estimator(icp_estimator)  # a bad name fails before any work
     method = method or ("vrnet" if model is not None else "icp")
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -305,14 +310,14 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
     # A network trained on ModelNet40 objects may not fit a pair of scans: with its estimate, ICP
     # also runs from no motion, and the refinement with the higher fitness (then the lower inlier
     # RMSE) wins, with a warning when that is not the network's.
-    two_starts = isinstance(model, VRNet)
+    two_starts = model is not None and not isinstance(model, SceneVRNet)
     starts = {"the VRNet estimate": initial, "no motion": np.eye(4)} if two_starts else {"start": initial}
     start = time.perf_counter()
     refined, failures = {}, []
     for label, guess in starts.items():
         try:
             refined[label] = (guess, *icp(src_icp, tgt_icp, guess, reach, icp_iterations, device=device,
-                                          backend=backend))
+                                          backend=backend, estimator=icp_estimator))
         except IcpFailure as failure:
             failures.append(f"{failure} (from {label})")
     if not refined:

@@ -1,4 +1,5 @@
-"""Shapes the package makes itself (no data needed): chair-like objects of boxes and cylinders.
+"""Shapes the package makes itself (no data needed): chair-like objects of boxes and cylinders,
+and room-like scans (:func:`room_scan`) for registration tests and benchmarks.
 
 Each shape has a seat, a backrest, four legs and one armrest, with sizes drawn from the generator,
 so no two are alike and none has a rotational symmetry (the armrest sits on one side only). Points
@@ -61,4 +62,28 @@ def chair(rng: np.random.Generator, num_points: int = 1024) -> np.ndarray:
     return points.astype(np.float32)
 
 
-__all__ = ["chair"]
+
+def room_scan(points: int, seed: int) -> np.ndarray:
+    """A 10 x 8 x 3 m room with a table and two boxes, sampled uniformly by area, 3 mm noise."""
+    rng = np.random.default_rng(seed)
+    boxes = [((0, 0, 0), (10, 8, 3)), ((2, 2, 0), (4, 3, 0.8)), ((6, 5, 0), (6.6, 5.8, 1.5)),
+             ((7.5, 1, 0), (8.5, 1.5, 2.2))]
+    faces = []
+    for low, high in boxes:
+        low, high = np.array(low, float), np.array(high, float)
+        for axis in range(3):
+            for side in (low, high):
+                others = [a for a in range(3) if a != axis]
+                faces.append((axis, side[axis], low[others], high[others], others))
+    areas = np.array([np.prod(h - l) for _, _, l, h, _ in faces])
+    counts = rng.multinomial(points, areas / areas.sum())
+    cloud = []
+    for (axis, level, low, high, others), count in zip(faces, counts):
+        p = np.empty((count, 3))
+        p[:, axis] = level
+        p[:, others] = rng.uniform(low, high, (count, 2))
+        cloud.append(p)
+    return np.concatenate(cloud) + rng.normal(0.0, 0.003, (points, 3))
+
+
+__all__ = ["chair", "room_scan"]

@@ -1,0 +1,152 @@
+"""Local refinement steps for ICP, as plug-ins: point-to-point, point-to-plane, plane-to-plane (GICP).
+
+Convention (once for the package): a transform ``T_target_source`` is a (4, 4) float64 matrix with
+``y = R x + t`` for column vectors (points are stored as rows, so code writes ``x @ R.T + t``).
+
+Each estimator is built once per pair (:meth:`prepare` computes what it needs of the fixed clouds:
+normals, covariances) and then asked, once per ICP iteration, for the next transform given the
+current one and the correspondences (source index, target index) within reach:
+
+* ``point_to_point``: the weighted Kabsch solution on the pairs (closed form, absolute);
+* ``point_to_plane``: one Gauss-Newton step on sum_i (n_i . (R x_i + t - y_i))^2 with the target
+  normals n_i (Chen & Medioni);
+* ``gicp``: one Gauss-Newton step on sum_i r_i^T (C_y + R C_x R^T)^-1 r_i, r_i = R x_i + t - y_i,
+  with each point's covariance from its ``neighbours`` nearest points, flattened to a plane
+  (eigenvalues 1, 1, 1e-3 of the largest; Segal, Haehnel & Thrun 2009).
+
+Gauss-Newton steps perturb on the left, T <- exp(xi) T with xi = (omega, v): the residual's
+Jacobian at the moved point p is [-[p]_x | I].
+"""
+from __future__ import annotations
+
+import torch
+
+from vrnet_ext import ops
+
+ESTIMATORS = ("point_to_point", "point_to_plane", "gicp")
+PLANE_FLATNESS = 1e-3  # GICP: the smallest covariance eigenvalue, relative to the others
+
+
+def _skew(v: torch.Tensor) -> torch.Tensor:
+    """(P, 3) -> (P, 3, 3) cross-product matrices [v]_x."""
+    zero = torch.zeros_like(v[:, 0])
+    return torch.stack([torch.stack([zero, -v[:, 2], v[:, 1]], -1),
+                        torch.stack([v[:, 2], zero, -v[:, 0]], -1),
+                        torch.stack([-v[:, 1], v[:, 0], zero], -1)], -2)
+
+
+def se3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """(6,) twist (omega, v) -> (4, 4) rigid transform (Rodrigues; exact for any angle)."""
+    omega, v = xi[:3], xi[3:]
+    angle = omega.norm()
+    K = _skew(omega[None])[0]
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device)
+    if float(angle) < 1e-12:
+        R, V = eye + K, eye + 0.5 * K
+    else:
+        a, b = torch.sin(angle) / angle, (1 - torch.cos(angle)) / angle ** 2
+        c = (angle - torch.sin(angle)) / angle ** 3
+        R, V = eye + a * K + b * K @ K, eye + b * K + c * K @ K
+    T = torch.eye(4, dtype=xi.dtype, device=xi.device)
+    T[:3, :3], T[:3, 3] = R, V @ v
+    return T
+
+
+def local_frames(points: torch.Tensor, neighbours: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """points (N, 3) -> (eigenvalues (N, 3) ascending, eigenvectors (N, 3, 3) as columns) of each
+    point's covariance over itself and its nearest ``neighbours``."""
+    k = min(neighbours, points.shape[0] - 1)
+    if k < 2:
+        raise ValueError(f"points: need at least 3 points for normals, got {points.shape[0]}")
+    _, idx = ops.knn(points[None], points[None], k, exclude_self=True)
+    around = torch.cat([points[:, None], points[idx[0]]], dim=1)
+    centred = around - around.mean(dim=1, keepdim=True)
+    return torch.linalg.eigh(centred.mT @ centred / (k + 1))
+
+
+def _gauss_newton(J: torch.Tensor, residual: torch.Tensor, weights: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+    """J (P, m, 6), residual (P, m) with per-pair weight matrices folded in by the caller -> exp(xi) T."""
+    H = torch.einsum("pmi,pmj->ij", J * weights[:, None, None], J)
+    b = torch.einsum("pmi,pm->i", J * weights[:, None, None], residual)
+    xi = -torch.linalg.solve(H + 1e-12 * torch.eye(6, dtype=H.dtype, device=H.device), b)
+    return se3_exp(xi) @ T
+
+
+class Estimator:
+    """Base: ``prepare(src, tgt)`` once, ``step(T, src_idx, tgt_idx, weights)`` per iteration."""
+
+    name = "base"
+
+    def prepare(self, src: torch.Tensor, tgt: torch.Tensor) -> None:
+        self.src, self.tgt = src, tgt
+
+    def step(self, T: torch.Tensor, src_idx: torch.Tensor, tgt_idx: torch.Tensor,
+             weights: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+
+class PointToPoint(Estimator):
+    name = "point_to_point"
+
+    def step(self, T, src_idx, tgt_idx, weights):
+        R, t = ops.kabsch(self.src[None, src_idx], self.tgt[None, tgt_idx], weights[None])
+        new = torch.eye(4, dtype=T.dtype, device=T.device)
+        new[:3, :3], new[:3, 3] = R[0], t[0]
+        return new
+
+
+class PointToPlane(Estimator):
+    name = "point_to_plane"
+
+    def __init__(self, neighbours: int = 20) -> None:
+        self.neighbours = neighbours
+
+    def prepare(self, src, tgt):
+        super().prepare(src, tgt)
+        self.tgt_normals = local_frames(tgt, self.neighbours)[1][..., 0]
+
+    def step(self, T, src_idx, tgt_idx, weights):
+        moved = self.src[src_idx] @ T[:3, :3].T + T[:3, 3]
+        normals = self.tgt_normals[tgt_idx]
+        residual = ((moved - self.tgt[tgt_idx]) * normals).sum(-1, keepdim=True)  # (P, 1)
+        J = torch.cat([torch.linalg.cross(moved, normals), normals], -1)[:, None]  # (P, 1, 6)
+        return _gauss_newton(J, residual, weights, T)
+
+
+class Gicp(Estimator):
+    name = "gicp"
+
+    def __init__(self, neighbours: int = 20) -> None:
+        self.neighbours = neighbours
+
+    @staticmethod
+    def _plane_covariances(points: torch.Tensor, neighbours: int) -> torch.Tensor:
+        _, vectors = local_frames(points, neighbours)
+        scale = torch.tensor([PLANE_FLATNESS, 1.0, 1.0], dtype=points.dtype, device=points.device)
+        return vectors @ torch.diag_embed(scale.expand(points.shape[0], 3)) @ vectors.mT
+
+    def prepare(self, src, tgt):
+        super().prepare(src, tgt)
+        self.src_cov = self._plane_covariances(src, self.neighbours)
+        self.tgt_cov = self._plane_covariances(tgt, self.neighbours)
+
+    def step(self, T, src_idx, tgt_idx, weights):
+        R = T[:3, :3]
+        moved = self.src[src_idx] @ R.T + T[:3, 3]
+        residual = moved - self.tgt[tgt_idx]  # (P, 3)
+        information = torch.linalg.inv(self.tgt_cov[tgt_idx] + R @ self.src_cov[src_idx] @ R.T)
+        # whiten: L^T L = information, so r^T Info r = |L r|^2 and the Jacobian becomes L J
+        L = torch.linalg.cholesky(information).mT
+        J = torch.cat([-_skew(moved), torch.eye(3, dtype=T.dtype, device=T.device).expand(len(moved), 3, 3)], -1)
+        return _gauss_newton(L @ J, (L @ residual.unsqueeze(-1)).squeeze(-1), weights, T)
+
+
+def make_estimator(name: str, neighbours: int = 20) -> Estimator:
+    """The estimator called ``name`` (one of ESTIMATORS)."""
+    if name == "point_to_point":
+        return PointToPoint()
+    if name == "point_to_plane":
+        return PointToPlane(neighbours)
+    if name == "gicp":
+        return Gicp(neighbours)
+    raise ValueError(f"estimator must be one of {ESTIMATORS}, got {name!r}")
