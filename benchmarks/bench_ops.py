@@ -9,7 +9,7 @@ subprocess per case and implementation, so that allocator caches of earlier case
 on CUDA it is the peak of the caching allocator above the inputs (torch.cuda.max_memory_allocated).
 The CUDA cases are the sizes of the GPU floors (issue 4). Prints a table of ratios and writes JSON
 records ``{"op", "case", "impl", "median_s", "peak_mb"}``. Optional tools found installed
-(roma, torch_cluster) are added as extra implementations.
+(roma, torch_cluster, pykdtree, small_gicp, open3d) are added as extra implementations.
 """
 from __future__ import annotations
 
@@ -134,6 +134,79 @@ def _pdl_case(N, quick=True, skip_torch=None):
     return Case("pairwise_distance_loss", f"fwd+bwd B=1 N={N}", make, impls, quick, skip)
 
 
+def _scan_points(voxel: float) -> torch.Tensor:
+    """A room-sized synthetic scan (vrnet_ext.data.procedural.room_scan, 300k points) voxel-downsampled."""
+    from vrnet_ext.data.procedural import room_scan
+    from vrnet_ext.preprocessing import voxel_downsample
+
+    return torch.as_tensor(voxel_downsample(room_scan(300_000, 0), voxel))
+
+
+def _scan_knn_case(k=20):
+    """3-D kNN of every point of a 300k-point scan among the others: the ICP / normals workload.
+    Columns: pykdtree and small_gicp (both kd-trees, build included, this process's thread count)."""
+    def make():
+        from vrnet_ext.data.procedural import room_scan
+
+        return (torch.as_tensor(room_scan(300_000, 0)),)
+    impls = {"ext": lambda x: ops.knn(x[None], x[None], k)}
+    if importlib.util.find_spec("pykdtree"):
+        def pykdtree_knn(x):
+            from pykdtree.kdtree import KDTree
+
+            points = x.numpy()
+            return KDTree(points).query(points, k=k)
+        impls["pykdtree"] = pykdtree_knn
+    if importlib.util.find_spec("small_gicp"):
+        def small_gicp_knn(x):
+            import small_gicp
+
+            points = x.numpy()
+            threads = torch.get_num_threads()
+            return small_gicp.KdTree(points, threads).batch_knn_search(points, k, threads)
+        impls["small_gicp"] = small_gicp_knn
+    skip = {"torch": "the reference needs a 300k x 300k matrix (~700 GB)"}
+    impls["torch"] = lambda x: None
+    return Case("knn", f"scan C=3 N=M=300k k={k}", make, impls, True, skip)
+
+
+def _open3d_cloud(points: torch.Tensor):
+    import open3d as o3d
+
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.numpy()))
+
+
+def _normals_case(voxel=0.05):
+    """Columns: Open3D's estimate_normals (30 neighbours within 2 voxels, its tutorial's setting)."""
+    def make():
+        return (_scan_points(voxel),)
+    impls = {b: (lambda x, b=b: ops.normals(x, 30, backend=b)) for b in ("ext", "torch")}
+    if importlib.util.find_spec("open3d"):
+        import open3d as o3d
+
+        impls["open3d"] = lambda x: _open3d_cloud(x).estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+    return Case("normals", f"room scan at {voxel} m voxels, k=30", make, impls)
+
+
+def _fpfh_case(voxel=0.05):
+    """Columns: Open3D's compute_fpfh_feature (radius 5 voxels, at most 100 neighbours, as ours)."""
+    def make():
+        points = _scan_points(voxel)
+        return points, ops.normals(points)
+    impls = {b: (lambda x, n, b=b: ops.fpfh(x, n, 5 * voxel, backend=b)) for b in ("ext", "torch")}
+    if importlib.util.find_spec("open3d"):
+        import open3d as o3d
+
+        def open3d_fpfh(x, n):
+            cloud = _open3d_cloud(x)
+            cloud.normals = o3d.utility.Vector3dVector(n.numpy())
+            return o3d.pipelines.registration.compute_fpfh_feature(
+                cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
+        impls["open3d"] = open3d_fpfh
+    return Case("fpfh", f"room scan at {voxel} m voxels, r=5 voxels", make, impls)
+
+
 def _soft_match_case(B, N, c, D, backward=True, quick=True, skip_torch=None):
     """The best existing tool is torch's scaled_dot_product_attention (a flash-attention kernel on
     CPU and GPU): the same product, without the log-normaliser VRNet's matching statistics need."""
@@ -186,6 +259,9 @@ def all_cases(device: str = "cpu") -> list[Case]:
         _kabsch_case(65536, 16),
         _pdl_case(4096),
         _pdl_case(16384, quick=False, skip_torch="the reference needs ~7 GB of N x N matrices"),
+        _scan_knn_case(),
+        _normals_case(),
+        _fpfh_case(),
         _soft_match_case(16, 768, 128, 131),
         _soft_match_case(1, 8192, 32, 35, backward=False),
         _soft_match_case(1, 50000, 32, 35, backward=False, quick=False,

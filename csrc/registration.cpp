@@ -19,6 +19,8 @@ TORCH_LIBRARY(vrnet_ext, m) {
   m.def("pairwise_distance_loss_backward(Tensor grad_loss, Tensor x, Tensor y, Tensor loss) -> (Tensor, Tensor)");
   m.def("soft_match(Tensor query, Tensor key, Tensor values, float scale) -> (Tensor, Tensor, Tensor)");
   m.def("soft_match_backward(Tensor grad_out, Tensor grad_lse, Tensor query, Tensor key, Tensor values, Tensor out, Tensor lse, float scale) -> (Tensor, Tensor, Tensor)");
+  m.def("normals(Tensor points, Tensor idx, float[] viewpoint) -> Tensor");
+  m.def("fpfh(Tensor points, Tensor normals, Tensor idx, Tensor dist2, float radius) -> Tensor");
 }
 
 extern "C" PyObject* PyInit__C(void) {

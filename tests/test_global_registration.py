@@ -7,40 +7,12 @@ from conftest import DATA_DIR
 from test_register import motion, room
 from vrnet_ext import global_registration
 from vrnet_ext.cli import main
-from vrnet_ext.global_registration import (_enough_hypotheses, estimate_normals, fpfh, fpfh_ransac, mutual_matches,
-                                          ransac)
+from vrnet_ext.global_registration import _enough_hypotheses, fpfh_ransac, mutual_matches, ransac
 from vrnet_ext.io import write_ply
 from vrnet_ext.preprocessing import voxel_downsample
 from vrnet_ext.register import apply, register, transform_errors
 
 KITCHEN = DATA_DIR / "scenes" / "3dmatch_redkitchen"
-
-
-def test_normals_of_a_plane_face_the_viewpoint():
-    g = torch.Generator().manual_seed(0)
-    plane = torch.cat([torch.rand(300, 2, generator=g, dtype=torch.float64), torch.zeros(300, 1, dtype=torch.float64)], 1)
-    up = estimate_normals(plane, viewpoint=(0.5, 0.5, 2.0))
-    down = estimate_normals(plane, viewpoint=(0.5, 0.5, -2.0))
-    torch.testing.assert_close(up, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(300, 3))
-    torch.testing.assert_close(down, -up)
-    with pytest.raises(ValueError, match="at least 3 points"):
-        estimate_normals(plane[:2])
-
-
-def test_fpfh_is_invariant_to_rigid_motion_and_each_histogram_sums_to_100():
-    points = torch.as_tensor(voxel_downsample(room(3000), 0.1))
-    points = points + 1e-3 * torch.randn(points.shape, generator=torch.Generator().manual_seed(0), dtype=points.dtype)
-    normals = estimate_normals(points, viewpoint=(2.0, 2.0, 2.0))
-    R = torch.tensor(Rotation.from_euler("zyx", [70, -20, 35], degrees=True).as_matrix())
-    t = torch.tensor([3.0, -1.0, 0.5], dtype=torch.float64)
-    features = fpfh(points, normals, radius=0.5)
-    moved = fpfh(points @ R.T + t, normals @ R.T, radius=0.5)
-    assert features.shape == (points.shape[0], 33)
-    torch.testing.assert_close(moved, features, rtol=0, atol=1e-6)
-    distances = torch.cdist(points, points) + torch.eye(points.shape[0], dtype=points.dtype) * 1e9
-    isolated = distances.amin(1) > 0.5  # no neighbour within the radius: an all-zero feature
-    expected = torch.where(isolated, 0.0, 100.0).to(points.dtype).unsqueeze(1).expand(-1, 3)
-    torch.testing.assert_close(features.view(-1, 3, 11).sum(-1), expected)
 
 
 def test_mutual_matches_keep_pairs_that_choose_each_other():

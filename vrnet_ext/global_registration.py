@@ -1,7 +1,8 @@
 """Global registration without an initial estimate: FPFH features matched across the scans, then
 RANSAC over the matches (the recipe of Open3D's ``registration_ransac_based_on_feature_matching``
 and of PCL's FPFH), built on this package's ops: ``ops.knn`` for neighbourhoods and for matching
-33-d features, one batched ``ops.kabsch`` call per round of hypotheses.
+33-d features, ``ops.normals`` and ``ops.fpfh`` for the descriptors, one batched ``ops.kabsch``
+call per round of hypotheses.
 
 Choices (documented, not tuned per dataset): normals from the 30 nearest neighbours, turned towards
 ``viewpoint`` (the sensor: the origin of a 3DMatch fragment or a LiDAR scan); neighbourhoods of at
@@ -18,83 +19,6 @@ import math
 import torch
 
 from vrnet_ext import ops
-
-BINS = 11
-
-
-def estimate_normals(points: torch.Tensor, neighbours: int = 30,
-                     viewpoint: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> torch.Tensor:
-    """points (N, 3) -> unit normals (N, 3): the least-variance direction of each point's
-    neighbourhood, signed to face ``viewpoint``."""
-    k = min(neighbours, points.shape[0] - 1)
-    if k < 2:
-        raise ValueError(f"points: need at least 3 points for normals, got {points.shape[0]}")
-    _, idx = ops.knn(points[None], points[None], k, exclude_self=True)
-    around = torch.cat([points[:, None], points[idx[0]]], dim=1)  # (N, k + 1, 3)
-    centred = around - around.mean(dim=1, keepdim=True)
-    _, vectors = torch.linalg.eigh(centred.mT @ centred)
-    normals = vectors[..., 0]
-    facing = ((torch.tensor(viewpoint, dtype=points.dtype, device=points.device) - points) * normals).sum(-1)
-    return torch.where(facing.unsqueeze(-1) < 0, -normals, normals)
-
-
-def _pair_features(p_s: torch.Tensor, n_s: torch.Tensor, p_t: torch.Tensor, n_t: torch.Tensor) -> torch.Tensor:
-    """The Darboux-frame angles (theta, alpha, phi) of points p_s (n, 1, 3) with normals n_s and
-    their neighbours p_t (n, K, 3) with normals n_t -> (n, K, 3), theta in [-pi, pi], alpha and phi
-    in [-1, 1]."""
-    delta = p_t - p_s
-    direction = delta / delta.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    # PCL's convention: the frame sits on the point whose normal is closer to the joining line;
-    # near-ties (equal normals) keep the order, so rounding cannot flip the frame
-    swap = ((n_s * direction).sum(-1).abs() < (n_t * direction).sum(-1).abs() - 1e-9).unsqueeze(-1)
-    u = torch.where(swap, n_t, n_s)
-    other = torch.where(swap, n_s, n_t)
-    direction = torch.where(swap, -direction, direction)
-    v = torch.linalg.cross(u, direction)
-    v = v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w = torch.linalg.cross(u, v)
-    theta = torch.atan2((w * other).sum(-1), (u * other).sum(-1))
-    alpha = (v * other).sum(-1)
-    phi = (u * direction).sum(-1)
-    return torch.stack([theta, alpha, phi], dim=-1)
-
-
-def _histograms(angles: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """angles (N, K, 3), valid (N, K) -> (N, 33): per point, the three 11-bin histograms, each
-    scaled to sum 100 (all zeros where a point has no valid neighbour)."""
-    lows = angles.new_tensor([-math.pi, -1.0, -1.0])
-    spans = angles.new_tensor([2 * math.pi, 2.0, 2.0])
-    bins = ((angles - lows) / spans * BINS).floor().long().clamp(0, BINS - 1)
-    bins = bins + torch.arange(3, device=angles.device) * BINS  # (N, K, 3) slots in 0..32
-    counts = angles.new_zeros(angles.shape[0], 3 * BINS)
-    counts.scatter_add_(1, bins.flatten(1), valid.unsqueeze(-1).expand_as(bins).flatten(1).to(angles.dtype))
-    return _scale_each_histogram(counts)
-
-
-def _scale_each_histogram(counts: torch.Tensor) -> torch.Tensor:
-    parts = counts.view(-1, 3, BINS)
-    return (parts * 100.0 / parts.sum(-1, keepdim=True).clamp_min(1e-12)).view(-1, 3 * BINS)
-
-
-def fpfh(points: torch.Tensor, normals: torch.Tensor, radius: float, max_neighbours: int = 100) -> torch.Tensor:
-    """Fast Point Feature Histograms: points, normals (N, 3) -> (N, 33).
-
-    SPFH of each point over its neighbours within ``radius`` (at most ``max_neighbours``), then
-    FPFH_i = SPFH_i + the mean of the neighbours' SPFH weighted by 1 / distance. Points are taken
-    2048 at a time, so memory stays O(N * max_neighbours) with a small constant.
-    """
-    k = min(max_neighbours, points.shape[0] - 1)
-    dist2, idx = ops.knn(points[None], points[None], k, exclude_self=True)
-    dist2, idx = dist2[0], idx[0]
-    valid = dist2 <= radius * radius
-    spfh = torch.cat([_histograms(_pair_features(points[rows, None], normals[rows, None], points[idx[rows]],
-                                                 normals[idx[rows]]), valid[rows])
-                      for rows in torch.arange(points.shape[0], device=points.device).split(2048)])
-    weights = torch.where(valid, 1.0 / dist2.sqrt().clamp_min(1e-12), torch.zeros_like(dist2))
-    neighbourhood = torch.zeros_like(spfh)
-    for slot in range(k):  # O(N * 33) memory, not O(N * k * 33)
-        neighbourhood.addcmul_(weights[:, slot, None], spfh[idx[:, slot]])
-    return _scale_each_histogram(spfh + neighbourhood / weights.sum(1, keepdim=True).clamp_min(1e-12))
 
 
 def mutual_matches(src_features: torch.Tensor, tgt_features: torch.Tensor) -> torch.Tensor:
@@ -171,7 +95,7 @@ def fpfh_ransac(src: torch.Tensor, tgt: torch.Tensor, voxel_size: float, iterati
     (4x4 transform taking src onto tgt, RANSAC inlier count). Radii follow Open3D's global
     registration tutorial: normals from 30 neighbours, features within 5 voxels, inliers within
     1.5 voxels."""
-    src_features = fpfh(src, estimate_normals(src), 5.0 * voxel_size)
-    tgt_features = fpfh(tgt, estimate_normals(tgt), 5.0 * voxel_size)
+    src_features = ops.fpfh(src, ops.normals(src), 5.0 * voxel_size)
+    tgt_features = ops.fpfh(tgt, ops.normals(tgt), 5.0 * voxel_size)
     matches = mutual_matches(src_features, tgt_features)
     return ransac(src, tgt, matches, 1.5 * voxel_size, iterations, seed=seed)

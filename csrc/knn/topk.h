@@ -28,6 +28,7 @@ struct TopK {
   VRNET_HOST_DEVICE scalar_t worst() const { return dist[k - 1]; }
   // Inserts (d, j) if it beats the current k-th entry.
   VRNET_HOST_DEVICE void push(scalar_t d, int64_t j) {
+    if (d > dist[k - 1]) return;  // the common case, one compare (NaN never gets here either way)
     if (!less(d, j, dist[k - 1], idx[k - 1])) return;
     int64_t pos = k - 1;
     while (pos > 0 && less(d, j, dist[pos - 1], idx[pos - 1])) {

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from vrnet_ext.global_registration import estimate_normals, fpfh
+from vrnet_ext import ops
 from vrnet_ext.preprocessing import voxel_downsample
 
 FEATURE_RADIUS_VOXELS = 5.0  # FPFH radius, as fpfh_ransac (Open3D's tutorial)
@@ -41,7 +41,7 @@ def describe(points: np.ndarray, voxel: float) -> ScanView:
     if len(points) < 3:
         raise ValueError(f"points: need at least 3 points after downsampling, got {len(points)}")
     cloud = torch.as_tensor(points, dtype=torch.float64)
-    descriptors = fpfh(cloud, estimate_normals(cloud), FEATURE_RADIUS_VOXELS * voxel)
+    descriptors = ops.fpfh(cloud, ops.normals(cloud), FEATURE_RADIUS_VOXELS * voxel)
     return ScanView(points, voxel, descriptors.float())
 
 

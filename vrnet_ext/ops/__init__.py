@@ -1,11 +1,14 @@
 """Public ops. Each takes ``backend="ext"`` (compiled kernel, the default) or ``"torch"``
 (the pure-PyTorch reference, same signature)."""
 from vrnet_ext.ops.edge_features import edge_features
+from vrnet_ext.ops.fpfh import fpfh
 from vrnet_ext.ops.gather_reduce import gather_reduce
 from vrnet_ext.ops.kabsch import kabsch
 from vrnet_ext.ops.knn import knn
+from vrnet_ext.ops.normals import normals
 from vrnet_ext.ops.pairwise_distance_loss import pairwise_distance_loss
 from vrnet_ext.ops.soft_match import soft_match
 from vrnet_ext.ops.svd3x3 import svd3x3
 
-__all__ = ["knn", "edge_features", "gather_reduce", "svd3x3", "kabsch", "pairwise_distance_loss", "soft_match"]
+__all__ = ["knn", "edge_features", "gather_reduce", "svd3x3", "kabsch", "pairwise_distance_loss", "soft_match",
+           "normals", "fpfh"]

@@ -1,0 +1,22 @@
+// Argument checks of the normals op (CPU kernel; no CUDA kernel yet: the Python op falls back to its
+// reference there).
+#pragma once
+
+#include "common/common.h"
+
+namespace vrnet {
+
+// points (N, 3) float, idx (N, k) int64 neighbours in [0, N), k >= 2.
+inline void check_neighbourhood(const at::Tensor& points, const at::Tensor& idx) {
+  check_float(points, "points");
+  check_index(idx, "idx");
+  check_dim(points, 2, "points", "(N, 3)");
+  check_dim(idx, 2, "idx", "(N, k)");
+  check_same_device(points, "points", idx, "idx");
+  TORCH_CHECK_VALUE(points.size(1) == 3, "points must have shape (N, 3), got ", points.sizes());
+  TORCH_CHECK_VALUE(idx.size(0) == points.size(0), "idx must have one row per point (N = ", points.size(0),
+                    "), got ", idx.sizes());
+  check_index_range(idx, points.size(0), "idx");
+}
+
+}  // namespace vrnet
