@@ -48,7 +48,12 @@ def kitchen_truth(data: Path, i: int, j: int) -> np.ndarray:
     return np.array([[float(v) for v in line.split()] for line in lines[start + 1:start + 5]])
 
 
-def pairs(data: Path, workdir: Path) -> list[dict]:
+def pairs(data: Path, workdir: Path, only: list[str] | None = None) -> list[dict]:
+    """The shared pairs found under ``data`` (only those whose name contains one of ``only``)."""
+    return [pair for pair in _all_pairs(data, workdir) if not only or any(word in pair["name"] for word in only)]
+
+
+def _all_pairs(data: Path, workdir: Path) -> list[dict]:
     found = []
     kitchen = data / "3dmatch_redkitchen"
     for i, j in KITCHEN_PAIRS:
@@ -161,6 +166,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="folder with 3dmatch_redkitchen/ and lidar_pair/")
     parser.add_argument("--heldout-dir", default=None, help="folder with only0.pt, only4.pt, only10.pt")
     parser.add_argument("--budgets", nargs="+", default=["2GB", "4GB"])
+    parser.add_argument("--pairs", nargs="+", default=None, help="only pairs whose name contains one of these")
     parser.add_argument("--methods", nargs="+", default=["vrnet", "fpfh"], choices=["vrnet", "fpfh", "icp"])
     parser.add_argument("--synthetic-points", type=int, default=1_000_000)
     parser.add_argument("--skip-synthetic", action="store_true")
@@ -171,7 +177,7 @@ def main(argv: list[str] | None = None) -> None:
     data = Path(args.data)
     with tempfile.TemporaryDirectory() as tmp:
         workdir = Path(tmp)
-        todo = pairs(data, workdir)
+        todo = pairs(data, workdir, args.pairs)
         if not todo:
             raise SystemExit(f"bench_large_scene: no scan pairs under {data}")
         records = []

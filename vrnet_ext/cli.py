@@ -232,13 +232,13 @@ def _register_parser(sub) -> None:
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
         description="Estimates the rigid transform taking SOURCE onto TARGET: a global estimate (--method vrnet: "
                     "the shipped scene model, FPFH descriptors under VRNet's head, or --checkpoint; --method fpfh: "
-                    "FPFH + RANSAC; --method icp: none), refined by point-to-point ICP on voxel-downsampled "
+                    "FPFH + RANSAC; --method fgr: FPFH + Fast Global Registration; --method icp: none), refined by point-to-point ICP on voxel-downsampled "
                     "clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform and "
                     "writes JSON.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("source", help="point-cloud file to move")
     p.add_argument("target", help="point-cloud file to align to (same unit)")
-    p.add_argument("--method", choices=("vrnet", "fpfh", "icp"), default=None,
+    p.add_argument("--method", choices=("vrnet", "fpfh", "fgr", "icp"), default=None,
                    help="global estimate (default: vrnet; fpfh with --fpfh)")
     initial = p.add_mutually_exclusive_group()
     initial.add_argument("--checkpoint", default=None,
@@ -269,7 +269,7 @@ def _register_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
 
 
-INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "icp": "identity"}
+INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "fgr": "FPFH + FGR", "icp": "identity"}
 
 
 def _run_register(args) -> int:

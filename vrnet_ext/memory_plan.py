@@ -85,7 +85,7 @@ def _stage_mb(method: str, learned: str | None, largest_scan: int, global_points
     """Largest transient of the run's stages (MB), safety factor included."""
     stages = [VOXEL_BYTES_PER_INPUT_POINT * largest_scan / MB,
               ICP_MB + ICP_BYTES_PER_POINT * 2 * icp_points / MB]
-    if method == "fpfh":
+    if method in ("fpfh", "fgr"):
         stages.append(FPFH_MB + FPFH_BYTES_PER_POINT * global_points / MB)
     elif method == "vrnet" and learned == "scene":
         stages.append(SCENE_MB + SCENE_BYTES_PER_POINT * global_points / MB)
@@ -113,7 +113,7 @@ def plan_registration(budget_bytes: int, method: str, learned: str | None, sourc
     counts = {"global_points": global_points, "network_points": network_points, "icp_points": icp_points}
     floors = {"global_points": MIN_GLOBAL_POINTS, "network_points": MIN_NETWORK_POINTS,
               "icp_points": MIN_ICP_POINTS}
-    used = {"icp_points"} | ({"global_points"} if method == "fpfh" or learned == "scene" else set()) \
+    used = {"icp_points"} | ({"global_points"} if method in ("fpfh", "fgr") or learned == "scene" else set()) \
         | ({"network_points"} if method == "vrnet" and learned == "modelnet" else set())
     notes = []
 

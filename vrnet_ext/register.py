@@ -25,6 +25,7 @@ from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.memory_plan import plan_registration
 from vrnet_ext.preprocessing import subsample, voxel_downsample, voxel_size_for
 from vrnet_ext.registration.estimators import make_estimator
+from vrnet_ext.registration.fgr import fast_global_registration
 
 
 REFERENCE_KNN_ELEMENTS = 1 << 24  # 128 MB of float64 distances per chunk for backend="torch"
@@ -169,16 +170,33 @@ def _nearest_in_reach(moved: torch.Tensor, tgt: torch.Tensor, reach: TargetReach
     return candidates, torch.cat(dist2), torch.cat(idx)
 
 
-def fpfh_estimate(src: np.ndarray, tgt: np.ndarray, points: int, seed: int,
-                  device: torch.device = torch.device("cpu")) -> np.ndarray:
-    """4x4 estimate from FPFH + RANSAC (:mod:`vrnet_ext.global_registration`) on both scans
-    voxel-downsampled to about ``points`` points (the voxel edge sets the feature radii)."""
+def _downsampled_pair(src: np.ndarray, tgt: np.ndarray, points: int,
+                      device: torch.device) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Both scans voxel-downsampled to about ``points`` points (the voxel edge chosen on tgt)."""
     voxel = voxel_size_for(tgt, points)
 
     def downsampled(cloud: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(voxel_downsample(cloud, voxel), dtype=torch.float64, device=device)
 
-    return fpfh_ransac(downsampled(src), downsampled(tgt), voxel, seed=seed)[0].cpu().numpy()
+    return downsampled(src), downsampled(tgt), voxel
+
+
+def fpfh_estimate(src: np.ndarray, tgt: np.ndarray, points: int, seed: int,
+                  device: torch.device = torch.device("cpu")) -> np.ndarray:
+    """4x4 estimate from FPFH + RANSAC (:mod:`vrnet_ext.global_registration`) on both scans
+    voxel-downsampled to about ``points`` points (the voxel edge sets the feature radii)."""
+    src_down, tgt_down, voxel = _downsampled_pair(src, tgt, points, device)
+    return fpfh_ransac(src_down, tgt_down, voxel, seed=seed)[0].cpu().numpy()
+
+
+def fgr_estimate(src: np.ndarray, tgt: np.ndarray, points: int, seed: int,
+                 device: torch.device = torch.device("cpu")) -> np.ndarray:
+    """4x4 estimate from FPFH + Fast Global Registration (:mod:`vrnet_ext.registration.fgr`) on
+    both scans voxel-downsampled to about ``points`` points (FPFH within 5 voxels)."""
+    src_down, tgt_down, voxel = _downsampled_pair(src, tgt, points, device)
+    src_features = ops.fpfh(src_down, ops.normals(src_down), 5.0 * voxel)
+    tgt_features = ops.fpfh(tgt_down, ops.normals(tgt_down), 5.0 * voxel)
+    return fast_global_registration(src_down, tgt_down, src_features, tgt_features, seed=seed).cpu().numpy()
 
 
 def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: float, iterations: int = 50,
@@ -233,7 +251,7 @@ def fitness(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: floa
     return int((dist2 <= reach ** 2).sum()) / len(src)
 
 
-METHODS = ("vrnet", "fpfh", "icp")
+METHODS = ("vrnet", "fpfh", "fgr", "icp")
 
 
 def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
@@ -247,7 +265,8 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
     method: ``"vrnet"``: a learned initial estimate from ``model`` (a :class:`SceneVRNet` on about
     ``global_points`` points per scan, or a ModelNet40 :class:`VRNet` on ``network_points``
     subsampled points; default: the shipped scene model); ``"fpfh"``: FPFH features + RANSAC on
-    about ``global_points`` points per scan; ``"icp"``: ICP from no motion. None: ``"vrnet"`` when a
+    about ``global_points`` points per scan; ``"fgr"``: the same features + Fast Global
+    Registration; ``"icp"``: ICP from no motion. None: ``"vrnet"`` when a
     model is given, else ``"icp"``. icp_points: ICP works on voxel-downsampled clouds of about this
     many points (``voxel_size`` overrides). max_distance: ICP inlier reach (default 3 voxels).
     icp_iterations=0 skips ICP; icp_estimator: its step (point_to_point, point_to_plane, gicp:
@@ -296,6 +315,8 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
         initial = network_estimate(model, src, tgt, network_points, seed, device, backend)
     elif method == "fpfh":
         initial = fpfh_estimate(src, tgt, global_points, seed, device)
+    elif method == "fgr":
+        initial = fgr_estimate(src, tgt, global_points, seed, device)
     seconds["initial"] = time.perf_counter() - start
     points = {"source": len(src), "target": len(tgt)}
     if icp_iterations <= 0:

@@ -27,7 +27,7 @@ ESTIMATORS = ("point_to_point", "point_to_plane", "gicp")
 PLANE_FLATNESS = 1e-3  # GICP: the smallest covariance eigenvalue, relative to the others
 
 
-def _skew(v: torch.Tensor) -> torch.Tensor:
+def skew(v: torch.Tensor) -> torch.Tensor:
     """(P, 3) -> (P, 3, 3) cross-product matrices [v]_x."""
     zero = torch.zeros_like(v[:, 0])
     return torch.stack([torch.stack([zero, -v[:, 2], v[:, 1]], -1),
@@ -39,7 +39,7 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     """(6,) twist (omega, v) -> (4, 4) rigid transform (Rodrigues; exact for any angle)."""
     omega, v = xi[:3], xi[3:]
     angle = omega.norm()
-    K = _skew(omega[None])[0]
+    K = skew(omega[None])[0]
     eye = torch.eye(3, dtype=xi.dtype, device=xi.device)
     if float(angle) < 1e-12:
         R, V = eye + K, eye + 0.5 * K
@@ -64,7 +64,7 @@ def local_frames(points: torch.Tensor, neighbours: int) -> tuple[torch.Tensor, t
     return torch.linalg.eigh(centred.mT @ centred / (k + 1))
 
 
-def _gauss_newton(J: torch.Tensor, residual: torch.Tensor, weights: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+def gauss_newton_step(J: torch.Tensor, residual: torch.Tensor, weights: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
     """J (P, m, 6), residual (P, m) with per-pair weight matrices folded in by the caller -> exp(xi) T."""
     H = torch.einsum("pmi,pmj->ij", J * weights[:, None, None], J)
     b = torch.einsum("pmi,pm->i", J * weights[:, None, None], residual)
@@ -110,7 +110,7 @@ class PointToPlane(Estimator):
         normals = self.tgt_normals[tgt_idx]
         residual = ((moved - self.tgt[tgt_idx]) * normals).sum(-1, keepdim=True)  # (P, 1)
         J = torch.cat([torch.linalg.cross(moved, normals), normals], -1)[:, None]  # (P, 1, 6)
-        return _gauss_newton(J, residual, weights, T)
+        return gauss_newton_step(J, residual, weights, T)
 
 
 class Gicp(Estimator):
@@ -137,8 +137,8 @@ class Gicp(Estimator):
         information = torch.linalg.inv(self.tgt_cov[tgt_idx] + R @ self.src_cov[src_idx] @ R.T)
         # whiten: L^T L = information, so r^T Info r = |L r|^2 and the Jacobian becomes L J
         L = torch.linalg.cholesky(information).mT
-        J = torch.cat([-_skew(moved), torch.eye(3, dtype=T.dtype, device=T.device).expand(len(moved), 3, 3)], -1)
-        return _gauss_newton(L @ J, (L @ residual.unsqueeze(-1)).squeeze(-1), weights, T)
+        J = torch.cat([-skew(moved), torch.eye(3, dtype=T.dtype, device=T.device).expand(len(moved), 3, 3)], -1)
+        return gauss_newton_step(L @ J, (L @ residual.unsqueeze(-1)).squeeze(-1), weights, T)
 
 
 def make_estimator(name: str, neighbours: int = 20) -> Estimator:
