@@ -10,7 +10,8 @@ from vrnet_ext.cli import main
 from vrnet_ext.global_registration import _enough_hypotheses, fpfh_ransac, mutual_matches, ransac
 from vrnet_ext.io import write_ply
 from vrnet_ext.preprocessing import voxel_downsample
-from vrnet_ext.register import apply, register, transform_errors
+from vrnet_ext.register import register, transform_errors
+from vrnet_ext.transforms import apply
 
 KITCHEN = DATA_DIR / "scenes" / "3dmatch_redkitchen"
 

@@ -2,6 +2,7 @@ import pytest
 import torch
 
 import vrnet_ext.losses as losses
+from vrnet_ext.transforms import move
 from vrnet_ext.model.vrnet import VRNetOutput
 
 
@@ -10,7 +11,7 @@ def rigid(B=2, N=40, dtype=torch.float64):
     R = q * torch.sign(torch.linalg.det(q)).view(-1, 1, 1)
     t = torch.randn(B, 3, dtype=dtype)
     src = torch.randn(B, N, 3, dtype=dtype)
-    return src, R, t, losses.transform(src, R, t)
+    return src, R, t, move(src, R, t)
 
 
 def make_output(src, R, t, vcp, offset):
@@ -52,7 +53,7 @@ def test_node_and_offset_losses_with_known_offsets():
     src, R, t, truth = rigid()
     shift = torch.tensor([0.3, -0.4, 1.2], dtype=src.dtype)
     # L3 = rmse(R X + t, Y''): a constant shift d gives sqrt(|d|^2 / 3)
-    value = losses.rmse(losses.transform(src, R, t), truth + shift).mean()
+    value = losses.rmse(move(src, R, t), truth + shift).mean()
     assert value.item() == pytest.approx((shift.square().sum() / 3).sqrt().item())
     out = make_output(src, R, t, vcp=truth - shift, offset=torch.zeros_like(truth))
     total, parts = losses.hybrid_loss(out, src, R, t, losses.HybridLossWeights(l1=0, l2=0, l3=0, l4=1))

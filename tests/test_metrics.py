@@ -58,7 +58,7 @@ class _PerfectWalk(torch.nn.Module):
 
     config = type("Config", (), {"backend": "torch", "irls_min_scale": 1e-3})()
 
-    def forward(self, src, tgt, backend=None):
+    def forward(self, src, tgt, backend=None, return_matching=False):
         from vrnet_ext.ops import kabsch
         gt_idx = self.gt_idx.expand(src.shape[0], -1)
         scores = torch.randn(src.shape[0], src.shape[1], tgt.shape[1], generator=torch.Generator().manual_seed(1))

@@ -10,8 +10,8 @@ from vrnet_ext import ops
 from vrnet_ext.cli import main
 from vrnet_ext.io import read_points, read_transform, write_ply
 from vrnet_ext.preprocessing import voxel_downsample
-from vrnet_ext.register import (IcpFailure, TargetReach, apply, icp, network_estimate, register,
-                                to_homogeneous, transform_errors)
+from vrnet_ext.register import IcpFailure, TargetReach, icp, network_estimate, register, transform_errors
+from vrnet_ext.transforms import apply, to_homogeneous
 
 LIDAR = DATA_DIR / "scenes" / "lidar_pair"
 

@@ -276,7 +276,8 @@ def _run_register(args) -> int:
     import numpy as np
 
     from vrnet_ext.io import read_points, read_transform, write_ply
-    from vrnet_ext.register import apply, register, transform_errors
+    from vrnet_ext.register import register, transform_errors
+    from vrnet_ext.transforms import apply
 
     if args.max_memory is not None:
         from vrnet_ext.memory_plan import require_headroom

@@ -12,6 +12,7 @@ from tqdm import tqdm
 from vrnet_ext.losses import correspondence_loss
 from vrnet_ext.metrics import (chamfer_distance, correct_match_ratio, correspondence_error, euler_zyx_deg,
                                rotation_error_deg, summarize)
+from vrnet_ext.transforms import move
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.vrnet import robust_procrustes
 from vrnet_ext.ops import kabsch
@@ -82,7 +83,7 @@ def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str |
                 point_errors[f"{name} error ({kind})"][0] += float(error[chosen].sum())
                 point_errors[f"{name} error ({kind})"][1] += int(chosen.sum())
         preds_R.append(R.cpu()); preds_t.append(t.cpu()); gts_R.append(R_gt.cpu()); gts_t.append(t_gt.cpu())
-        aligned = src @ R_gt.mT + t_gt.unsqueeze(1)
+        aligned = move(src, R_gt, t_gt)
         n = src.shape[0]
         extra["L0"] += [float(correspondence_loss(out.matching, batch["gt_idx"]))] * n
         for name, pts in (("VCP", out.vcp), ("RCP", out.rcp), ("tgt", tgt)):

@@ -18,6 +18,7 @@ from torch.nn import functional as F
 from vrnet_ext.metrics import correspondence_error
 from vrnet_ext.model.vrnet import VRNetOutput
 from vrnet_ext.ops import kabsch, pairwise_distance_loss
+from vrnet_ext.transforms import move
 
 
 def rmse(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -61,11 +62,6 @@ def local_motion_consensus_loss(src: torch.Tensor, rcp: torch.Tensor, rotation: 
     return (rmse(R_g.mT @ R, eye) + rmse(t_g, t)).mean()
 
 
-def transform(points: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
-    """(B, N, 3) -> R p + t."""
-    return points @ rotation.mT + translation.unsqueeze(1)
-
-
 def offset_log_loss(rcp: torch.Tensor, truth: torch.Tensor, scale: float) -> torch.Tensor:
     """(B, N, 3) RCPs and true positions -> (B,) mean over points of log(1 + |rcp - truth| / scale).
 
@@ -100,8 +96,8 @@ def hybrid_loss(out: VRNetOutput, src: torch.Tensor, gt_rotation: torch.Tensor, 
     l1 = local_motion_consensus_loss(src, out.rcp, out.rotation, out.translation, w.groups, w.subset_size,
                                      generator, backend)
     l2 = pairwise_distance_loss(src, out.rcp, backend=backend).mean()
-    l3 = rmse(transform(src, out.rotation, out.translation), out.rcp).mean()
-    truth = transform(src, gt_rotation, gt_translation)
+    l3 = rmse(move(src, out.rotation, out.translation), out.rcp).mean()
+    truth = move(src, gt_rotation, gt_translation)
     l4 = (rmse(truth - out.vcp, out.offset) if w.l4_form == "rmse"
           else offset_log_loss(out.rcp, truth, w.l4_log_scale)).mean()
     total = w.l1 * l1 + w.l2 * l2 + w.l3 * l3 + w.l4 * l4

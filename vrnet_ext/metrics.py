@@ -6,6 +6,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from vrnet_ext.ops import knn
+from vrnet_ext.transforms import move
 
 
 def euler_zyx_deg(rotation: torch.Tensor | np.ndarray) -> np.ndarray:
@@ -43,7 +44,7 @@ def correspondence_error(points: torch.Tensor, src: torch.Tensor, gt_rotation: t
     """(B, N) distance of each predicted correspondent (VCP or RCP) from the true position
     R_gt x_i + t_gt. For RCPs it equals the error of the correction walk's offset,
     |offset_i - (R_gt x_i + t_gt - vcp_i)| (the paper's L4 residual)."""
-    truth = src @ gt_rotation.mT + gt_translation.unsqueeze(1)
+    truth = move(src, gt_rotation, gt_translation)
     return (points - truth).norm(dim=-1)
 
 

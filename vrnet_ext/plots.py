@@ -10,6 +10,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after selecting the file backend)
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
+from vrnet_ext.transforms import apply  # noqa: E402
+
 PANELS = (
     ("training loss terms (stage 1: L0; stage 2: L1-L4)", ("train_L0", "train_L1", "train_L2", "train_L3", "train_L4")),
     ("validation rotation error (deg)", ("val_RMSE(R)", "val_MAE(R)")),
@@ -67,7 +69,7 @@ def plot_registration(src, tgt, transforms: dict, path: str | Path, max_points: 
     views = (("top view (x, y)", 0, 1), ("side view (x, z)", 0, 2))
     fig, axes = plt.subplots(len(transforms), 2, figsize=(12, 5.5 * len(transforms)), squeeze=False)
     for row, (label, T) in enumerate(transforms.items()):
-        moved = src @ T[:3, :3].T + T[:3, 3]
+        moved = apply(T, src)
         for col, (title, a, b) in enumerate(views):
             ax = axes[row][col]
             ax.scatter(tgt[:, a], tgt[:, b], s=0.2, c="0.6", label="target", rasterized=True)

@@ -26,6 +26,7 @@ from vrnet_ext.memory_plan import plan_registration
 from vrnet_ext.preprocessing import subsample, voxel_downsample, voxel_size_for
 from vrnet_ext.registration.estimators import make_estimator
 from vrnet_ext.registration.fgr import fast_global_registration
+from vrnet_ext.transforms import apply, to_homogeneous
 
 
 REFERENCE_KNN_ELEMENTS = 1 << 24  # 128 MB of float64 distances per chunk for backend="torch"
@@ -52,17 +53,6 @@ class RegistrationResult:
         out["transform"] = self.transform.tolist()
         out["initial"] = self.initial.tolist()
         return out
-
-
-def to_homogeneous(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = rotation, translation
-    return T
-
-
-def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(N, 3) points moved by the 4x4 transform T."""
-    return points @ T[:3, :3].T + T[:3, 3]
 
 
 def network_estimate(model: VRNet, src: np.ndarray, tgt: np.ndarray, network_points: int, seed: int,
@@ -219,7 +209,7 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
     T = torch.as_tensor(initial, dtype=torch.float64, device=device)
     done = 0
     for done in range(1, iterations + 1):
-        moved = src_t @ T[:3, :3].T + T[:3, 3]
+        moved = apply(T, src_t)
         candidates, dist2, idx = _nearest_in_reach(moved, tgt_t, reach, backend)
         inliers = (dist2 <= max_distance ** 2).to(src_t.dtype)
         if int(inliers.sum()) < 3:
@@ -231,7 +221,7 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
         T = new
         if change_rotation < tolerance and change_translation < tolerance:
             break
-    _, dist2, _ = _nearest_in_reach(src_t @ T[:3, :3].T + T[:3, 3], tgt_t, reach, backend)
+    _, dist2, _ = _nearest_in_reach(apply(T, src_t), tgt_t, reach, backend)
     close = dist2[dist2 <= max_distance ** 2]
     share_within = len(close) / src_t.shape[1]
     rmse = float(close.mean().sqrt()) if len(close) else float("nan")
@@ -247,7 +237,7 @@ def fitness(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: floa
     src_t = torch.as_tensor(src, dtype=torch.float64).unsqueeze(0)
     tgt_t = torch.as_tensor(tgt, dtype=torch.float64).unsqueeze(0)
     T = torch.as_tensor(transform, dtype=torch.float64)
-    _, dist2, _ = _nearest_in_reach(src_t @ T[:3, :3].T + T[:3, 3], tgt_t, TargetReach(tgt_t, reach), backend)
+    _, dist2, _ = _nearest_in_reach(apply(T, src_t), tgt_t, TargetReach(tgt_t, reach), backend)
     return int((dist2 <= reach ** 2).sum()) / len(src)
 
 

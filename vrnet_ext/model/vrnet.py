@@ -12,6 +12,7 @@ from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
 from vrnet_ext.ops import kabsch, soft_match
+from vrnet_ext.transforms import move
 from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
 
 
@@ -50,7 +51,7 @@ def robust_procrustes(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tenso
     rotation, translation = kabsch(src, tgt, weights, backend=backend)
     base = torch.ones(src.shape[:2], dtype=src.dtype, device=src.device) if weights is None else weights
     for _ in range(iterations):
-        residual = (src @ rotation.mT + translation.unsqueeze(1) - tgt).norm(dim=-1)
+        residual = (move(src, rotation, translation) - tgt).norm(dim=-1)
         scale = (3 * residual.median(dim=1, keepdim=True).values).clamp_min(min_scale)
         rotation, translation = kabsch(src, tgt, base / (1 + (residual / scale).square()), backend=backend)
     return rotation, translation
@@ -146,7 +147,7 @@ class VRNet(nn.Module):
             with torch.autocast(src.device.type, enabled=False):  # compose the motions in src's dtype
                 rotation = out.rotation @ rotation
                 translation = (out.rotation @ translation.unsqueeze(-1)).squeeze(-1) + out.translation
-                moved = src @ rotation.mT + translation.unsqueeze(1)
+                moved = move(src, rotation, translation)
         out.rotation, out.translation = rotation, translation
         return out
 

@@ -1,7 +1,6 @@
 """Local refinement steps for ICP, as plug-ins: point-to-point, point-to-plane, plane-to-plane (GICP).
 
-Convention (once for the package): a transform ``T_target_source`` is a (4, 4) float64 matrix with
-``y = R x + t`` for column vectors (points are stored as rows, so code writes ``x @ R.T + t``).
+Transforms follow :mod:`vrnet_ext.transforms` (``T_target_source``, y = R x + t, float64 4x4).
 
 Each estimator is built once per pair (:meth:`prepare` computes what it needs of the fixed clouds:
 normals, covariances) and then asked, once per ICP iteration, for the next transform given the
@@ -22,6 +21,7 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext import ops
+from vrnet_ext.transforms import apply
 
 ESTIMATORS = ("point_to_point", "point_to_plane", "gicp")
 PLANE_FLATNESS = 1e-3  # GICP: the smallest covariance eigenvalue, relative to the others
@@ -106,7 +106,7 @@ class PointToPlane(Estimator):
         self.tgt_normals = local_frames(tgt, self.neighbours)[1][..., 0]
 
     def step(self, T, src_idx, tgt_idx, weights):
-        moved = self.src[src_idx] @ T[:3, :3].T + T[:3, 3]
+        moved = apply(T, self.src[src_idx])
         normals = self.tgt_normals[tgt_idx]
         residual = ((moved - self.tgt[tgt_idx]) * normals).sum(-1, keepdim=True)  # (P, 1)
         J = torch.cat([torch.linalg.cross(moved, normals), normals], -1)[:, None]  # (P, 1, 6)
@@ -132,7 +132,7 @@ class Gicp(Estimator):
 
     def step(self, T, src_idx, tgt_idx, weights):
         R = T[:3, :3]
-        moved = self.src[src_idx] @ R.T + T[:3, 3]
+        moved = apply(T, self.src[src_idx])
         residual = moved - self.tgt[tgt_idx]  # (P, 3)
         information = torch.linalg.inv(self.tgt_cov[tgt_idx] + R @ self.src_cov[src_idx] @ R.T)
         # whiten: L^T L = information, so r^T Info r = |L r|^2 and the Jacobian becomes L J

@@ -22,6 +22,7 @@ import torch
 
 from vrnet_ext import ops
 from vrnet_ext.registration.estimators import gauss_newton_step, skew
+from vrnet_ext.transforms import apply
 
 
 def feature_correspondences(src_features: torch.Tensor, tgt_features: torch.Tensor) -> torch.Tensor:
@@ -80,7 +81,7 @@ def fast_global_registration(src: torch.Tensor, tgt: torch.Tensor, src_features:
     for iteration in range(iterations):
         if iteration % 4 == 0 and mu > max_distance:
             mu /= division_factor
-        moved = x @ T[:3, :3].T + T[:3, 3]
+        moved = apply(T, x)
         residual = moved - y
         weights = (mu / (mu + residual.square().sum(-1))).square()
         J = torch.cat([-skew(moved), eye], -1)  # (C, 3, 6)

@@ -1,0 +1,31 @@
+"""Rigid transforms: the package's one convention, written down once.
+
+A motion maps a source frame into a target frame, ``y = R x + t`` for column vectors, and is named
+``T_target_source``. Point clouds are stored as rows, (..., N, 3), so the code reads
+``x @ R^T + t``. A 4x4 homogeneous matrix holds ``R`` in its top-left 3x3 block and ``t`` in its
+last column; (R, t) pairs are (..., 3, 3) and (..., 3). Every function works on numpy arrays and
+torch tensors alike (with batch dimensions in front), and is differentiable for tensors.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def move(points, rotation, translation):
+    """(..., N, 3) points, (..., 3, 3) R, (..., 3) t -> R x + t for every point."""
+    return points @ rotation.swapaxes(-1, -2) + translation[..., None, :]
+
+
+def apply(T, points):
+    """(..., 4, 4) homogeneous T, (..., N, 3) points -> T applied to every point."""
+    return move(points, T[..., :3, :3], T[..., :3, 3])
+
+
+def to_homogeneous(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """(3, 3) R and (3,) t -> (4, 4) float64 numpy matrix."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = np.asarray(rotation), np.asarray(translation)
+    return T
+
+
+__all__ = ["apply", "move", "to_homogeneous"]
