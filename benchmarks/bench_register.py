@@ -103,7 +103,7 @@ def run_ours(pair: dict, method: str, estimator: str, out: Path) -> dict:
     if proc.returncode != 0:
         return {"error": (proc.stderr.strip().splitlines() or ["?"])[-1], "process_s": wall}
     result = json.loads(out.read_text())
-    return {"transform": result["transform"], "register_s": sum(result["seconds"].values()),
+    return {"transform": result["T_target_source"], "register_s": sum(result["seconds"].values()),
             "peak_rss_mb": result["peak_rss_mb"], "process_s": wall, "fitness": result["fitness"]}
 
 
@@ -143,10 +143,10 @@ def main(argv: list[str] | None = None) -> None:
                 for name, runner in runners:  # interleaved: every implementation once per repetition
                     record = runner(pair, workdir / "out.json")
                     if "transform" in record:
-                        re, te = errors(np.array(record["transform"]), truth)
+                        re, te = errors(np.array(record["T_target_source"]), truth)
                         record.update(rotation_error_deg=re, translation_error_m=te,
                                       success=re < SUCCESS_RE_DEG and te < SUCCESS_TE_M)
-                        del record["transform"]
+                        del record["T_target_source"]
                     rows.setdefault((pair["name"], name), []).append(record)
                     print(pair["name"], name, repeat, json.dumps(record), flush=True)
     summary = []

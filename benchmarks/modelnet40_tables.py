@@ -104,7 +104,7 @@ def classical_estimates(data, method: str, icp_max_distance: float, fpfh_voxel: 
         started = time.perf_counter()
         try:
             if method == "icp":
-                T = icp(src, tgt, np.eye(4), icp_max_distance, iterations=50)[0]
+                T = icp(src, tgt, np.eye(4), icp_max_distance, iterations=50).T_target_source
             else:
                 T = fpfh_ransac(torch.from_numpy(src), torch.from_numpy(tgt), fpfh_voxel, seed=i)[0].numpy()
         except (IcpFailure, ValueError):

@@ -21,16 +21,16 @@ def room_pair():
 @pytest.mark.parametrize("estimator", ["point_to_plane", "gicp"])
 def test_plane_based_refinement_reaches_the_exact_motion(room_pair, estimator):
     src, tgt, truth = room_pair
-    T, iterations, fitness, _ = icp(src, tgt, np.eye(4), 0.3, 100, estimator=estimator)
-    errors = transform_errors(T, truth)
+    result = icp(src, tgt, np.eye(4), 0.3, 100, estimator=estimator)
+    errors = transform_errors(result.T_target_source, truth)
     assert errors["rotation_error_deg"] <= 0.01 and errors["translation_error"] <= 0.0005, errors
-    assert iterations < 100 and fitness > 0.95
+    assert result.converged and result.fitness > 0.95 and result.estimator == estimator
 
 
 def test_point_to_point_is_biased_by_the_sampling(room_pair):
     src, tgt, truth = room_pair
-    T, *_ = icp(src, tgt, np.eye(4), 0.3, 100, estimator="point_to_point")
-    errors = transform_errors(T, truth)
+    result = icp(src, tgt, np.eye(4), 0.3, 100, estimator="point_to_point")
+    errors = transform_errors(result.T_target_source, truth)
     assert errors["rotation_error_deg"] < 0.1 and errors["translation_error"] < 0.01, errors
 
 

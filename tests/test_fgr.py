@@ -49,7 +49,7 @@ def test_fgr_registers_a_room_turned_by_60_degrees():
     errors = transform_errors(fgr_estimate(src, tgt, 3000, seed=0), truth)
     assert errors["rotation_error_deg"] < 3.0 and errors["translation_error"] < 0.15, errors
     refined = register(src, tgt, method="fgr", global_points=3000, icp_points=20_000, icp_estimator="point_to_plane")
-    errors = transform_errors(refined.transform, truth)
+    errors = transform_errors(refined.T_target_source, truth)
     assert errors["rotation_error_deg"] < 0.05 and errors["translation_error"] < 0.005, errors
 
 

@@ -90,9 +90,9 @@ def test_fpfh_ransac_finds_a_large_motion_that_icp_from_the_identity_cannot():
     errors = transform_errors(estimate.numpy(), truth)
     assert errors["rotation_error_deg"] < 3.0 and errors["translation_error"] < 0.15, errors
     refined = register(src, tgt, method="fpfh", global_points=3000, icp_points=6000)
-    assert transform_errors(refined.transform, truth)["rotation_error_deg"] < 1.0
+    assert transform_errors(refined.T_target_source, truth)["rotation_error_deg"] < 1.0
     identity_start = register(src, tgt, icp_points=6000)
-    assert transform_errors(identity_start.transform, truth)["rotation_error_deg"] > 10.0
+    assert transform_errors(identity_start.T_target_source, truth)["rotation_error_deg"] > 10.0
 
 
 def test_one_initial_estimate_at_a_time(tmp_path, capsys):

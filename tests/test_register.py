@@ -62,10 +62,11 @@ def test_voxel_downsample_matches_a_per_voxel_mean_in_row_major_voxel_order():
 def test_icp_recovers_a_small_motion():
     src = room()
     truth = motion(6.0, [0.1, -0.05, 0.08])
-    T, iterations, fitness, rmse = icp(src, apply(truth, src), np.eye(4), max_distance=0.5)
-    errors = transform_errors(T, truth)
+    result = icp(src, apply(truth, src), np.eye(4), max_distance=0.5)
+    errors = transform_errors(result.T_target_source, truth)
     assert errors["rotation_error_deg"] < 1e-3 and errors["translation_error"] < 1e-4, errors
-    assert fitness > 0.99 and rmse < 1e-4 and iterations < 50
+    assert result.fitness > 0.99 and result.inlier_rmse < 1e-4 and result.iterations < 50 and result.converged
+    assert result.correspondences == round(result.fitness * len(src)) and result.method == "icp"
 
 
 def test_target_reach_never_rules_out_a_point_within_reach():
@@ -99,9 +100,9 @@ def test_icp_skipping_out_of_reach_points_changes_nothing(monkeypatch):
     filtered = icp(src, tgt, np.eye(4), max_distance=0.1)
     monkeypatch.setattr(TargetReach, "__call__", lambda self, points: torch.ones(points.shape[1], dtype=torch.bool))
     unfiltered = icp(src, tgt, np.eye(4), max_distance=0.1)
-    np.testing.assert_allclose(filtered[0], unfiltered[0], rtol=0, atol=1e-12)
-    assert filtered[1:3] == unfiltered[1:3]
-    assert filtered[3] == pytest.approx(unfiltered[3], rel=1e-12)
+    np.testing.assert_allclose(filtered.T_target_source, unfiltered.T_target_source, rtol=0, atol=1e-12)
+    assert (filtered.iterations, filtered.fitness) == (unfiltered.iterations, unfiltered.fitness)
+    assert filtered.inlier_rmse == pytest.approx(unfiltered.inlier_rmse, rel=1e-12)
 
 
 class ExactModel(torch.nn.Module):
@@ -126,11 +127,11 @@ def test_register_from_identity_and_without_icp():
     truth = motion(4.0, [0.05, 0.02, -0.04])
     result = register(src, apply(truth, src), icp_points=3000)
     # voxel means of a rotated cloud do not correspond exactly: a small bias remains
-    assert transform_errors(result.transform, truth)["rotation_error_deg"] < 0.2
+    assert transform_errors(result.T_target_source, truth)["rotation_error_deg"] < 0.2
     assert result.points["source_icp"] <= len(src)
     plain = register(src, apply(truth, src), model=ExactModel(), network_points=10_000, icp_iterations=0)
-    assert transform_errors(plain.transform, truth)["rotation_error_deg"] < 1e-3
-    assert plain.icp_iterations == 0
+    assert transform_errors(plain.T_target_source, truth)["rotation_error_deg"] < 1e-3
+    assert plain.iterations == 0
 
 
 def test_icp_out_of_reach_returns_the_initial_estimate_with_a_warning():
@@ -139,7 +140,7 @@ def test_icp_out_of_reach_returns_the_initial_estimate_with_a_warning():
     with pytest.raises(IcpFailure, match="fewer than 3 point pairs"):
         icp(src, src, far, max_distance=0.1)
     result = register(src, src + np.array([50.0, 0.0, 0.0]), max_distance=0.1)
-    assert result.icp_iterations == 0 and np.array_equal(result.transform, np.eye(4))
+    assert result.iterations == 0 and np.array_equal(result.T_target_source, np.eye(4))
     assert "unrefined initial estimate" in result.warnings[0]
 
 
@@ -155,7 +156,7 @@ def test_cli_register(tmp_path, capsys):
     assert main(args) == 0
     record = json.loads((tmp_path / "r.json").read_text())
     assert record["errors"]["rotation_error_deg"] < 0.2 and record["peak_rss_mb"] > 0
-    np.testing.assert_allclose(read_points(tmp_path / "moved.ply"), apply(np.array(record["transform"]), src), atol=1e-5)
+    np.testing.assert_allclose(read_points(tmp_path / "moved.ply"), apply(np.array(record["T_target_source"]), src), atol=1e-5)
     assert (tmp_path / "r.png").stat().st_size > 10_000
     assert main(["register", str(tmp_path / "src.ply"), str(tmp_path / "missing.ply")]) == 2
     assert "missing.ply: no such file" in capsys.readouterr().err
@@ -185,7 +186,7 @@ def test_real_lidar_pair_icp_matches_reference():
     """Measured: 0.20 deg / 7.5 mm from the reference GICP transform (which itself agrees with an
     independent fast_gicp estimate within 0.23 deg / 1.9 cm)."""
     result = register(read_points(LIDAR / "source.ply"), read_points(LIDAR / "target.ply"))
-    errors = transform_errors(result.transform, read_transform(LIDAR / "T_target_source.txt"))
+    errors = transform_errors(result.T_target_source, read_transform(LIDAR / "T_target_source.txt"))
     assert errors["rotation_error_deg"] < 0.5 and errors["translation_error"] < 0.05, errors
 
 
@@ -222,7 +223,7 @@ def test_a_stray_far_point_in_the_target_does_not_change_the_icp_result():
     for distance in (1e3, 1e5):
         stray = np.vstack([tgt, [[distance, 0.0, 0.0]]])
         result = register(src, stray, icp_points=5000)
-        assert transform_errors(result.transform, clean.transform)["rotation_error_deg"] < 0.05, distance
+        assert transform_errors(result.T_target_source, clean.T_target_source)["rotation_error_deg"] < 0.05, distance
         assert result.points["target_icp"] <= clean.points["target_icp"] + 1
 
 
@@ -234,8 +235,8 @@ def test_icp_with_the_reference_knn_works_in_bounded_chunks(monkeypatch):
     tgt = apply(motion(2.0, [0.05, 0.0, 0.02]), room(3000, seed=1))
     ext = icp(src, tgt, np.eye(4), 0.3, backend="ext")
     reference = icp(src, tgt, np.eye(4), 0.3, backend="torch")
-    np.testing.assert_allclose(reference[0], ext[0], atol=1e-9)
-    assert reference[1] == ext[1]
+    np.testing.assert_allclose(reference.T_target_source, ext.T_target_source, atol=1e-9)
+    assert reference.iterations == ext.iterations
 
 
 def test_a_network_estimate_that_fits_worse_than_no_motion_is_dropped_with_a_warning():
@@ -252,7 +253,7 @@ def test_a_network_estimate_that_fits_worse_than_no_motion_is_dropped_with_a_war
     result = register(src, tgt, model=Wrong(), icp_points=3000)
     assert any("does not fit these scans" in w for w in result.warnings), result.warnings
     np.testing.assert_allclose(result.initial, np.eye(4))
-    assert transform_errors(result.transform, motion(2.0, [0.05, 0.02, 0.0]))["rotation_error_deg"] < 0.5
+    assert transform_errors(result.T_target_source, motion(2.0, [0.05, 0.02, 0.0]))["rotation_error_deg"] < 0.5
 
 
 def test_low_fitness_and_unconverged_icp_are_reported():

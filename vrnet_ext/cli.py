@@ -302,28 +302,29 @@ def _run_register(args) -> int:
     record = result.to_dict()
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     record.update(source=str(args.source), target=str(args.target), checkpoint=args.checkpoint, peak_rss_mb=peak_mb)
+    unconverged = " (not converged)" if result.iterations and not result.converged else ""
     print(f"source {len(src)} points, target {len(tgt)} points; "
           f"initial estimate: {INITIAL_NAMES[method]}; "
-          f"ICP iterations {result.icp_iterations}, "
+          f"ICP ({result.estimator}) iterations {result.iterations}{unconverged}, "
           f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}; "
           f"{sum(result.seconds.values()):.1f} s, peak memory {peak_mb:.0f} MB")
     for warning in result.warnings:
         print(f"vrnet register: warning: {warning}", file=sys.stderr)
     print("transform (source -> target):")
-    print(np.array2string(result.transform, precision=6, suppress_small=True))
+    print(np.array2string(result.T_target_source, precision=6, suppress_small=True))
     if truth is not None:
         record["errors_initial"] = transform_errors(result.initial, truth)
-        record["errors"] = transform_errors(result.transform, truth)
+        record["errors"] = transform_errors(result.T_target_source, truth)
         for label in ("errors_initial", "errors"):
             e = record[label]
             print(f"{label}: rotation {e['rotation_error_deg']:.3f} deg, translation {e['translation_error']:.4g}")
     if args.out:
-        write_ply(args.out, apply(result.transform, src))
+        write_ply(args.out, apply(result.T_target_source, src))
         print(f"wrote {args.out}")
     if args.plot:
         from vrnet_ext.plots import plot_registration
 
-        views = {"initial": result.initial, "final": result.transform}
+        views = {"initial": result.initial, "final": result.T_target_source}
         print(f"wrote {plot_registration(src, tgt, views, args.plot)}")
     if args.json:
         _write_json(args.json, record)

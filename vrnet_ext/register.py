@@ -38,19 +38,27 @@ class IcpFailure(RuntimeError):
 
 @dataclass
 class RegistrationResult:
-    """transform (4, 4) maps source points into the target frame: y = R x + t."""
-    transform: np.ndarray
+    """One registration of a source scan onto a target scan (of :func:`register`, or one ICP run).
+
+    ``T_target_source`` (4, 4) maps source points into the target frame (:mod:`vrnet_ext.transforms`);
+    ``initial`` is the transform the refinement started from.
+    """
+    T_target_source: np.ndarray
     initial: np.ndarray
-    icp_iterations: int
-    fitness: float          # fraction of (downsampled) source points with a target neighbour within reach
-    inlier_rmse: float      # metres, over those points
+    method: str             # the global estimate: "vrnet", "fpfh", "fgr" or "icp" (none)
+    estimator: str          # ICP's step: "point_to_point", "point_to_plane" or "gicp"
+    iterations: int         # ICP iterations run (0: no refinement)
+    converged: bool         # ICP stopped because the transform stopped changing
+    fitness: float          # share of the (downsampled) source points with a target point within reach
+    inlier_rmse: float      # in the scans' unit, over those points
+    correspondences: int    # how many source points those are
     seconds: dict[str, float] = field(default_factory=dict)
     points: dict[str, int] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         out = asdict(self)
-        out["transform"] = self.transform.tolist()
+        out["T_target_source"] = self.T_target_source.tolist()
         out["initial"] = self.initial.tolist()
         return out
 
@@ -198,8 +206,8 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
     ``tolerance`` (rotation in radians, translation in metres). Points that :class:`TargetReach`
     rules out are not searched (they would get weight 0 anyway).
 
-    Returns (4x4 transform, iterations run, fitness, inlier RMSE); raises IcpFailure when fewer
-    than 3 pairs are within reach.
+    Returns a :class:`RegistrationResult` (method "icp"); raises IcpFailure when fewer than 3 pairs
+    are within reach.
     """
     src_t = torch.as_tensor(src, dtype=torch.float64, device=device).unsqueeze(0)
     tgt_t = torch.as_tensor(tgt, dtype=torch.float64, device=device).unsqueeze(0)
@@ -207,25 +215,27 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
     step.prepare(src_t[0], tgt_t[0])
     reach = TargetReach(tgt_t, max_distance)
     T = torch.as_tensor(initial, dtype=torch.float64, device=device)
-    done = 0
+    done, converged = 0, False
     for done in range(1, iterations + 1):
         moved = apply(T, src_t)
         candidates, dist2, idx = _nearest_in_reach(moved, tgt_t, reach, backend)
         inliers = (dist2 <= max_distance ** 2).to(src_t.dtype)
         if int(inliers.sum()) < 3:
             raise IcpFailure(f"ICP: fewer than 3 point pairs within max_distance={max_distance:g} of the initial "
-                             "estimate (too far off; raise --max-distance or check the inputs)")
+                             "estimate (too far off; raise max_distance or check the inputs)")
         new = step.step(T, candidates, idx, inliers)
         change_rotation = torch.linalg.matrix_norm(new[:3, :3] - T[:3, :3]).item()
         change_translation = torch.linalg.vector_norm(new[:3, 3] - T[:3, 3]).item()
         T = new
         if change_rotation < tolerance and change_translation < tolerance:
+            converged = True
             break
     _, dist2, _ = _nearest_in_reach(apply(T, src_t), tgt_t, reach, backend)
     close = dist2[dist2 <= max_distance ** 2]
-    share_within = len(close) / src_t.shape[1]
     rmse = float(close.mean().sqrt()) if len(close) else float("nan")
-    return T.cpu().numpy(), done, share_within, rmse
+    return RegistrationResult(T.cpu().numpy(), np.asarray(initial, dtype=np.float64), "icp", estimator, done,
+                              converged, len(close) / src_t.shape[1], rmse, len(close),
+                              points={"source": len(src), "target": len(tgt)})
 
 
 LOW_FITNESS = 0.2  # below this share of source points with a target point within reach, warn
@@ -310,7 +320,8 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
     seconds["initial"] = time.perf_counter() - start
     points = {"source": len(src), "target": len(tgt)}
     if icp_iterations <= 0:
-        return RegistrationResult(initial, initial, 0, float("nan"), float("nan"), seconds, points, plan_notes)
+        return RegistrationResult(initial, initial, method, icp_estimator, 0, False, float("nan"), float("nan"), 0,
+                                  seconds, points, plan_notes)
     start = time.perf_counter()
     voxel = voxel_size if voxel_size is not None else voxel_size_for(tgt, icp_points)
     src_icp, tgt_icp = voxel_downsample(src, voxel), voxel_downsample(tgt, voxel)
@@ -327,27 +338,30 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
     refined, failures = {}, []
     for label, guess in starts.items():
         try:
-            refined[label] = (guess, *icp(src_icp, tgt_icp, guess, reach, icp_iterations, device=device,
-                                          backend=backend, estimator=icp_estimator))
+            refined[label] = icp(src_icp, tgt_icp, guess, reach, icp_iterations, device=device, backend=backend,
+                                 estimator=icp_estimator)
         except IcpFailure as failure:
             failures.append(f"{failure} (from {label})")
+    seconds["icp"] = time.perf_counter() - start
     if not refined:
-        return RegistrationResult(initial, initial, 0, 0.0, float("nan"), seconds, points,
-                                  [f"{'; '.join(failures)}; returning the unrefined initial estimate"])
-    label = max(refined, key=lambda name: (refined[name][3], -refined[name][4]))
-    initial, T, iterations, final_fitness, rmse = refined[label]
+        warnings.append(f"{'; '.join(failures)}; returning the unrefined initial estimate")
+        return RegistrationResult(initial, initial, method, icp_estimator, 0, False, 0.0, float("nan"), 0, seconds,
+                                  points, warnings)
+    label = max(refined, key=lambda name: (refined[name].fitness, -refined[name].inlier_rmse))
+    best = refined[label]
     if two_starts and label == "no motion":
         learned = refined.get("the VRNet estimate")
-        from_network = f"fitness {learned[3]:.1%}" if learned else "no pairs within reach"
+        from_network = f"fitness {learned.fitness:.1%}" if learned else "no pairs within reach"
         warnings.append(f"the VRNet estimate does not fit these scans (ICP from it: {from_network}; from no "
-                        f"motion: {final_fitness:.1%}); returning the refinement that started from no motion")
-    seconds["icp"] = time.perf_counter() - start
-    if iterations >= icp_iterations:
-        warnings.append(f"ICP did not converge within {icp_iterations} iterations (raise --icp-iterations)")
-    if final_fitness < LOW_FITNESS:
-        warnings.append(f"low fitness: only {final_fitness:.1%} of the source points have a target point within "
+                        f"motion: {best.fitness:.1%}); returning the refinement that started from no motion")
+    if not best.converged:
+        warnings.append(f"ICP did not converge within {icp_iterations} iterations (raise icp_iterations)")
+    if best.fitness < LOW_FITNESS:
+        warnings.append(f"low fitness: only {best.fitness:.1%} of the source points have a target point within "
                         f"{reach:.3g}; the scans may overlap little or the result may be wrong")
-    return RegistrationResult(T, initial, iterations, final_fitness, rmse, seconds, points, warnings)
+    return RegistrationResult(best.T_target_source, best.initial, method, icp_estimator, best.iterations,
+                              best.converged, best.fitness, best.inlier_rmse, best.correspondences, seconds, points,
+                              warnings)
 
 
 def transform_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:

@@ -80,7 +80,7 @@ def train_scene_model(scans: dict[str, np.ndarray], out_path: str | Path, cfg: S
     if out_path.exists():
         state = torch.load(out_path, map_location="cpu", weights_only=True)
         if state.get("format") != SCENE_FORMAT or state.get("scans") != names:
-            raise ValueError(f"{out_path}: not a scene-model run on the scans {names}; choose another --out")
+            raise ValueError(f"{out_path}: not a scene-model run on the scans {names}; choose another out_path")
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         step, seconds, history = state["step"], state["train_seconds"], state["history"]
