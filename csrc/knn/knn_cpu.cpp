@@ -82,9 +82,24 @@ struct Grid {
     }
   }
 
+  // Squared distance from q to the box of cell (x, y, z) (0 inside it).
+  double cell_distance_sq(const scalar_t* q, int64_t x, int64_t y, int64_t z) const {
+    const int64_t cell_xyz[3] = {x, y, z};
+    double total = 0;
+    for (int a = 0; a < 3; ++a) {
+      const double low = lo[a] + cell_xyz[a] * cell;
+      const double gap = std::max({0.0, low - q[a], q[a] - (low + cell)});
+      total += gap * gap;
+    }
+    return total;
+  }
+
   // Exact kNN of one query by visiting cube shells of cells around the query's cell until no
-  // unvisited cell can hold a point closer than the current k-th candidate.
-  void search(const scalar_t* q, int64_t self, TopK<scalar_t>& top) const {
+  // unvisited cell can hold a point closer than the current k-th candidate. Within a shell the
+  // cells are visited nearest first, and a cell whose box lies farther than the current k-th
+  // candidate is skipped with all that follow it: most candidates then never reach the top-k.
+  // `shell` is scratch space (distance, cell id) reused across queries.
+  void search(const scalar_t* q, int64_t self, TopK<scalar_t>& top, std::vector<std::pair<double, int64_t>>& shell) const {
     const int64_t c[3] = {cell_coord(q[0], 0), cell_coord(q[1], 1), cell_coord(q[2], 2)};
     double outside_sq[3], outside_sq_total = 0;  // squared distance from q to the grid's extent, per axis
     for (int a = 0; a < 3; ++a) {
@@ -96,6 +111,7 @@ struct Grid {
       const int64_t z0 = std::max<int64_t>(c[2] - r, 0), z1 = std::min(c[2] + r, dims[2] - 1);
       const int64_t y0 = std::max<int64_t>(c[1] - r, 0), y1 = std::min(c[1] + r, dims[1] - 1);
       const int64_t x0 = std::max<int64_t>(c[0] - r, 0), x1 = std::min(c[0] + r, dims[0] - 1);
+      shell.clear();
       for (int64_t z = z0; z <= z1; ++z) {
         const bool z_shell = std::abs(z - c[2]) == r;
         for (int64_t y = y0; y <= y1; ++y) {
@@ -105,13 +121,18 @@ struct Grid {
           for (int64_t x = zy_shell ? x0 : c[0] - r; x <= x1; x += step) {
             if (x < x0) continue;
             const int64_t id = cell_id(x, y, z);
-            for (int64_t p = start[id]; p < start[id + 1]; ++p) {
-              const int64_t j = order[p];
-              if (j == self) continue;
-              const scalar_t dx = q[0] - xyz[3 * p], dy = q[1] - xyz[3 * p + 1], dz = q[2] - xyz[3 * p + 2];
-              top.push(dx * dx + dy * dy + dz * dz, j);
-            }
+            if (start[id] != start[id + 1]) shell.emplace_back(cell_distance_sq(q, x, y, z), id);
           }
+        }
+      }
+      std::sort(shell.begin(), shell.end());
+      for (const auto& [box_sq, id] : shell) {
+        if (box_sq * (1.0 - 1e-5) > static_cast<double>(top.worst())) break;  // it and all after it
+        for (int64_t p = start[id]; p < start[id + 1]; ++p) {
+          const int64_t j = order[p];
+          if (j == self) continue;
+          const scalar_t dx = q[0] - xyz[3 * p], dy = q[1] - xyz[3 * p + 1], dz = q[2] - xyz[3 * p + 2];
+          top.push(dx * dx + dy * dy + dz * dz, j);
         }
       }
       // Lower bound on the squared distance from q to any cell outside the visited box: a cell
@@ -158,11 +179,12 @@ void knn_grid(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool ex
     const scalar_t* q = query.const_data_ptr<scalar_t>() + b * N * 3;
     scalar_t* d_out = dist.mutable_data_ptr<scalar_t>() + b * N * k;
     int64_t* i_out = idx.mutable_data_ptr<int64_t>() + b * N * k;
+    std::vector<std::pair<double, int64_t>> shell;
     for (int64_t s = s0; s < s1; ++s) {
       const int64_t n = query_orders[b].order[s];
       TopK<scalar_t> top{d_out + n * k, i_out + n * k, k};
       top.reset(M);
-      grids[b].search(q + 3 * n, exclude_self ? n : -1, top);
+      grids[b].search(q + 3 * n, exclude_self ? n : -1, top, shell);
     }
   });
 }
