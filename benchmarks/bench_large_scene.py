@@ -101,8 +101,10 @@ def run_register(pair: dict, method: str, budget: str, checkpoint: str | None, w
         record["error"] = (proc.stderr.strip().splitlines() or ["?"])[-1]
         return record
     result = json.loads(out.read_text())
-    errors = result["errors"]
+    errors, initial = result["errors"], result["errors_initial"]
     record.update(rotation_error_deg=errors["rotation_error_deg"], translation_error_m=errors["translation_error"],
+                  initial_rotation_error_deg=initial["rotation_error_deg"],
+                  initial_translation_error_m=initial["translation_error"],
                   register_s=sum(result["seconds"].values()), peak_rss_mb=result["peak_rss_mb"],
                   fitness=result["fitness"], warnings=result["warnings"], points=result["points"])
     record["success"] = (errors["rotation_error_deg"] < SUCCESS_RE_DEG and errors["translation_error"] < SUCCESS_TE_M)
@@ -138,13 +140,14 @@ def soft_match_memory(sizes: list[int], channels: int = 32, values: int = 35) ->
 
 
 def markdown(records: list[dict], memory: list[dict], kitchen_heldout: bool) -> str:
-    lines = ["| pair | method | budget | RE (deg) | TE (cm) | success | register (s) | process (s) | peak RSS (MB) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| pair | method | budget | global estimate RE (deg) / TE (cm) | final RE (deg) | final TE (cm) | success | "
+             "register (s) | process (s) | peak RSS (MB) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in records:
         if "error" in r:
-            lines.append(f"| {r['pair']} | {r['method']} | {r['budget']} | failed: {r['error']} | | | | | |")
+            lines.append(f"| {r['pair']} | {r['method']} | {r['budget']} | failed: {r['error']} | | | | | | |")
             continue
-        lines.append(f"| {r['pair']} | {r['method']} | {r['budget']} | {r['rotation_error_deg']:.2f} | "
+        lines.append(f"| {r['pair']} | {r['method']} | {r['budget']} | {r['initial_rotation_error_deg']:.2f} / "
+                     f"{100 * r['initial_translation_error_m']:.1f} | {r['rotation_error_deg']:.2f} | "
                      f"{100 * r['translation_error_m']:.1f} | {'yes' if r['success'] else 'no'} | "
                      f"{r['register_s']:.1f} | {r['process_s']:.1f} | {r['peak_rss_mb']:.0f} |")
     lines.append("")

@@ -143,10 +143,10 @@ def main(argv: list[str] | None = None) -> None:
                 for name, runner in runners:  # interleaved: every implementation once per repetition
                     record = runner(pair, workdir / "out.json")
                     if "transform" in record:
-                        re, te = errors(np.array(record["T_target_source"]), truth)
+                        re, te = errors(np.array(record["transform"]), truth)
                         record.update(rotation_error_deg=re, translation_error_m=te,
                                       success=re < SUCCESS_RE_DEG and te < SUCCESS_TE_M)
-                        del record["T_target_source"]
+                        del record["transform"]
                     rows.setdefault((pair["name"], name), []).append(record)
                     print(pair["name"], name, repeat, json.dumps(record), flush=True)
     summary = []

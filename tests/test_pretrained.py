@@ -11,6 +11,7 @@ from vrnet_ext.checkpoints import read_checkpoint
 from vrnet_ext.data import PairSpec, make_pair
 from vrnet_ext.data.procedural import chair
 from vrnet_ext.metrics import rotation_error_deg
+from vrnet_ext.model.scene import SCENE_FORMAT
 from vrnet_ext.pretrained import DEFAULT_MODEL, WEIGHTS_DIR, available, model_card, weights_path
 
 
@@ -23,7 +24,10 @@ def test_the_default_model_ships_as_small_float16_weights_with_a_card():
         assert all(v.dtype == torch.float16 for v in state["model"].values() if v.is_floating_point())
         assert weights_path(name).with_suffix(".md").exists(), f"{name} has no model card"
         card = model_card(name)
-        assert card["training"]["setting"] and "test" in card and card["test"]["pairs"] >= 2468
+        if state.get("format") == SCENE_FORMAT:  # a scene model: its training scans and held-out results
+            assert card["training"]["scans"] and card["training"]["steps"] > 0 and card.get("results")
+        else:
+            assert card["training"]["setting"] and "test" in card and card["test"]["pairs"] >= 2468
 
 
 def test_load_pretrained_registers_a_partial_view_pair():

@@ -169,3 +169,19 @@ def test_50k_points_forward_within_100mb_of_its_inputs():
     assert run.returncode == 0, run.stderr
     growth_mb = float(run.stdout.strip().splitlines()[-1])
     assert growth_mb < 100, f"peak RSS grew {growth_mb:.0f} MB"
+
+
+@requires_ext
+def test_contiguous_inputs_that_require_grad_on_several_threads():
+    """The kernel slices its inputs on OpenMP worker threads; inputs with autograd history must not
+    reach the tile products there (regression: mm_out refused them at 2 threads)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        query = torch.randn(1, 300, 8, requires_grad=True)
+        key, values = torch.randn(1, 700, 8, requires_grad=True), torch.randn(1, 700, 4, requires_grad=True)
+        out = ops.soft_match(query * 1.0, key, values)
+        out.sum().backward()
+        assert query.grad is not None and key.grad is not None and values.grad is not None
+    finally:
+        torch.set_num_threads(threads)

@@ -258,7 +258,7 @@ def _register_parser(sub) -> None:
     p.add_argument("--max-distance", type=_positive_float, default=None,
                    help="ICP inlier reach, in the scans' unit (default: 3 voxels)")
     p.add_argument("--icp-iterations", type=_nonnegative_int, default=50, help="0: no ICP")
-    p.add_argument("--estimator", choices=("point_to_point", "point_to_plane", "gicp"), default="point_to_point",
+    p.add_argument("--estimator", choices=("point_to_point", "point_to_plane", "gicp"), default="point_to_plane",
                    help="ICP step: point-to-point (Kabsch), point-to-plane, or plane-to-plane (GICP)")
     p.add_argument("--gt", default=None, help="ground-truth 4x4 transform file: report the errors")
     p.add_argument("--json", type=_writable_path, default=None, help="write the result here")

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 
 from vrnet_ext.ops import knn
 from vrnet_ext.transforms import move
@@ -12,6 +11,8 @@ from vrnet_ext.transforms import move
 def euler_zyx_deg(rotation: torch.Tensor | np.ndarray) -> np.ndarray:
     """(B, 3, 3) -> (B, 3) angles (z, y, x) in degrees, scipy 'zyx' as in DCP."""
     matrices = np.asarray(rotation.detach().cpu() if isinstance(rotation, torch.Tensor) else rotation, dtype=np.float64)
+    from scipy.spatial.transform import Rotation  # here, not at import: `vrnet register` never needs it
+
     return Rotation.from_matrix(matrices).as_euler("zyx", degrees=True)
 
 

@@ -259,7 +259,7 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
              icp_points: int = 50_000, voxel_size: float | None = None, max_distance: float | None = None,
              icp_iterations: int = 50, seed: int = 0, device: str | torch.device = "cpu",
              backend: str = "ext", max_memory: int | None = None,
-             icp_estimator: str = "point_to_point") -> RegistrationResult:
+             icp_estimator: str = "point_to_plane") -> RegistrationResult:
     """Estimates the rigid transform taking src (N, 3) onto tgt (M, 3), both in the same unit.
 
     method: ``"vrnet"``: a learned initial estimate from ``model`` (a :class:`SceneVRNet` on about

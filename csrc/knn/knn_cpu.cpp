@@ -24,6 +24,17 @@
 namespace vrnet {
 namespace {
 
+// The 26 cells around a cell, ordered by how many axes they step along (6 faces, 12 edges, 8 corners).
+const std::vector<std::array<int64_t, 3>> kNeighbourOffsets = [] {
+  std::vector<std::array<int64_t, 3>> offsets;
+  for (int steps = 1; steps <= 3; ++steps)
+    for (int64_t z = -1; z <= 1; ++z)
+      for (int64_t y = -1; y <= 1; ++y)
+        for (int64_t x = -1; x <= 1; ++x)
+          if (std::abs(x) + std::abs(y) + std::abs(z) == steps) offsets.push_back({x, y, z});
+  return offsets;
+}();
+
 // Grid over one reference cloud: points sorted by cell (counting sort) with cell offsets.
 template <typename scalar_t>
 struct Grid {
@@ -95,10 +106,11 @@ struct Grid {
   }
 
   // Exact kNN of one query by visiting cube shells of cells around the query's cell until no
-  // unvisited cell can hold a point closer than the current k-th candidate. Within a shell the
-  // cells are visited nearest first, and a cell whose box lies farther than the current k-th
-  // candidate is skipped with all that follow it: most candidates then never reach the top-k.
-  // `shell` is scratch space (distance, cell id) reused across queries.
+  // unvisited cell can hold a point closer than the current k-th candidate. A cell whose box lies
+  // farther than the current k-th candidate is skipped, and the 26 neighbours of the query's cell
+  // are visited faces first (the nearest, on average), so the top-k fills with close points early
+  // and most later candidates are rejected in one compare. `shell` is scratch space (box distance,
+  // cell id) reused across queries.
   void search(const scalar_t* q, int64_t self, TopK<scalar_t>& top, std::vector<std::pair<double, int64_t>>& shell) const {
     const int64_t c[3] = {cell_coord(q[0], 0), cell_coord(q[1], 1), cell_coord(q[2], 2)};
     double outside_sq[3], outside_sq_total = 0;  // squared distance from q to the grid's extent, per axis
@@ -112,7 +124,15 @@ struct Grid {
       const int64_t y0 = std::max<int64_t>(c[1] - r, 0), y1 = std::min(c[1] + r, dims[1] - 1);
       const int64_t x0 = std::max<int64_t>(c[0] - r, 0), x1 = std::min(c[0] + r, dims[0] - 1);
       shell.clear();
-      for (int64_t z = z0; z <= z1; ++z) {
+      if (r == 1) {  // the 26 neighbours, faces first, then edges, then corners (nearest first, no sort)
+        for (const auto& offset : kNeighbourOffsets) {
+          const int64_t x = c[0] + offset[0], y = c[1] + offset[1], z = c[2] + offset[2];
+          if (x < 0 || y < 0 || z < 0 || x >= dims[0] || y >= dims[1] || z >= dims[2]) continue;
+          const int64_t id = cell_id(x, y, z);
+          if (start[id] != start[id + 1]) shell.emplace_back(cell_distance_sq(q, x, y, z), id);
+        }
+      }
+      for (int64_t z = z0; r != 1 && z <= z1; ++z) {
         const bool z_shell = std::abs(z - c[2]) == r;
         for (int64_t y = y0; y <= y1; ++y) {
           const bool zy_shell = z_shell || std::abs(y - c[1]) == r;
@@ -125,9 +145,8 @@ struct Grid {
           }
         }
       }
-      std::sort(shell.begin(), shell.end());
       for (const auto& [box_sq, id] : shell) {
-        if (box_sq * (1.0 - 1e-5) > static_cast<double>(top.worst())) break;  // it and all after it
+        if (box_sq * (1.0 - 1e-5) > static_cast<double>(top.worst())) continue;
         for (int64_t p = start[id]; p < start[id + 1]; ++p) {
           const int64_t j = order[p];
           if (j == self) continue;

@@ -93,7 +93,10 @@ void soft_match_forward(const at::Tensor& query, const at::Tensor& key, const at
 std::tuple<at::Tensor, at::Tensor, at::Tensor> soft_match_cpu(const at::Tensor& query_in, const at::Tensor& key_in,
                                                               const at::Tensor& values_in, double scale) {
   check_soft_match_inputs(query_in, key_in, values_in, scale);
-  const at::Tensor query = query_in.contiguous(), key = key_in.contiguous(), values = values_in.contiguous();
+  // detach(): the tasks slice these tensors on OpenMP worker threads, where autograd's thread-local
+  // state is not that of this (below-autograd) call; tensors without autograd history are safe there.
+  const at::Tensor query = query_in.contiguous().detach(), key = key_in.contiguous().detach();
+  const at::Tensor values = values_in.contiguous().detach();
   check_finite(query, "query");
   check_finite(key, "key");
   check_finite(values, "values");
@@ -186,10 +189,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> soft_match_backward_cpu(
     const at::Tensor& key_in, const at::Tensor& values_in, const at::Tensor& out_in, const at::Tensor& lse_in,
     double scale) {
   check_soft_match_backward_inputs(grad_out_in, grad_lse_in, query_in, key_in, values_in, out_in, lse_in, scale);
-  const at::Tensor query = query_in.contiguous(), key = key_in.contiguous(), values = values_in.contiguous();
-  const at::Tensor grad_out = grad_out_in.contiguous(), lse = lse_in.contiguous();
+  // detached for the worker threads, as in the forward
+  const at::Tensor query = query_in.contiguous().detach(), key = key_in.contiguous().detach();
+  const at::Tensor values = values_in.contiguous().detach();
+  const at::Tensor grad_out = grad_out_in.contiguous().detach(), lse = lse_in.contiguous().detach();
   // shift_i = dlse_i - dO_i . O_i
-  const at::Tensor shift = at::sub(grad_lse_in, at::mul(grad_out, out_in).sum(2)).contiguous();
+  const at::Tensor shift = at::sub(grad_lse_in, at::mul(grad_out, out_in).sum(2)).contiguous().detach();
   at::Tensor grad_query = at::zeros_like(query), grad_key = at::zeros_like(key);
   at::Tensor grad_values = at::zeros_like(values);
   if (query.size(1) > 0) {

@@ -18,7 +18,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 SETTINGS = ("CO", "PV", "RS", "PV+RS")
 
@@ -47,6 +46,8 @@ class PairSpec:
 def random_motion(rng: np.random.Generator, max_angle_deg: float, max_translation: float):
     """(R (3, 3), t (3,), euler_zyx_deg (3,)) with R = Rx Ry Rz."""
     ax, ay, az = rng.uniform(0.0, np.deg2rad(max_angle_deg), size=3)
+    from scipy.spatial.transform import Rotation  # here, not at import: `vrnet register` never needs it
+
     rotation = Rotation.from_euler("zyx", [az, ay, ax]).as_matrix()
     translation = rng.uniform(-max_translation, max_translation, size=3)
     return rotation, translation, np.rad2deg([az, ay, ax])

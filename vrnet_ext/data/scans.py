@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 
 from vrnet_ext import ops
 from vrnet_ext.preprocessing import voxel_downsample
@@ -65,6 +64,8 @@ def _view(points: np.ndarray, rotation: np.ndarray, voxel: float, rng: np.random
 
 def synthetic_pair(scan: np.ndarray, voxel: float, rng: np.random.Generator) -> ScanPair:
     """A training pair cut from one scan (N, 3) at about ``voxel`` resolution (see the module)."""
+    from scipy.spatial.transform import Rotation  # training only: `vrnet register` never needs it
+
     direction = Rotation.random(random_state=rng).apply([1.0, 0.0, 0.0])
     split = rng.uniform(0.35, 0.65)
     overlap = rng.uniform(0.2, 0.8) * min(split, 1.0 - split)
