@@ -198,13 +198,16 @@ def fgr_estimate(src: np.ndarray, tgt: np.ndarray, points: int, seed: int,
 
 
 def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: float, iterations: int = 50,
-        tolerance: float = 1e-6, device: torch.device = torch.device("cpu"),
-        backend: str = "ext", estimator: str = "point_to_point") -> tuple[np.ndarray, int, float, float]:
+        tolerance: float = 1e-6, device: torch.device = torch.device("cpu"), backend: str = "ext",
+        estimator: str = "point_to_point", settled: float = 1e-6) -> RegistrationResult:
     """ICP: nearest target neighbour of each moved source point, pairs farther than ``max_distance``
     get weight 0, then one step of ``estimator`` (:mod:`vrnet_ext.registration.estimators`:
-    point_to_point, point_to_plane, gicp); stops when the transform changes by less than
-    ``tolerance`` (rotation in radians, translation in metres). Points that :class:`TargetReach`
-    rules out are not searched (they would get weight 0 anyway).
+    point_to_point, point_to_plane, gicp). Converged when a step changes the transform by less than
+    ``tolerance`` (rotation in radians, translation in metres), or when the fitness (a share) and the
+    inlier RMSE (in the scans' unit) of the correspondences both change by less than ``settled``
+    from one iteration to the next (Open3D's ICPConvergenceCriteria: the pairs have settled). At most
+    ``iterations`` steps. Points that :class:`TargetReach` rules out are not searched (they would
+    get weight 0 anyway).
 
     Returns a :class:`RegistrationResult` (method "icp"); raises IcpFailure when fewer than 3 pairs
     are within reach.
@@ -215,15 +218,22 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
     step.prepare(src_t[0], tgt_t[0])
     reach = TargetReach(tgt_t, max_distance)
     T = torch.as_tensor(initial, dtype=torch.float64, device=device)
-    done, converged = 0, False
-    for done in range(1, iterations + 1):
+    done, converged, previous = 0, False, None
+    while done < iterations:
         moved = apply(T, src_t)
         candidates, dist2, idx = _nearest_in_reach(moved, tgt_t, reach, backend)
         inliers = (dist2 <= max_distance ** 2).to(src_t.dtype)
-        if int(inliers.sum()) < 3:
+        count = int(inliers.sum())
+        if count < 3:
             raise IcpFailure(f"ICP: fewer than 3 point pairs within max_distance={max_distance:g} of the initial "
                              "estimate (too far off; raise max_distance or check the inputs)")
+        current = (count / src_t.shape[1], float((dist2 * inliers).sum() / count) ** 0.5)
+        if previous is not None and abs(current[0] - previous[0]) < settled and abs(current[1] - previous[1]) < settled:
+            converged = True
+            break
+        previous = current
         new = step.step(T, candidates, idx, inliers)
+        done += 1
         change_rotation = torch.linalg.matrix_norm(new[:3, :3] - T[:3, :3]).item()
         change_translation = torch.linalg.vector_norm(new[:3, 3] - T[:3, 3]).item()
         T = new
