@@ -60,12 +60,11 @@ def resident_mb() -> tuple[float, float]:
 def require_headroom(budget_bytes: int) -> None:
     """MemoryBudgetError at once if this process alone (Python, torch) already needs more than
     the budget plus room for the smallest run; called before any scan is read."""
-    now_mb, peak_mb = resident_mb()
-    floor_mb = max(now_mb, peak_mb) + MARGIN_MB + SAFETY * ICP_MB
+    now_mb, _ = resident_mb()
+    floor_mb = now_mb + MARGIN_MB + SAFETY * ICP_MB
     if budget_bytes / MB < floor_mb:
         raise MemoryBudgetError(f"max_memory {budget_bytes / MB:.0f} MB cannot be met: Python and torch alone "
-                                f"hold {max(now_mb, peak_mb):.0f} MB; allow at least {floor_mb:.0f} MB plus "
-                                f"room for the scans")
+                                f"hold {now_mb:.0f} MB; allow at least {floor_mb:.0f} MB plus room for the scans")
 
 
 @dataclass
@@ -99,16 +98,11 @@ def plan_registration(budget_bytes: int, method: str, learned: str | None, sourc
     """Point counts that keep the process's peak within ``budget_bytes``.
 
     learned: ``"scene"`` or ``"modelnet"`` for method ``"vrnet"`` (which network), else None.
-    Raises :class:`MemoryBudgetError` when the process already holds too much or when even the
-    smallest counts would not fit.
+    Raises :class:`MemoryBudgetError` when what the process holds now plus even the smallest
+    counts' transients would not fit.
     """
     budget_mb = budget_bytes / MB
-    now_mb, peak_mb = resident_mb()
-    if peak_mb > budget_mb:
-        raise MemoryBudgetError(f"max_memory {budget_mb:.0f} MB cannot be met: this process already reached "
-                                f"{peak_mb:.0f} MB (Python, torch and the scans of {source_points} + "
-                                f"{target_points} points); allow at least "
-                                f"{_smallest_mb(now_mb, method, learned, source_points, target_points):.0f} MB")
+    now_mb, _ = resident_mb()  # what the process holds now (an earlier peak of a long-lived process is past)
     largest = max(source_points, target_points)
     counts = {"global_points": global_points, "network_points": network_points, "icp_points": icp_points}
     floors = {"global_points": MIN_GLOBAL_POINTS, "network_points": MIN_NETWORK_POINTS,
