@@ -46,7 +46,7 @@ def normals(points: torch.Tensor, neighbours: int = 30, viewpoint: tuple[float, 
     check_finite(points, "points")
     _, idx = neighbourhood(points, neighbours)
     viewpoint = tuple(float(v) for v in viewpoint)
-    if use_extension(backend, points.device):
+    if use_extension(backend, points.device) and points.device.type == "cpu":  # no CUDA kernel yet
         return torch.ops.vrnet_ext.normals(points, idx, list(viewpoint))
     with float32_region(points):
         return normals_reference(points, idx, viewpoint)
