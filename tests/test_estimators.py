@@ -46,3 +46,16 @@ def test_unknown_estimator_names_the_argument():
     with pytest.raises(ValueError, match="estimator must be one of"):
         make_estimator("plane_to_point")
     assert set(ESTIMATORS) == {"point_to_point", "point_to_plane", "gicp"}
+
+
+def test_icp_settings_are_checked_when_made():
+    from vrnet_ext.register import IcpSettings, register
+
+    for kwargs, match in [({"estimator": "plane"}, "estimator must be one of"), ({"points": 0}, "IcpSettings.points"),
+                          ({"max_iterations": -1}, "IcpSettings.max_iterations"),
+                          ({"max_distance": float("nan")}, "IcpSettings.max_distance"),
+                          ({"voxel_size": 0.0}, "IcpSettings.voxel_size"), ({"settled": -1e-6}, "IcpSettings.settled")]:
+        with pytest.raises(ValueError, match=match):
+            IcpSettings(**kwargs)
+    with pytest.raises(TypeError, match="icp_settings must be an IcpSettings"):
+        register(np.zeros((5, 3)), np.zeros((5, 3)), icp_settings={"points": 10})

@@ -10,7 +10,7 @@ from vrnet_ext.cli import main
 from vrnet_ext.global_registration import _enough_hypotheses, fpfh_ransac, mutual_matches, ransac
 from vrnet_ext.io import write_ply
 from vrnet_ext.preprocessing import voxel_downsample
-from vrnet_ext.register import register, transform_errors
+from vrnet_ext.register import IcpSettings, register, transform_errors
 from vrnet_ext.transforms import apply
 
 KITCHEN = DATA_DIR / "scenes" / "3dmatch_redkitchen"
@@ -89,9 +89,9 @@ def test_fpfh_ransac_finds_a_large_motion_that_icp_from_the_identity_cannot():
     estimate, _ = fpfh_ransac(*down, voxel, iterations=20_000)
     errors = transform_errors(estimate.numpy(), truth)
     assert errors["rotation_error_deg"] < 3.0 and errors["translation_error"] < 0.15, errors
-    refined = register(src, tgt, method="fpfh", global_points=3000, icp_points=6000)
+    refined = register(src, tgt, method="fpfh", global_points=3000, icp_settings=IcpSettings(points=6000))
     assert transform_errors(refined.T_target_source, truth)["rotation_error_deg"] < 1.0
-    identity_start = register(src, tgt, icp_points=6000)
+    identity_start = register(src, tgt, icp_settings=IcpSettings(points=6000))
     assert transform_errors(identity_start.T_target_source, truth)["rotation_error_deg"] > 10.0
 
 

@@ -10,7 +10,7 @@ from vrnet_ext import ops
 from vrnet_ext.cli import main
 from vrnet_ext.io import read_points, read_transform, write_ply
 from vrnet_ext.preprocessing import voxel_downsample
-from vrnet_ext.register import IcpFailure, TargetReach, icp, network_estimate, register, transform_errors
+from vrnet_ext.register import IcpFailure, IcpSettings, TargetReach, icp, network_estimate, register, transform_errors
 from vrnet_ext.transforms import apply, to_homogeneous
 
 LIDAR = DATA_DIR / "scenes" / "lidar_pair"
@@ -125,11 +125,12 @@ def test_network_estimate_undoes_the_normalisation():
 def test_register_from_identity_and_without_icp():
     src = room()
     truth = motion(4.0, [0.05, 0.02, -0.04])
-    result = register(src, apply(truth, src), icp_points=3000)
+    result = register(src, apply(truth, src), icp_settings=IcpSettings(points=3000))
     # voxel means of a rotated cloud do not correspond exactly: a small bias remains
     assert transform_errors(result.T_target_source, truth)["rotation_error_deg"] < 0.2
     assert result.points["source_icp"] <= len(src)
-    plain = register(src, apply(truth, src), model=ExactModel(), network_points=10_000, icp_iterations=0)
+    plain = register(src, apply(truth, src), model=ExactModel(), network_points=10_000,
+                     icp_settings=IcpSettings(max_iterations=0))
     assert transform_errors(plain.T_target_source, truth)["rotation_error_deg"] < 1e-3
     assert plain.iterations == 0
 
@@ -139,7 +140,7 @@ def test_icp_out_of_reach_returns_the_initial_estimate_with_a_warning():
     far = to_homogeneous(np.eye(3), np.array([50.0, 0.0, 0.0]))
     with pytest.raises(IcpFailure, match="fewer than 3 point pairs"):
         icp(src, src, far, max_distance=0.1)
-    result = register(src, src + np.array([50.0, 0.0, 0.0]), max_distance=0.1)
+    result = register(src, src + np.array([50.0, 0.0, 0.0]), icp_settings=IcpSettings(max_distance=0.1))
     assert result.iterations == 0 and np.array_equal(result.T_target_source, np.eye(4))
     assert "unrefined initial estimate" in result.warnings[0]
 
@@ -219,10 +220,10 @@ def test_cli_register_rejects_bad_options_before_any_work(tmp_path, capsys):
 def test_a_stray_far_point_in_the_target_does_not_change_the_icp_result():
     src = room(20000)
     tgt = apply(motion(3.0, [0.1, -0.05, 0.02]), room(20000, seed=1))
-    clean = register(src, tgt, icp_points=5000)
+    clean = register(src, tgt, icp_settings=IcpSettings(points=5000))
     for distance in (1e3, 1e5):
         stray = np.vstack([tgt, [[distance, 0.0, 0.0]]])
-        result = register(src, stray, icp_points=5000)
+        result = register(src, stray, icp_settings=IcpSettings(points=5000))
         assert transform_errors(result.T_target_source, clean.T_target_source)["rotation_error_deg"] < 0.05, distance
         assert result.points["target_icp"] <= clean.points["target_icp"] + 1
 
@@ -250,7 +251,7 @@ def test_a_network_estimate_that_fits_worse_than_no_motion_is_dropped_with_a_war
             R = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).expand(src.shape[0], 3, 3)
             return type("Out", (), dict(rotation=R, translation=torch.zeros(src.shape[0], 3)))()
 
-    result = register(src, tgt, model=Wrong(), icp_points=3000)
+    result = register(src, tgt, model=Wrong(), icp_settings=IcpSettings(points=3000))
     assert any("does not fit these scans" in w for w in result.warnings), result.warnings
     np.testing.assert_allclose(result.initial, np.eye(4))
     assert transform_errors(result.T_target_source, motion(2.0, [0.05, 0.02, 0.0]))["rotation_error_deg"] < 0.5
@@ -259,7 +260,7 @@ def test_a_network_estimate_that_fits_worse_than_no_motion_is_dropped_with_a_war
 def test_low_fitness_and_unconverged_icp_are_reported():
     src = room(4000)
     far_off = apply(motion(40.0, [1.0, 0.5, 0.0]), room(4000, seed=1))
-    result = register(src, far_off, icp_points=2000, icp_iterations=2)
+    result = register(src, far_off, icp_settings=IcpSettings(points=2000, max_iterations=2))
     assert any("did not converge" in w for w in result.warnings), result.warnings
     assert any("low fitness" in w for w in result.warnings) or result.fitness >= 0.2
     assert result.to_dict()["warnings"] == result.warnings

@@ -276,7 +276,7 @@ def _run_register(args) -> int:
     import numpy as np
 
     from vrnet_ext.io import read_points, read_transform, write_ply
-    from vrnet_ext.register import register, transform_errors
+    from vrnet_ext.register import IcpSettings, register, transform_errors
     from vrnet_ext.transforms import apply
 
     if args.max_memory is not None:
@@ -294,11 +294,11 @@ def _run_register(args) -> int:
         model = load_model(args.checkpoint or DEFAULT_SCENE_MODEL, args.device)[0]
     src, tgt = read_points(args.source), read_points(args.target)
     truth = read_transform(args.gt) if args.gt else None
+    icp_settings = IcpSettings(estimator=args.estimator, points=args.icp_points, voxel_size=args.voxel_size,
+                               max_distance=args.max_distance, max_iterations=args.icp_iterations)
     result = register(src, tgt, method=method, model=model, global_points=args.global_points,
-                      network_points=args.network_points, icp_points=args.icp_points, voxel_size=args.voxel_size,
-                      max_distance=args.max_distance, icp_iterations=args.icp_iterations, seed=args.seed,
-                      device=args.device, backend=args.backend, max_memory=args.max_memory,
-                      icp_estimator=args.estimator)
+                      network_points=args.network_points, icp_settings=icp_settings, seed=args.seed,
+                      device=args.device, backend=args.backend, max_memory=args.max_memory)
     record = result.to_dict()
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     record.update(source=str(args.source), target=str(args.target), checkpoint=args.checkpoint, peak_rss_mb=peak_mb)

@@ -264,45 +264,71 @@ def fitness(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: floa
 METHODS = ("vrnet", "fpfh", "fgr", "icp")
 
 
+@dataclass(frozen=True)
+class IcpSettings:
+    """How :func:`register` refines its global estimate (each field is a ``vrnet register`` flag).
+
+    estimator: the step (:mod:`vrnet_ext.registration.estimators`); points: both scans are
+    voxel-downsampled to about this many points (``voxel_size`` overrides); max_distance: the
+    inlier reach (default 3 voxels); max_iterations: at most this many steps (0: no ICP); it stops
+    earlier once a step moves the transform by less than ``transform_tolerance`` or the fitness and
+    inlier RMSE change by less than ``settled`` (see :func:`icp`).
+    """
+
+    estimator: str = "point_to_plane"
+    points: int = 50_000
+    voxel_size: float | None = None
+    max_distance: float | None = None
+    max_iterations: int = 50
+    transform_tolerance: float = 1e-6
+    settled: float = 1e-6
+
+    def __post_init__(self) -> None:
+        make_estimator(self.estimator)  # ValueError naming the estimator
+        for name in ("points", "max_iterations"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < (name == "points"):
+                raise ValueError(f"IcpSettings.{name} must be an integer >= {int(name == 'points')}, got {value!r}")
+        for name in ("voxel_size", "max_distance", "transform_tolerance", "settled"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise ValueError(f"IcpSettings.{name} must be a finite number > 0"
+                                 f"{' (or None for the default)' if name in ('voxel_size', 'max_distance') else ''}, "
+                                 f"got {value!r}")
+
+
 def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
              model: VRNet | SceneVRNet | None = None, global_points: int = 5000, network_points: int = 1024,
-             icp_points: int = 50_000, voxel_size: float | None = None, max_distance: float | None = None,
-             icp_iterations: int = 50, seed: int = 0, device: str | torch.device = "cpu",
-             backend: str = "ext", max_memory: int | None = None,
-             icp_estimator: str = "point_to_plane") -> RegistrationResult:
+             icp_settings: IcpSettings = IcpSettings(), seed: int = 0, device: str | torch.device = "cpu",
+             backend: str = "ext", max_memory: int | None = None) -> RegistrationResult:
     """Estimates the rigid transform taking src (N, 3) onto tgt (M, 3), both in the same unit.
 
     method: ``"vrnet"``: a learned initial estimate from ``model`` (a :class:`SceneVRNet` on about
     ``global_points`` points per scan, or a ModelNet40 :class:`VRNet` on ``network_points``
     subsampled points; default: the shipped scene model); ``"fpfh"``: FPFH features + RANSAC on
     about ``global_points`` points per scan; ``"fgr"``: the same features + Fast Global
-    Registration; ``"icp"``: ICP from no motion. None: ``"vrnet"`` when a
-    model is given, else ``"icp"``. icp_points: ICP works on voxel-downsampled clouds of about this
-    many points (``voxel_size`` overrides). max_distance: ICP inlier reach (default 3 voxels).
-    icp_iterations=0 skips ICP; icp_estimator: its step (point_to_point, point_to_plane, gicp:
-    :mod:`vrnet_ext.registration.estimators`). With a learned estimate, ICP runs from it and from no motion, and
-    the refinement with the higher fitness wins (``initial`` is then the start it came from; a
-    warning says when that was not the network's). If ICP finds no pairs within reach, the result
-    is the initial estimate with a message in ``warnings``. max_memory: a budget in bytes for the
-    process's peak resident memory; the point counts are lowered to fit it
-    (:func:`vrnet_ext.memory_plan.plan_registration`, notes in ``warnings``) or MemoryBudgetError
-    says at once what would fit.
+    Registration; ``"icp"``: ICP from no motion. None: ``"vrnet"`` when a model is given, else
+    ``"icp"``. icp_settings: the refinement (:class:`IcpSettings`). With a ModelNet40 network, ICP
+    runs from its estimate and from no motion, and the refinement with the higher fitness wins
+    (``initial`` is then the start it came from; a warning says when that was not the network's).
+    If ICP finds no pairs within reach, the result is the initial estimate with a message in
+    ``warnings``. max_memory: a budget in bytes for the process's peak resident memory; the point
+    counts are lowered to fit it (:func:`vrnet_ext.memory_plan.plan_registration`, notes in
+    ``warnings``) or MemoryBudgetError says at once what would fit.
     """
-    make_estimator(icp_estimator)  # a bad name fails before any work
     method = method or ("vrnet" if model is not None else "icp")
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if model is not None and method != "vrnet":
         raise ValueError(f"model is only used by method 'vrnet', not {method!r}")
-    for name, value in (("global_points", global_points), ("network_points", network_points),
-                        ("icp_points", icp_points)):
+    if not isinstance(icp_settings, IcpSettings):
+        raise TypeError(f"icp_settings must be an IcpSettings, got {type(icp_settings).__name__}")
+    for name, value in (("global_points", global_points), ("network_points", network_points)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
     if global_points < 3:
         raise ValueError(f"global_points must be at least 3, got {global_points}")
-    for name, value in (("voxel_size", voxel_size), ("max_distance", max_distance)):
-        if value is not None and not (np.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be a finite number > 0 (or None for the default), got {value!r}")
+    icp_points, voxel_size = icp_settings.points, icp_settings.voxel_size
     if max_memory is not None and voxel_size is not None:
         raise ValueError("give max_memory or voxel_size, not both (the budget chooses the ICP voxel)")
     if method == "vrnet" and model is None:
@@ -329,15 +355,16 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
         initial = fgr_estimate(src, tgt, global_points, seed, device)
     seconds["initial"] = time.perf_counter() - start
     points = {"source": len(src), "target": len(tgt)}
-    if icp_iterations <= 0:
-        return RegistrationResult(initial, initial, method, icp_estimator, 0, False, float("nan"), float("nan"), 0,
+    estimator = icp_settings.estimator
+    if icp_settings.max_iterations == 0:
+        return RegistrationResult(initial, initial, method, estimator, 0, False, float("nan"), float("nan"), 0,
                                   seconds, points, plan_notes)
     start = time.perf_counter()
     voxel = voxel_size if voxel_size is not None else voxel_size_for(tgt, icp_points)
     src_icp, tgt_icp = voxel_downsample(src, voxel), voxel_downsample(tgt, voxel)
     seconds["downsample"] = time.perf_counter() - start
     points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))
-    reach = max_distance if max_distance is not None else 3.0 * voxel
+    reach = icp_settings.max_distance if icp_settings.max_distance is not None else 3.0 * voxel
     warnings = list(plan_notes)
     # A network trained on ModelNet40 objects may not fit a pair of scans: with its estimate, ICP
     # also runs from no motion, and the refinement with the higher fitness (then the lower inlier
@@ -348,14 +375,14 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
     refined, failures = {}, []
     for label, guess in starts.items():
         try:
-            refined[label] = icp(src_icp, tgt_icp, guess, reach, icp_iterations, device=device, backend=backend,
-                                 estimator=icp_estimator)
+            refined[label] = icp(src_icp, tgt_icp, guess, reach, icp_settings.max_iterations,
+                                 icp_settings.transform_tolerance, device, backend, estimator, icp_settings.settled)
         except IcpFailure as failure:
             failures.append(f"{failure} (from {label})")
     seconds["icp"] = time.perf_counter() - start
     if not refined:
         warnings.append(f"{'; '.join(failures)}; returning the unrefined initial estimate")
-        return RegistrationResult(initial, initial, method, icp_estimator, 0, False, 0.0, float("nan"), 0, seconds,
+        return RegistrationResult(initial, initial, method, estimator, 0, False, 0.0, float("nan"), 0, seconds,
                                   points, warnings)
     label = max(refined, key=lambda name: (refined[name].fitness, -refined[name].inlier_rmse))
     best = refined[label]
@@ -365,11 +392,12 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | None = None,
         warnings.append(f"the VRNet estimate does not fit these scans (ICP from it: {from_network}; from no "
                         f"motion: {best.fitness:.1%}); returning the refinement that started from no motion")
     if not best.converged:
-        warnings.append(f"ICP did not converge within {icp_iterations} iterations (raise icp_iterations)")
+        warnings.append(f"ICP did not converge within {icp_settings.max_iterations} iterations (raise "
+                        f"IcpSettings.max_iterations)")
     if best.fitness < LOW_FITNESS:
         warnings.append(f"low fitness: only {best.fitness:.1%} of the source points have a target point within "
                         f"{reach:.3g}; the scans may overlap little or the result may be wrong")
-    return RegistrationResult(best.T_target_source, best.initial, method, icp_estimator, best.iterations,
+    return RegistrationResult(best.T_target_source, best.initial, method, estimator, best.iterations,
                               best.converged, best.fitness, best.inlier_rmse, best.correspondences, seconds, points,
                               warnings)
 
