@@ -99,3 +99,26 @@ def test_gate_and_confidence_terms_use_the_true_positions():
     assert parts["LG"] == pytest.approx(bce(out.gate_logits, needs).item())
     assert parts["LC"] == pytest.approx(bce(out.confidence_logits, correct).item())
     assert "LG" not in losses.hybrid_loss(make_output(src, R, t, vcp, offset), src, R, t, backend="torch")[1]
+
+
+def test_offset_log_loss_counts_small_errors_as_much_as_large_ones():
+    truth = torch.zeros(1, 4, 3, dtype=torch.float64)
+    rcp = truth.clone()
+    rcp[0, :, 0] = torch.tensor([0.0, 0.01, 0.01, 1.0])
+    value = losses.offset_log_loss(rcp, truth, 0.01)
+    expected = (0 + 2 * torch.log1p(torch.tensor(1.0)) + torch.log1p(torch.tensor(100.0))) / 4
+    torch.testing.assert_close(value, expected.double().view(1))
+    rcp.requires_grad_()
+    losses.offset_log_loss(rcp, truth, 0.01).sum().backward()
+    # d/dd log(1 + d / s) = 1 / (s + d): a point 1 cm off pulls ~50x harder than one 1 m off
+    assert rcp.grad[0, 1, 0] / rcp.grad[0, 3, 0] > 40 and torch.isfinite(rcp.grad).all()
+
+
+def test_hybrid_loss_with_the_log_offset_form():
+    src, R, t, truth = rigid()
+    vcp = truth + 0.1
+    out = make_output(src, R, t, vcp, torch.zeros_like(vcp))
+    paper, parts = losses.hybrid_loss(out, src, R, t, losses.HybridLossWeights())
+    log_form, log_parts = losses.hybrid_loss(out, src, R, t, losses.HybridLossWeights(l4=10.0, l4_form="log"))
+    assert torch.isfinite(paper) and torch.isfinite(log_form)
+    assert log_parts["L4"] == pytest.approx(float(torch.log1p(torch.tensor(0.1 * 3 ** 0.5 / 0.01))), rel=1e-6)
