@@ -34,7 +34,7 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from vrnet_ext.checkpoints import load_model
+from vrnet_ext.checkpoints import load_vrnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.global_registration import fpfh_ransac
 from vrnet_ext.metrics import summarize
@@ -116,7 +116,7 @@ def classical_estimates(data, method: str, icp_max_distance: float, fpfh_voxel: 
 
 
 def evaluate_model(name: str, args) -> dict:
-    model, state = load_model(name)
+    model, state = load_vrnet(name)
     config = state["config"]
     setting, split = config.get("setting", "PV"), config.get("split", "UPC")
     spec = PairSpec(num_points=config.get("num_points", 1024), num_subsampled=config.get("num_subsampled", 768))
@@ -159,7 +159,7 @@ def markdown(results: list[dict], machine: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--models", nargs="+", default=None, help="shipped names or checkpoints (default: all shipped)")
+    parser.add_argument("--models", nargs="+", default=None, help="shipped names or checkpoints (default: every shipped ModelNet40 VRNet)")
     parser.add_argument("--data-dir", default=None, help="folder of modelnet40_1024_test.h5 (default: ../shared)")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
     parser.add_argument("--max-items", type=int, default=None, help="first N test shapes only (default: all)")
@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", default="modelnet40_tables.json")
     parser.add_argument("--markdown", default="modelnet40_tables.md")
     args = parser.parse_args(argv)
-    models = args.models or available()
+    models = args.models or available("vrnet")
     if not models:
         print("modelnet40_tables: no shipped model and no --models given", file=sys.stderr)
         return 2

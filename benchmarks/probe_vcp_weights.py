@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from vrnet_ext.checkpoints import load_model
+from vrnet_ext.checkpoints import load_vrnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.metrics import euler_zyx_deg, rotation_error_deg
 from vrnet_ext.model.vrnet import robust_procrustes
@@ -27,7 +27,7 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=160)
     parser.add_argument("--data-dir", default=None)
     args = parser.parse_args()
-    model, state = load_model(args.checkpoint)
+    model, state = load_vrnet(args.checkpoint)
     cfg = state["config"]
     data = ModelNet40Pairs(args.data_dir, partition="val", setting=cfg.get("setting", "PV"), split=cfg.get("split", "UPC"),
                            max_items=args.pairs, spec=PairSpec(num_points=cfg.get("num_points", 1024),

@@ -150,3 +150,12 @@ def test_kitchen_pair_with_the_shipped_scene_model_under_a_budget(tmp_path):
     record = json.loads((tmp_path / "r.json").read_text())
     assert record["errors"]["rotation_error_deg"] < 2.0 and record["errors"]["translation_error"] < 0.05
     assert record["peak_rss_mb"] < 2048
+
+
+def test_scene_models_are_listed_apart_and_refused_where_a_modelnet_vrnet_is_needed(capsys):
+    from vrnet_ext.pretrained import DEFAULT_MODEL, DEFAULT_SCENE_MODEL, available
+
+    assert DEFAULT_SCENE_MODEL in available("scene") and DEFAULT_SCENE_MODEL not in available("vrnet")
+    assert DEFAULT_MODEL in available("vrnet") and set(available()) == set(available("vrnet") + available("scene"))
+    assert main(["eval", "--checkpoint", DEFAULT_SCENE_MODEL]) == 2
+    assert "a scene model (for `vrnet register`)" in capsys.readouterr().err

@@ -114,5 +114,14 @@ def load_model(checkpoint: str | os.PathLike,
     return model.eval(), state
 
 
-__all__ = ["CheckpointError", "MODEL_LIMITS", "load_model", "model_from_state", "read_checkpoint",
+def load_vrnet(checkpoint: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[VRNet, dict]:
+    """:func:`load_model` for commands that need a ModelNet40 :class:`VRNet` (eval, demo, tables):
+    a scene model is refused with an error that says where it belongs."""
+    model, state = load_model(checkpoint, map_location)
+    if isinstance(model, SceneVRNet):
+        raise CheckpointError(f"{checkpoint}: a scene model (for `vrnet register`), not a ModelNet40 VRNet")
+    return model, state
+
+
+__all__ = ["CheckpointError", "MODEL_LIMITS", "load_model", "load_vrnet", "model_from_state", "read_checkpoint",
            "validate_model_config"]

@@ -194,9 +194,9 @@ def _eval_parser(sub) -> None:
 def _run_eval(args) -> int:
     from vrnet_ext.data import ModelNet40Pairs, PairSpec
     from vrnet_ext.evaluate import evaluate, format_table, time_inference
-    from vrnet_ext.checkpoints import load_model
+    from vrnet_ext.checkpoints import load_vrnet
 
-    model, state = load_model(args.checkpoint, args.device)
+    model, state = load_vrnet(args.checkpoint, args.device)
     cfg = state["config"]
     if args.iterations:
         model.config.iterations = args.iterations
@@ -353,12 +353,12 @@ def _demo_parser(sub) -> None:
 
 
 def _run_demo(args) -> int:
-    from vrnet_ext.checkpoints import load_model
+    from vrnet_ext.checkpoints import load_vrnet
     from vrnet_ext.demo import run_demo
     from vrnet_ext.pretrained import DEFAULT_MODEL
 
     name = args.model or DEFAULT_MODEL
-    model, _ = load_model(name)
+    model, _ = load_vrnet(name)
     result = run_demo(model, args.pairs, args.seed, args.data_dir, args.out)
     print(f"model {name}; {result['shapes']}")
     print(f"{'pair':>4} {'true angle':>11} {'rot. error':>11} {'VCP-only':>9} {'transl. error':>14} {'time':>8}")

@@ -22,9 +22,24 @@ DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-kitchen"  # vrnet register --method vrne
 FORMAT = "vrnet_ext.pretrained/1"
 
 
-def available() -> list[str]:
-    """Names of the shipped models (``vrnet_ext/weights/<name>.pt``)."""
-    return sorted(path.stem for path in WEIGHTS_DIR.glob("*.pt"))
+KINDS = ("vrnet", "scene")
+
+
+def available(kind: str | None = None) -> list[str]:
+    """Names of the shipped models (``vrnet_ext/weights/<name>.pt``); ``kind``: only the ModelNet40
+    VRNets (``"vrnet"``) or only the scene models (``"scene"``, :mod:`vrnet_ext.model.scene`)."""
+    names = sorted(path.stem for path in WEIGHTS_DIR.glob("*.pt"))
+    if kind is None:
+        return names
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS} or None, got {kind!r}")
+    from vrnet_ext.checkpoints import read_checkpoint
+    from vrnet_ext.model.scene import SCENE_FORMAT
+
+    def is_scene(name: str) -> bool:
+        return read_checkpoint(WEIGHTS_DIR / f"{name}.pt").get("format") == SCENE_FORMAT
+
+    return [name for name in names if is_scene(name) == (kind == "scene")]
 
 
 def weights_path(name: str) -> Path:
