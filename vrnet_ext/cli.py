@@ -308,7 +308,9 @@ def _run_register(args) -> int:
           f"ICP ({result.estimator}) iterations {result.iterations}{unconverged}, "
           f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}; "
           f"{sum(result.seconds.values()):.1f} s, peak memory {peak_mb:.0f} MB")
-    for warning in result.warnings:
+    for warning in result.warnings:  # the library names its arguments; the command's user knows the flags
+        for argument, flag in (("IcpSettings.max_iterations", "--icp-iterations"), ("max_distance", "--max-distance")):
+            warning = warning.replace(argument, flag)
         print(f"vrnet register: warning: {warning}", file=sys.stderr)
     print("transform (source -> target):")
     print(np.array2string(result.T_target_source, precision=6, suppress_small=True))
