@@ -112,21 +112,28 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> soft_match_cpu(const at::Tensor& 
   return {out, lse, argmax};
 }
 
-// probs <- exp(scale * probs - lse_row[i]) for a (rows, width) tile of raw products, then
-// grads <- probs * (grads + shift_row[i]) (grads holds dO_i . v_j on entry, dS_ij on exit).
-// With `by_column`, lse and shift are indexed by the column instead (the transposed pass).
+// The backward's tile for a block of `rows` rows of one side against `width` rows of the other:
+// probs = exp(scale own other^T - lse), grads = probs * (own_grad other_grad^T + shift), i.e. P and
+// dS of those pairs. lse and shift belong to the query side: indexed by row (own = queries, pass 1)
+// or by column (own = keys, pass 2). The results are views on the two flat buffers.
 template <typename scalar_t>
-void probabilities_and_score_grads(at::Tensor& probs, at::Tensor& grads, const scalar_t* lse, const scalar_t* shift,
-                                   scalar_t scale, bool by_column) {
-  const int64_t rows = probs.size(0), width = probs.size(1);
+std::pair<at::Tensor, at::Tensor> score_tile(const at::Tensor& own, const at::Tensor& own_grad, const at::Tensor& other,
+                                             const at::Tensor& other_grad, const at::Tensor& prob_buffer,
+                                             const at::Tensor& grad_buffer, const scalar_t* lse, const scalar_t* shift,
+                                             scalar_t scale, bool query_by_column) {
+  const int64_t rows = own.size(0), width = other.size(0);
+  at::Tensor probs = tile_view(prob_buffer, rows, width), grads = tile_view(grad_buffer, rows, width);
+  at::mm_out(probs, own, other.t());
+  at::mm_out(grads, own_grad, other_grad.t());
   scalar_t* p = probs.mutable_data_ptr<scalar_t>();
   for (int64_t i = 0; i < rows; ++i)
-    for (int64_t j = 0; j < width; ++j) p[i * width + j] = p[i * width + j] * scale - lse[by_column ? j : i];
+    for (int64_t j = 0; j < width; ++j) p[i * width + j] = p[i * width + j] * scale - lse[query_by_column ? j : i];
   probs.exp_();
   scalar_t* g = grads.mutable_data_ptr<scalar_t>();
   for (int64_t i = 0; i < rows; ++i)
     for (int64_t j = 0; j < width; ++j)
-      g[i * width + j] = p[i * width + j] * (g[i * width + j] + shift[by_column ? j : i]);
+      g[i * width + j] = p[i * width + j] * (g[i * width + j] + shift[query_by_column ? j : i]);
+  return {probs, grads};
 }
 
 template <typename scalar_t>
@@ -150,11 +157,9 @@ void soft_match_backward_kernel(const at::Tensor& grad_out, const at::Tensor& qu
     for (int64_t k0 = 0; k0 < M; k0 += kTile) {
       const int64_t width = std::min(M, k0 + kTile) - k0;
       const at::Tensor k_rows = key.select(0, b).narrow(0, k0, width);
-      at::Tensor probs = tile_view(prob_buffer, rows, width), grads = tile_view(grad_buffer, rows, width);
-      at::mm_out(probs, q_rows, k_rows.t());
-      at::mm_out(grads, g_rows, values.select(0, b).narrow(0, k0, width).t());
-      probabilities_and_score_grads<scalar_t>(probs, grads, lse_all + b * N + q0, shift_all + b * N + q0, scale,
-                                              false);
+      const at::Tensor v_rows = values.select(0, b).narrow(0, k0, width);
+      const auto [probs, grads] = score_tile<scalar_t>(q_rows, g_rows, k_rows, v_rows, prob_buffer, grad_buffer,
+                                                       lse_all + b * N + q0, shift_all + b * N + q0, scale, false);
       dq.addmm_(grads, k_rows, 1, scale);
     }
   });
@@ -173,11 +178,8 @@ void soft_match_backward_kernel(const at::Tensor& grad_out, const at::Tensor& qu
       const int64_t width = std::min(N, q0 + kTile) - q0;
       const at::Tensor q_rows = query.select(0, b).narrow(0, q0, width);
       const at::Tensor g_rows = grad_out.select(0, b).narrow(0, q0, width);
-      at::Tensor probs = tile_view(prob_buffer, rows, width), grads = tile_view(grad_buffer, rows, width);
-      at::mm_out(probs, k_rows, q_rows.t());
-      at::mm_out(grads, v_rows, g_rows.t());
-      probabilities_and_score_grads<scalar_t>(probs, grads, lse_all + b * N + q0, shift_all + b * N + q0, scale,
-                                              true);
+      const auto [probs, grads] = score_tile<scalar_t>(k_rows, v_rows, q_rows, g_rows, prob_buffer, grad_buffer,
+                                                       lse_all + b * N + q0, shift_all + b * N + q0, scale, true);
       dk.addmm_(grads, q_rows, 1, scale);
       dv.addmm_(probs, g_rows);
     }

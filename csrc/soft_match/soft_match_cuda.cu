@@ -27,6 +27,16 @@ __device__ double score(const scalar_t* q, const scalar_t* k, int64_t C, double 
   return dot * scale;
 }
 
+// P_ij = exp(s_ij - lse_i) and dS_ij = P_ij (dO_i . v_j + shift_i) of one (query, key) pair.
+template <typename scalar_t>
+__device__ void pair_grads(const scalar_t* q, const scalar_t* g, const scalar_t* k, const scalar_t* v, int64_t C,
+                           int64_t D, double scale, double lse, double shift, double* p, double* ds) {
+  double dp = 0;
+  for (int64_t d = 0; d < D; ++d) dp += double(g[d]) * double(v[d]);
+  *p = exp(score(q, k, C, scale) - lse);
+  *ds = *p * (dp + shift);
+}
+
 // Row (b, i): pass 1 the row maximum (first index on ties) and normaliser, pass 2 the output row.
 template <typename scalar_t>
 __global__ void soft_match_forward_kernel(const scalar_t* __restrict__ query, const scalar_t* __restrict__ key,
@@ -78,9 +88,8 @@ __global__ void soft_match_grad_query_kernel(const scalar_t* __restrict__ query,
   for (int64_t j = 0; j < M; ++j) {
     const scalar_t* k = key + (b * M + j) * C;
     const scalar_t* v = values + (b * M + j) * D;
-    double dp = 0;
-    for (int64_t d = 0; d < D; ++d) dp += double(g[d]) * double(v[d]);
-    const double ds = exp(score(q, k, C, scale) - double(lse[row])) * (dp + double(shift[row]));
+    double p, ds;
+    pair_grads(q, g, k, v, C, D, scale, double(lse[row]), double(shift[row]), &p, &ds);
     for (int64_t c = 0; c < C; ++c) dq[c] += static_cast<scalar_t>(scale * ds * double(k[c]));
   }
 }
@@ -105,10 +114,8 @@ __global__ void soft_match_grad_key_kernel(const scalar_t* __restrict__ query, c
     const int64_t qrow = b * N + i;
     const scalar_t* q = query + qrow * C;
     const scalar_t* g = grad_out + qrow * D;
-    const double p = exp(score(q, k, C, scale) - double(lse[qrow]));
-    double dp = 0;
-    for (int64_t d = 0; d < D; ++d) dp += double(g[d]) * double(v[d]);
-    const double ds = p * (dp + double(shift[qrow]));
+    double p, ds;
+    pair_grads(q, g, k, v, C, D, scale, double(lse[qrow]), double(shift[qrow]), &p, &ds);
     for (int64_t c = 0; c < C; ++c) dk[c] += static_cast<scalar_t>(scale * ds * double(q[c]));
     for (int64_t d = 0; d < D; ++d) dv[d] += static_cast<scalar_t>(p * double(g[d]));
   }
