@@ -45,22 +45,19 @@ def parse_memory_size(text: str) -> int:
     return value
 
 
-def resident_mb() -> tuple[float, float]:
-    """(current, peak) resident memory of this process in MB."""
+def resident_mb() -> float:
+    """The resident memory this process holds now, in MB (elsewhere than Linux: its peak so far,
+    the best bound available)."""
     try:
-        status = open("/proc/self/status").read()
-        now = int(re.search(r"VmRSS:\s+(\d+)", status).group(1)) / 1024.0
-        peak = int(re.search(r"VmHWM:\s+(\d+)", status).group(1)) / 1024.0
-        return now, peak
-    except (OSError, AttributeError):  # not Linux: the peak is the best bound we have
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-        return peak, peak
+        return int(re.search(r"VmRSS:\s+(\d+)", open("/proc/self/status").read()).group(1)) / 1024.0
+    except (OSError, AttributeError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def require_headroom(budget_bytes: int) -> None:
     """MemoryBudgetError at once if this process alone (Python, torch) already needs more than
     the budget plus room for the smallest run; called before any scan is read."""
-    now_mb, _ = resident_mb()
+    now_mb = resident_mb()
     floor_mb = now_mb + MARGIN_MB + SAFETY * ICP_MB
     if budget_bytes / MB < floor_mb:
         raise MemoryBudgetError(f"max_memory {budget_bytes / MB:.0f} MB cannot be met: Python and torch alone "
@@ -102,7 +99,7 @@ def plan_registration(budget_bytes: int, method: str, learned: str | None, sourc
     counts' transients would not fit.
     """
     budget_mb = budget_bytes / MB
-    now_mb, _ = resident_mb()  # what the process holds now (an earlier peak of a long-lived process is past)
+    now_mb = resident_mb()  # what the process holds now (an earlier peak of a long-lived process is past)
     largest = max(source_points, target_points)
     counts = {"global_points": global_points, "network_points": network_points, "icp_points": icp_points}
     floors = {"global_points": MIN_GLOBAL_POINTS, "network_points": MIN_NETWORK_POINTS,

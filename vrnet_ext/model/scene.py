@@ -73,10 +73,6 @@ class SceneOutput:
     tgt_embedding: torch.Tensor      # (B, M, c)
     temperature: torch.Tensor        # () t: scores are t φ_i . ψ_j
 
-    @property
-    def weights(self) -> torch.Tensor:
-        return torch.sigmoid(self.confidence_logits)
-
 
 def _mlp(widths: list[int]) -> nn.Sequential:
     layers: list[nn.Module] = []

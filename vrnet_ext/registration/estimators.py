@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext import ops
+from vrnet_ext.ops.normals import neighbourhood
 from vrnet_ext.transforms import apply
 
 ESTIMATORS = ("point_to_point", "point_to_plane", "gicp")
@@ -52,16 +53,13 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     return T
 
 
-def local_frames(points: torch.Tensor, neighbours: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """points (N, 3) -> (eigenvalues (N, 3) ascending, eigenvectors (N, 3, 3) as columns) of each
+def local_axes(points: torch.Tensor, neighbours: int) -> torch.Tensor:
+    """points (N, 3) -> (N, 3, 3): as columns, the eigenvectors (by ascending eigenvalue) of each
     point's covariance over itself and its nearest ``neighbours``."""
-    k = min(neighbours, points.shape[0] - 1)
-    if k < 2:
-        raise ValueError(f"points: need at least 3 points for normals, got {points.shape[0]}")
-    _, idx = ops.knn(points[None], points[None], k, exclude_self=True)
-    around = torch.cat([points[:, None], points[idx[0]]], dim=1)
+    _, idx = neighbourhood(points, neighbours)
+    around = torch.cat([points[:, None], points[idx]], dim=1)
     centred = around - around.mean(dim=1, keepdim=True)
-    return torch.linalg.eigh(centred.mT @ centred / (k + 1))
+    return torch.linalg.eigh(centred.mT @ centred)[1]
 
 
 def gauss_newton_step(J: torch.Tensor, residual: torch.Tensor, weights: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
@@ -103,7 +101,7 @@ class PointToPlane(Estimator):
 
     def prepare(self, src, tgt):
         super().prepare(src, tgt)
-        self.tgt_normals = local_frames(tgt, self.neighbours)[1][..., 0]
+        self.tgt_normals = ops.normals(tgt, self.neighbours)  # the compiled op; their sign does not matter here
 
     def step(self, T, src_idx, tgt_idx, weights):
         moved = apply(T, self.src[src_idx])
@@ -121,7 +119,7 @@ class Gicp(Estimator):
 
     @staticmethod
     def _plane_covariances(points: torch.Tensor, neighbours: int) -> torch.Tensor:
-        _, vectors = local_frames(points, neighbours)
+        vectors = local_axes(points, neighbours)
         scale = torch.tensor([PLANE_FLATNESS, 1.0, 1.0], dtype=points.dtype, device=points.device)
         return vectors @ torch.diag_embed(scale.expand(points.shape[0], 3)) @ vectors.mT
 
