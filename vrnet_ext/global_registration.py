@@ -21,13 +21,19 @@ import torch
 from vrnet_ext import ops
 
 
+def nearest_both_ways(src_features: torch.Tensor, tgt_features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, F), (M, F) descriptors -> (each source point's nearest target (N,), each target point's
+    nearest source (M,)), through ``ops.knn``."""
+    _, forward = ops.knn(src_features[None], tgt_features[None], 1)
+    _, backward = ops.knn(tgt_features[None], src_features[None], 1)
+    return forward[0, :, 0], backward[0, :, 0]
+
+
 def mutual_matches(src_features: torch.Tensor, tgt_features: torch.Tensor) -> torch.Tensor:
     """(N, F), (M, F) -> (C, 2) index pairs (i, j): j is i's nearest target feature and i is j's
     nearest source feature. Falls back to every source point's nearest target feature when fewer
     than 10 pairs are mutual."""
-    _, forward = ops.knn(src_features[None], tgt_features[None], 1)
-    _, backward = ops.knn(tgt_features[None], src_features[None], 1)
-    forward, backward = forward[0, :, 0], backward[0, :, 0]
+    forward, backward = nearest_both_ways(src_features, tgt_features)
     src_idx = torch.arange(src_features.shape[0], device=src_features.device)
     mutual = backward[forward] == src_idx
     if int(mutual.sum()) < 10:

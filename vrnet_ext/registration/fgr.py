@@ -20,18 +20,17 @@ from __future__ import annotations
 
 import torch
 
-from vrnet_ext import ops
+from vrnet_ext.global_registration import nearest_both_ways
 from vrnet_ext.registration.estimators import gauss_newton_step, skew
 from vrnet_ext.transforms import apply
 
 
 def feature_correspondences(src_features: torch.Tensor, tgt_features: torch.Tensor) -> torch.Tensor:
     """(N, F), (M, F) descriptors -> (C, 2) unique (source, target) pairs: nearest in both directions."""
-    _, forward = ops.knn(src_features[None], tgt_features[None], 1)
-    _, backward = ops.knn(tgt_features[None], src_features[None], 1)
+    forward, backward = nearest_both_ways(src_features, tgt_features)
     src_idx = torch.arange(src_features.shape[0], device=src_features.device)
     tgt_idx = torch.arange(tgt_features.shape[0], device=src_features.device)
-    pairs = torch.cat([torch.stack([src_idx, forward[0, :, 0]], 1), torch.stack([backward[0, :, 0], tgt_idx], 1)])
+    pairs = torch.cat([torch.stack([src_idx, forward], 1), torch.stack([backward, tgt_idx], 1)])
     return torch.unique(pairs, dim=0)
 
 
