@@ -2,7 +2,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from conftest import requires_ext
+from conftest import opcheck, requires_ext
 from vrnet_ext import ops
 from vrnet_ext.data.procedural import room_scan
 from vrnet_ext.ops.fpfh import fpfh_reference
@@ -66,3 +66,10 @@ def test_bad_input(backend):
     for args, error, match in cases:
         with pytest.raises(error, match=match):
             ops.fpfh(*args, backend=backend)
+
+
+@requires_ext
+def test_opcheck():
+    points = torch.rand(60, 3, dtype=torch.float64)
+    dist2, idx = neighbourhood(points, 10)
+    opcheck(torch.ops.vrnet_ext.fpfh.default, (points, ops.normals(points), idx, dist2, 0.3))

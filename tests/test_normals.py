@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from conftest import requires_ext
+from conftest import opcheck, requires_ext
 from vrnet_ext import ops
 from vrnet_ext.data.procedural import room_scan
 from vrnet_ext.preprocessing import voxel_downsample
@@ -39,3 +39,12 @@ def test_bad_input(backend):
     for args, error, match in cases:
         with pytest.raises(error, match=match):
             ops.normals(*args, backend=backend)
+
+
+@requires_ext
+def test_opcheck():
+    from vrnet_ext.ops.normals import neighbourhood
+
+    points = torch.rand(60, 3, dtype=torch.float64)
+    _, idx = neighbourhood(points, 10)
+    opcheck(torch.ops.vrnet_ext.normals.default, (points, idx, [0.0, 0.0, 0.0]))
