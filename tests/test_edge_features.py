@@ -29,6 +29,23 @@ def test_forward_backward_parity(device, dtype, B, C, N, k):
 
 
 @requires_ext
+@pytest.mark.parametrize("layout", ["expanded", "permuted", "sliced"])
+def test_backward_reads_strided_gradients(device, layout):
+    B, C, N, k = 2, 3, 41, 7
+    x = torch.randn(B, C, N, dtype=torch.float64, device=device)
+    idx = random_graph(B, N, k).to(device)
+    dense = torch.randn(B, 2 * C, N, k, dtype=torch.float64, device=device)
+    grad = {"expanded": dense[:1, :, :1, :].expand(B, 2 * C, N, k),
+            "permuted": dense.permute(0, 1, 3, 2).contiguous().permute(0, 1, 3, 2),
+            "sliced": torch.randn(B, 4 * C, N, 2 * k, dtype=torch.float64, device=device)[:, ::2, :, 1::2]}[layout]
+    expected = torch.ops.vrnet_ext.edge_features_backward(grad.contiguous(), idx, N)
+    torch.testing.assert_close(torch.ops.vrnet_ext.edge_features_backward(grad, idx, N), expected)
+    x.requires_grad_()
+    ops.edge_features(x, idx).backward(grad)
+    torch.testing.assert_close(x.grad, expected)
+
+
+@requires_ext
 def test_gradcheck_and_opcheck(device):
     x = torch.randn(2, 4, 13, dtype=torch.float64, requires_grad=True)
     idx = random_graph(2, 13, 5)

@@ -162,3 +162,16 @@ def test_a_stop_signal_saves_a_mid_epoch_checkpoint_that_resumes_bit_exactly(tmp
     assert expected["step"] == resumed["step"]
     for key, value in expected["model"].items():
         assert torch.equal(value, resumed["model"][key]), key
+
+
+@requires_modelnet
+def test_resume_extends_a_finished_stage_with_this_runs_milestones(tmp_path):
+    train(tiny(tmp_path, "run", stage1_epochs=1, stage2_epochs=1, max_train_items=8, batch_size=2))
+    last = tmp_path / "run" / "last.pt"
+    train(tiny(tmp_path, "run", stage1_epochs=1, stage2_epochs=3, max_train_items=8, batch_size=2,
+               lr_milestones=[2], resume=str(last)))
+    stage2 = [r for r in records(tmp_path / "run") if r["stage"] == 2]
+    lr = TrainConfig.from_preset("tiny").lr_stage2
+    assert [r["epoch"] for r in stage2] == [1, 2, 3]
+    # the lr logged after an epoch is the next epoch's: the milestone at 2 lowers it from then on
+    assert [r["lr"] for r in stage2] == pytest.approx([lr, lr * 0.1, lr * 0.1])

@@ -28,6 +28,7 @@ import os
 import signal
 import threading
 import time
+from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
@@ -243,6 +244,9 @@ def _train_stages(cfg, run, model, train_set, val_set, sampler, state, loss_weig
         if state is not None and state["stage"] == stage:
             optimizer.load_state_dict(state["optimizer"])
             scheduler.load_state_dict(state["scheduler"])
+            # This run's schedule, not the saved one: extending a run (a larger --stage2-epochs)
+            # may add a milestone after the epochs already done.
+            scheduler.milestones, scheduler.gamma = Counter(cfg.lr_milestones), cfg.lr_gamma
             first_epoch, best, partial = state["epoch"] + 1, state["best"], state.get("partial")
         wrapped = DistributedDataParallel(model) if run.world > 1 else model
         for epoch in range(first_epoch, epochs):

@@ -54,7 +54,8 @@ FIELD_HELP = {
                     "(small errors count as much as large ones)",
     "precision": "bf16: forward and loss under bfloat16 autocast (ops, matching and Procrustes stay float32) | fp32",
     "checkpoint_minutes": "also write last.pt every this many minutes inside an epoch",
-    "resume": "continue from this last.pt (same options as the run that wrote it)",
+    "resume": "continue from this last.pt (same model options as the run that wrote it; a larger epoch count "
+              "extends a finished stage, and this run's --lr-milestones apply)",
     "features_from": "start from the feature extractor of this checkpoint (e.g. stage 2 on another run's features)",
     "flush_denormal": "flush denormal floats to zero (1/0; much faster soft matching on x86)",
 }

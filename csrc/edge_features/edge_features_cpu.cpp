@@ -36,10 +36,13 @@ at::Tensor edge_features_cpu(const at::Tensor& x_in, const at::Tensor& idx_in) {
 }
 
 // grad_x[c, m] = sum_{(n,j): idx=m} g_diff[c,n,j] + sum_j (g_centre[c,m,j] - g_diff[c,m,j]).
-at::Tensor edge_features_backward_cpu(const at::Tensor& grad_in, const at::Tensor& idx_in, int64_t num_points) {
-  check_edge_features_backward_inputs(grad_in, idx_in, num_points);
-  const at::Tensor grad = grad_in.contiguous(), idx = idx_in.contiguous();
+// grad_out is read through its strides: the expanded gradient of a sum or mean (stride 0) is
+// never copied into a dense (B, 2C, N, k) tensor.
+at::Tensor edge_features_backward_cpu(const at::Tensor& grad, const at::Tensor& idx_in, int64_t num_points) {
+  check_edge_features_backward_inputs(grad, idx_in, num_points);
+  const at::Tensor idx = idx_in.contiguous();
   const int64_t B = grad.size(0), C = grad.size(1) / 2, N = num_points, k = idx.size(2);
+  const int64_t sb = grad.stride(0), sc = grad.stride(1), sn = grad.stride(2), sj = grad.stride(3);
   at::Tensor grad_x = at::zeros({B, C, N}, grad.options());
   AT_DISPATCH_FLOATING_TYPES(grad.scalar_type(), "edge_features_backward_cpu", [&] {
     const scalar_t* gp = grad.const_data_ptr<scalar_t>();
@@ -49,15 +52,15 @@ at::Tensor edge_features_backward_cpu(const at::Tensor& grad_in, const at::Tenso
       for (int64_t bc = begin; bc < end; ++bc) {
         const int64_t b = bc / C, c = bc % C;
         const int64_t* ib = ip + b * N * k;
-        const scalar_t* g_diff = gp + (b * 2 * C + c) * N * k;
-        const scalar_t* g_centre = gp + (b * 2 * C + C + c) * N * k;
+        const scalar_t* g_diff = gp + b * sb + c * sc;
+        const scalar_t* g_centre = gp + b * sb + (C + c) * sc;
         scalar_t* row = gx + bc * N;
         for (int64_t n = 0; n < N; ++n) {
           scalar_t self = 0;
           for (int64_t j = 0; j < k; ++j) {
-            const scalar_t gd = g_diff[n * k + j];
+            const scalar_t gd = g_diff[n * sn + j * sj];
             row[ib[n * k + j]] += gd;
-            self += g_centre[n * k + j] - gd;
+            self += g_centre[n * sn + j * sj] - gd;
           }
           row[n] += self;
         }
