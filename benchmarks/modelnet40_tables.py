@@ -12,7 +12,7 @@ split it was trained for define the test pairs: ``ModelNet40Pairs(partition="tes
   estimator on our features);
 * ``icp``: point-to-point ICP from the identity (``register.icp``: 50 iterations, every pair within
   ``--icp-max-distance`` = 1.0 counts, i.e. the shapes' radius);
-* ``fpfh``: FPFH + RANSAC (``global_registration.fpfh_ransac``) with a ``--fpfh-voxel`` of 0.05: normals
+* ``fpfh``: FPFH + RANSAC (``registration.ransac.fpfh_ransac``) with a ``--fpfh-voxel`` of 0.05: normals
   from 30 neighbours, features within 0.25, inliers within 0.075 (Open3D's tutorial ratios).
 
 Failures of ICP / RANSAC (too few pairs or inliers) count as the identity. Errors are the paper's
@@ -36,11 +36,11 @@ from tqdm import tqdm
 
 from vrnet_ext.checkpoints import load_vrnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
-from vrnet_ext.global_registration import fpfh_ransac
+from vrnet_ext.registration.ransac import fpfh_ransac
 from vrnet_ext.metrics import summarize
 from vrnet_ext.ops import kabsch
 from vrnet_ext.pretrained import available
-from vrnet_ext.register import IcpFailure, icp
+from vrnet_ext.registration import IcpFailure, icp
 
 METHODS = ("vrnet", "vcp", "icp", "fpfh")
 LABELS = {"vrnet": "VRNet (ours)", "vcp": "VCP-only, same network (DCP-v2 estimator)",

@@ -6,7 +6,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from vrnet_ext.data.procedural import room_scan
-from vrnet_ext.register import icp, transform_errors
+from vrnet_ext.registration import icp, transform_errors
 from vrnet_ext.registration.estimators import ESTIMATORS, make_estimator, se3_exp
 
 
@@ -49,7 +49,7 @@ def test_unknown_estimator_names_the_argument():
 
 
 def test_icp_settings_are_checked_when_made():
-    from vrnet_ext.register import IcpSettings, register
+    from vrnet_ext.registration import IcpSettings, register
 
     for kwargs, match in [({"estimator": "plane"}, "estimator must be one of"), ({"points": 0}, "IcpSettings.points"),
                           ({"max_iterations": -1}, "IcpSettings.max_iterations"),

@@ -5,12 +5,12 @@ from scipy.spatial.transform import Rotation
 
 from conftest import DATA_DIR
 from test_register import motion, room
-from vrnet_ext import global_registration
+from vrnet_ext.registration import ransac as ransac_module
 from vrnet_ext.cli import main
-from vrnet_ext.global_registration import _enough_hypotheses, fpfh_ransac, mutual_matches, ransac
+from vrnet_ext.registration.ransac import _enough_hypotheses, fpfh_ransac, mutual_matches, ransac
 from vrnet_ext.io import write_ply
 from vrnet_ext.preprocessing import voxel_downsample
-from vrnet_ext.register import IcpSettings, register, transform_errors
+from vrnet_ext.registration import IcpSettings, register, transform_errors
 from vrnet_ext.transforms import apply
 
 KITCHEN = DATA_DIR / "scenes" / "3dmatch_redkitchen"
@@ -52,8 +52,8 @@ def test_ransac_stops_once_confident(monkeypatch):
     src = torch.rand(200, 3, generator=g, dtype=torch.float64)
     matches = torch.stack([torch.arange(200), torch.arange(200)], 1)
     calls = []
-    kabsch = global_registration.ops.kabsch
-    monkeypatch.setattr(global_registration.ops, "kabsch", lambda *a, **k: calls.append(1) or kabsch(*a, **k))
+    kabsch = ransac_module.ops.kabsch
+    monkeypatch.setattr(ransac_module.ops, "kabsch", lambda *a, **k: calls.append(1) or kabsch(*a, **k))
     ransac(src, src + 1.0, matches, 0.01, iterations=10_000, batch=100)  # all inliers: one batch
     assert len(calls) == 2  # one batch of hypotheses + the refinement
     ransac(src, src + 1.0, matches, 0.01, iterations=1000, confidence=1.0, batch=100)
@@ -99,7 +99,7 @@ def test_one_initial_estimate_at_a_time(tmp_path, capsys):
     src = room(500)
     with pytest.raises(ValueError, match="model is only used by method 'vrnet'"):
         register(src, src, method="fpfh", model=torch.nn.Identity())
-    with pytest.raises(ValueError, match="global_points must be a positive integer"):
+    with pytest.raises(ValueError, match="global_points must be an integer >= 3"):
         register(src, src, method="fpfh", global_points=-5)
     with pytest.raises(ValueError, match="method must be one of"):
         register(src, src, method="ransac")

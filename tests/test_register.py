@@ -10,7 +10,8 @@ from vrnet_ext import ops
 from vrnet_ext.cli import main
 from vrnet_ext.io import read_points, read_transform, write_ply
 from vrnet_ext.preprocessing import voxel_downsample
-from vrnet_ext.register import IcpFailure, IcpSettings, TargetReach, icp, network_estimate, register, transform_errors
+from vrnet_ext.registration import IcpFailure, IcpSettings, ObjectNetwork, icp, register, transform_errors
+from vrnet_ext.registration.refinement import TargetReach
 from vrnet_ext.transforms import apply, to_homogeneous
 
 LIDAR = DATA_DIR / "scenes" / "lidar_pair"
@@ -116,8 +117,7 @@ class ExactModel(torch.nn.Module):
 def test_network_estimate_undoes_the_normalisation():
     src = room(500) * 30.0 + 200.0  # far from the origin and not unit-sized: a scan in metres
     truth = motion(40.0, [5.0, -3.0, 2.0])
-    T = network_estimate(ExactModel(), src, apply(truth, src), network_points=10_000, seed=0,
-                         device=torch.device("cpu"))
+    T = ObjectNetwork(ExactModel(), points=10_000).estimate(src, apply(truth, src), seed=0)
     errors = transform_errors(T, truth)
     assert errors["rotation_error_deg"] < 1e-3 and errors["translation_error"] < 1e-3, errors
 
@@ -229,9 +229,9 @@ def test_a_stray_far_point_in_the_target_does_not_change_the_icp_result():
 
 
 def test_icp_with_the_reference_knn_works_in_bounded_chunks(monkeypatch):
-    import vrnet_ext.register as register_module
+    import vrnet_ext.registration.refinement as refinement_module
 
-    monkeypatch.setattr(register_module, "REFERENCE_KNN_ELEMENTS", 5000)  # force many chunks
+    monkeypatch.setattr(refinement_module, "REFERENCE_KNN_ELEMENTS", 5000)  # force many chunks
     src = room(3000)
     tgt = apply(motion(2.0, [0.05, 0.0, 0.02]), room(3000, seed=1))
     ext = icp(src, tgt, np.eye(4), 0.3, backend="ext")
@@ -264,3 +264,33 @@ def test_low_fitness_and_unconverged_icp_are_reported():
     assert any("did not converge" in w for w in result.warnings), result.warnings
     assert any("low fitness" in w for w in result.warnings) or result.fitness >= 0.2
     assert result.to_dict()["warnings"] == result.warnings
+
+
+def test_any_global_estimator_plugs_into_register():
+    from vrnet_ext.registration import GlobalEstimator
+
+    truth = motion(20.0, [0.3, -0.1, 0.05])
+    src = room(6000)
+    tgt = apply(truth, room(6000, seed=1))
+
+    class Oracle(GlobalEstimator):  # a user's own estimator: the truth, off by 2 degrees
+        name = "oracle"
+
+        def estimate(self, src, tgt, seed):
+            return truth @ motion(2.0, [0.0, 0.0, 0.0])
+
+    result = register(src, tgt, method=Oracle(), icp_settings=IcpSettings(points=4000))
+    assert result.method == "oracle" and not result.warnings, result.warnings
+    np.testing.assert_allclose(result.initial, truth @ motion(2.0, [0.0, 0.0, 0.0]))
+    assert transform_errors(result.T_target_source, truth)["rotation_error_deg"] < 0.5
+
+    class Broken(GlobalEstimator):
+        def estimate(self, src, tgt, seed):
+            return np.full((4, 4), np.nan)
+
+    with pytest.raises(ValueError, match="custom estimator returned no finite 4x4"):
+        register(src, tgt, method=Broken())
+    with pytest.raises(TypeError, match="method must be a name or a GlobalEstimator"):
+        register(src, tgt, method=42)
+    with pytest.raises(ValueError, match="model is only used by method 'vrnet'"):
+        register(src, tgt, method=Oracle(), model=ExactModel())

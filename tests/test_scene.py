@@ -115,14 +115,14 @@ def test_memory_sizes_and_plans():
     for bad in ("", "two GB", "-1GB", "0", "1.5PB"):
         with pytest.raises(ValueError):
             parse_memory_size(bad)
-    roomy = plan_registration(64 * 2 ** 30, "fpfh", None, 300_000, 300_000, 5000, 1024, 50_000)
+    roomy = plan_registration(64 * 2 ** 30, "fpfh", 300_000, 300_000, 5000, 1024, 50_000)
     assert (roomy.global_points, roomy.icp_points, roomy.notes) == (5000, 50_000, [])
-    tight = plan_registration(int((roomy.predicted_peak_mb + 5) * 2 ** 20), "fpfh", None, 300_000, 300_000, 50_000,
+    tight = plan_registration(int((roomy.predicted_peak_mb + 5) * 2 ** 20), "fpfh", 300_000, 300_000, 50_000,
                               1024, 500_000)
     assert tight.global_points < 50_000 and tight.icp_points < 500_000 and len(tight.notes) == 2
     assert tight.predicted_peak_mb <= tight.budget_mb and tight.network_points == 1024
     with pytest.raises(MemoryBudgetError, match="cannot be met"):
-        plan_registration(100 * 2 ** 20, "fpfh", None, 300_000, 300_000, 5000, 1024, 50_000)
+        plan_registration(100 * 2 ** 20, "fpfh", 300_000, 300_000, 5000, 1024, 50_000)
 
 
 def test_cli_impossible_budget_fails_at_once_without_a_traceback(tmp_path, capsys):

@@ -232,8 +232,8 @@ def _register_parser(sub) -> None:
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
         description="Estimates the rigid transform taking SOURCE onto TARGET: a global estimate (--method vrnet: "
                     "the shipped scene model, FPFH descriptors under VRNet's head, or --checkpoint; --method fpfh: "
-                    "FPFH + RANSAC; --method fgr: FPFH + Fast Global Registration; --method icp: none), refined by point-to-point ICP on voxel-downsampled "
-                    "clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform and "
+                    "FPFH + RANSAC; --method fgr: FPFH + Fast Global Registration; --method icp: none), refined by ICP "
+                    "(--estimator) on voxel-downsampled clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform and "
                     "writes JSON.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("source", help="point-cloud file to move")
@@ -276,7 +276,7 @@ def _run_register(args) -> int:
     import numpy as np
 
     from vrnet_ext.io import read_points, read_transform, write_ply
-    from vrnet_ext.register import IcpSettings, register, transform_errors
+    from vrnet_ext.registration import IcpSettings, register, transform_errors
     from vrnet_ext.transforms import apply
 
     if args.max_memory is not None:

@@ -76,25 +76,29 @@ class RegistrationPlan:
     notes: list[str] = field(default_factory=list)
 
 
-def _stage_mb(method: str, learned: str | None, largest_scan: int, global_points: int, network_points: int,
+PROFILES = ("icp", "fpfh", "fgr", "scene", "modelnet")  # GlobalEstimator.memory_profile values
+
+
+def _stage_mb(profile: str | None, largest_scan: int, global_points: int, network_points: int,
               icp_points: int) -> float:
-    """Largest transient of the run's stages (MB), safety factor included."""
+    """Largest transient of the run's stages (MB), safety factor included; ``profile``: the global
+    estimator's (:data:`PROFILES`; None: unknown, only the voxel grid and ICP are predicted)."""
     stages = [VOXEL_BYTES_PER_INPUT_POINT * largest_scan / MB,
               ICP_MB + ICP_BYTES_PER_POINT * 2 * icp_points / MB]
-    if method in ("fpfh", "fgr"):
+    if profile in ("fpfh", "fgr"):
         stages.append(FPFH_MB + FPFH_BYTES_PER_POINT * global_points / MB)
-    elif method == "vrnet" and learned == "scene":
+    elif profile == "scene":
         stages.append(SCENE_MB + SCENE_BYTES_PER_POINT * global_points / MB)
-    elif method == "vrnet":
+    elif profile == "modelnet":
         stages.append(NETWORK_MB + NETWORK_BYTES_PER_POINT * network_points / MB)
     return SAFETY * max(stages)
 
 
-def plan_registration(budget_bytes: int, method: str, learned: str | None, source_points: int, target_points: int,
+def plan_registration(budget_bytes: int, profile: str | None, source_points: int, target_points: int,
                       global_points: int, network_points: int, icp_points: int) -> RegistrationPlan:
     """Point counts that keep the process's peak within ``budget_bytes``.
 
-    learned: ``"scene"`` or ``"modelnet"`` for method ``"vrnet"`` (which network), else None.
+    profile: the global estimator's memory profile (:data:`PROFILES`, or None when unknown).
     Raises :class:`MemoryBudgetError` when what the process holds now plus even the smallest
     counts' transients would not fit.
     """
@@ -104,12 +108,14 @@ def plan_registration(budget_bytes: int, method: str, learned: str | None, sourc
     counts = {"global_points": global_points, "network_points": network_points, "icp_points": icp_points}
     floors = {"global_points": MIN_GLOBAL_POINTS, "network_points": MIN_NETWORK_POINTS,
               "icp_points": MIN_ICP_POINTS}
-    used = {"icp_points"} | ({"global_points"} if method in ("fpfh", "fgr") or learned == "scene" else set()) \
-        | ({"network_points"} if method == "vrnet" and learned == "modelnet" else set())
+    if profile is not None and profile not in PROFILES:
+        raise ValueError(f"memory profile must be one of {PROFILES} or None, got {profile!r}")
+    used = {"icp_points"} | ({"global_points"} if profile in ("fpfh", "fgr", "scene") else set()) \
+        | ({"network_points"} if profile == "modelnet" else set())
     notes = []
 
     def predicted() -> float:
-        return now_mb + MARGIN_MB + _stage_mb(method, learned, largest, **counts)
+        return now_mb + MARGIN_MB + _stage_mb(profile, largest, **counts)
 
     while predicted() > budget_mb:
         shrinkable = [name for name in sorted(used) if counts[name] > floors[name]]
@@ -117,7 +123,7 @@ def plan_registration(budget_bytes: int, method: str, learned: str | None, sourc
             raise MemoryBudgetError(
                 f"max_memory {budget_mb:.0f} MB cannot be met: the smallest run (global estimate on "
                 f"{MIN_GLOBAL_POINTS} points, ICP on {MIN_ICP_POINTS}) needs about "
-                f"{_smallest_mb(now_mb, method, learned, source_points, target_points):.0f} MB, "
+                f"{_smallest_mb(now_mb, profile, source_points, target_points):.0f} MB, "
                 f"{now_mb:.0f} MB of it held already (Python, torch and the scans)")
         for name in shrinkable:
             counts[name] = max(floors[name], int(counts[name] * 0.8))
@@ -129,6 +135,6 @@ def plan_registration(budget_bytes: int, method: str, learned: str | None, sourc
                             budget_mb, notes)
 
 
-def _smallest_mb(now_mb: float, method: str, learned: str | None, source_points: int, target_points: int) -> float:
-    return now_mb + MARGIN_MB + _stage_mb(method, learned, max(source_points, target_points), MIN_GLOBAL_POINTS,
+def _smallest_mb(now_mb: float, profile: str | None, source_points: int, target_points: int) -> float:
+    return now_mb + MARGIN_MB + _stage_mb(profile, max(source_points, target_points), MIN_GLOBAL_POINTS,
                                           MIN_NETWORK_POINTS, MIN_ICP_POINTS)

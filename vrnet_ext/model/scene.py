@@ -3,7 +3,7 @@
 The ModelNet40 network sees raw coordinates, so it is neither rotation invariant nor at home on a
 room-sized scan. :class:`SceneVRNet` keeps VRNet's head and swaps its features:
 
-1. features: FPFH descriptors (33-d, rotation invariant; :mod:`vrnet_ext.global_registration`) ->
+1. features: FPFH descriptors (33-d, rotation invariant; :mod:`vrnet_ext.registration.ransac`) ->
    a per-point MLP -> one EdgeConv-style round of context over the 3-D kNN graph (the graph and the
    features are invariant, so the embedding is too) -> unit vectors Φ (B, N, c);
 2. soft matching M = softmax(t Φx Φyᵀ) with a learned temperature t, streamed by ``ops.soft_match``

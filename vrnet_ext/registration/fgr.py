@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-from vrnet_ext.global_registration import nearest_both_ways
+from vrnet_ext.registration.ransac import nearest_both_ways
 from vrnet_ext.registration.estimators import gauss_newton_step, skew
 from vrnet_ext.transforms import apply
 

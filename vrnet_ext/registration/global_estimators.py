@@ -1,0 +1,195 @@
+"""Global estimators: an initial ``T_target_source`` for two scans with no prior, behind one
+small interface (:class:`GlobalEstimator`) that :func:`vrnet_ext.registration.register` takes by
+name or as an object.
+
+Scans are (N, 3) float arrays in one unit (metres for the shared data); every estimator returns a
+(4, 4) float64 array that maps source points into the target frame (:mod:`vrnet_ext.transforms`).
+
+Built in (:data:`GLOBAL_ESTIMATORS`): ``"vrnet"`` (a learned estimate: :class:`SceneNetwork` for a
+:class:`~vrnet_ext.model.scene.SceneVRNet`, :class:`ObjectNetwork` for a ModelNet40
+:class:`~vrnet_ext.model.VRNet`), ``"fpfh"`` (:class:`FpfhRansac`), ``"fgr"`` (:class:`Fgr`) and
+``"icp"`` (:class:`NoMotion`: ICP alone, from the identity).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+import torch
+
+from vrnet_ext import ops
+from vrnet_ext.model import VRNet
+from vrnet_ext.model.scene import SceneVRNet
+from vrnet_ext.preprocessing import subsample, voxel_downsample, voxel_size_for
+from vrnet_ext.registration.fgr import fast_global_registration
+from vrnet_ext.registration.ransac import fpfh_ransac, ransac
+from vrnet_ext.transforms import to_homogeneous
+
+CPU = torch.device("cpu")
+
+
+class GlobalEstimator:
+    """What :func:`~vrnet_ext.registration.register` needs of a global estimate.
+
+    Subclass it (or give any object these attributes): ``name`` labels the result
+    (``RegistrationResult.method``); ``also_from_no_motion``: ICP also starts from the identity and
+    the refinement with the higher fitness wins (for estimators that may not transfer to a pair,
+    such as a network trained on other data); ``memory_profile``: the key of
+    :func:`vrnet_ext.memory_plan.plan_registration`'s per-point costs, or None when unknown (a
+    ``max_memory`` budget then plans only the ICP stage).
+    """
+
+    name: ClassVar[str] = "custom"
+    also_from_no_motion: ClassVar[bool] = False
+    memory_profile: ClassVar[str | None] = None
+
+    def estimate(self, src: np.ndarray, tgt: np.ndarray, seed: int) -> np.ndarray:
+        """src (N, 3), tgt (M, 3) -> (4, 4) ``T_target_source``; ``seed`` fixes any sampling."""
+        raise NotImplementedError
+
+
+@dataclass
+class NoMotion(GlobalEstimator):
+    """The identity: ICP alone (scans already roughly aligned)."""
+
+    name: ClassVar[str] = "icp"
+    memory_profile: ClassVar[str | None] = "icp"
+
+    def estimate(self, src, tgt, seed):
+        return np.eye(4)
+
+
+def downsampled_pair(src: np.ndarray, tgt: np.ndarray, points: int,
+                     device: torch.device = CPU) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Both scans voxel-downsampled to about ``points`` points (the voxel edge chosen on tgt)
+    -> (src (N', 3), tgt (M', 3) float64 tensors, voxel edge)."""
+    voxel = voxel_size_for(tgt, points)
+
+    def downsampled(cloud: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(voxel_downsample(cloud, voxel), dtype=torch.float64, device=device)
+
+    return downsampled(src), downsampled(tgt), voxel
+
+
+@dataclass
+class FpfhRansac(GlobalEstimator):
+    """FPFH + RANSAC (:mod:`vrnet_ext.registration.ransac`) on both scans voxel-downsampled to
+    about ``points`` points (the voxel edge sets the feature radii)."""
+
+    points: int = 5000
+    device: torch.device = CPU
+    name: ClassVar[str] = "fpfh"
+    memory_profile: ClassVar[str | None] = "fpfh"
+
+    def estimate(self, src, tgt, seed):
+        src_down, tgt_down, voxel = downsampled_pair(src, tgt, self.points, self.device)
+        return fpfh_ransac(src_down, tgt_down, voxel, seed=seed)[0].cpu().numpy()
+
+
+@dataclass
+class Fgr(GlobalEstimator):
+    """FPFH + Fast Global Registration (:mod:`vrnet_ext.registration.fgr`) on both scans
+    voxel-downsampled to about ``points`` points (FPFH within 5 voxels)."""
+
+    points: int = 5000
+    device: torch.device = CPU
+    name: ClassVar[str] = "fgr"
+    memory_profile: ClassVar[str | None] = "fgr"
+
+    def estimate(self, src, tgt, seed):
+        src_down, tgt_down, voxel = downsampled_pair(src, tgt, self.points, self.device)
+        src_features = ops.fpfh(src_down, ops.normals(src_down), 5.0 * voxel)
+        tgt_features = ops.fpfh(tgt_down, ops.normals(tgt_down), 5.0 * voxel)
+        return fast_global_registration(src_down, tgt_down, src_features, tgt_features, seed=seed).cpu().numpy()
+
+
+SCENE_PAIRS = 1000  # most confident (source, RCP) pairs the scene model hands to RANSAC
+
+
+@dataclass
+class SceneNetwork(GlobalEstimator):
+    """The scene model (:mod:`vrnet_ext.model.scene`): both scans voxel-downsampled to about
+    ``points`` points, FPFH, VRNet's head, then RANSAC (inliers within 1.5 voxels) over the
+    ``SCENE_PAIRS`` (source point, RCP) pairs of highest confidence."""
+
+    model: SceneVRNet
+    points: int = 5000
+    backend: str = "ext"
+    name: ClassVar[str] = "vrnet"
+    memory_profile: ClassVar[str | None] = "scene"
+
+    def estimate(self, src, tgt, seed):
+        from vrnet_ext.data.scans import describe
+
+        voxel = voxel_size_for(tgt, self.points)
+        src_view, tgt_view = (describe(voxel_downsample(cloud, voxel), voxel) for cloud in (src, tgt))
+        self.model.eval()
+        with torch.no_grad():
+            out = self.model(src_view.network_points()[None], src_view.descriptors[None],
+                             tgt_view.network_points()[None], tgt_view.descriptors[None], backend=self.backend)
+        keep = out.confidence_logits[0].argsort(descending=True)[:SCENE_PAIRS]
+        src_pairs = torch.as_tensor(src_view.points, dtype=torch.float64)[keep]
+        rcp_pairs = out.rcp[0, keep].double() * voxel
+        pairs = torch.arange(len(keep)).unsqueeze(1).expand(-1, 2)
+        return ransac(src_pairs, rcp_pairs, pairs, 1.5 * voxel, seed=seed)[0].cpu().numpy()
+
+
+@dataclass
+class ObjectNetwork(GlobalEstimator):
+    """A ModelNet40 VRNet on scans: both are shifted by the same vector and divided by the same
+    factor to the unit sphere it was trained on (a similarity applied to both sides keeps the rigid
+    motion recoverable exactly), each subsampled to ``points`` points; the estimate is mapped back
+    to the scans' unit. It may not transfer to scans, so ICP also runs from no motion."""
+
+    model: VRNet
+    points: int = 1024
+    device: torch.device = field(default=CPU)
+    backend: str = "ext"
+    name: ClassVar[str] = "vrnet"
+    also_from_no_motion: ClassVar[bool] = True
+    memory_profile: ClassVar[str | None] = "modelnet"
+
+    def estimate(self, src, tgt, seed):
+        rng = np.random.default_rng(seed)
+        src_small, tgt_small = subsample(src, self.points, rng), subsample(tgt, self.points, rng)
+        centre = 0.5 * (src_small.mean(0) + tgt_small.mean(0))
+        scale = max(np.linalg.norm(src_small - centre, axis=1).max(),
+                    np.linalg.norm(tgt_small - centre, axis=1).max())
+
+        def normalised(points: np.ndarray) -> torch.Tensor:
+            return torch.as_tensor((points - centre) / scale, dtype=torch.float32, device=self.device).unsqueeze(0)
+
+        self.model.eval()
+        with torch.no_grad():
+            out = self.model(normalised(src_small), normalised(tgt_small), backend=self.backend)
+        R = out.rotation[0].double().cpu().numpy()
+        t_normalised = out.translation[0].double().cpu().numpy()
+        # y_n = R x_n + t_n with p_n = (p - c) / s  =>  y = R x + s t_n + c - R c
+        return to_homogeneous(R, scale * t_normalised + centre - R @ centre)
+
+
+GLOBAL_ESTIMATORS = ("vrnet", "fpfh", "fgr", "icp")
+
+
+def make_global_estimator(method: str, model: VRNet | SceneVRNet | None = None, global_points: int = 5000,
+                          network_points: int = 1024, device: torch.device = CPU,
+                          backend: str = "ext") -> GlobalEstimator:
+    """The built-in estimator called ``method`` (one of :data:`GLOBAL_ESTIMATORS`); ``"vrnet"``
+    needs ``model`` (the scene model runs on ``global_points`` points per scan, a ModelNet40 VRNet
+    on ``network_points``)."""
+    if method not in GLOBAL_ESTIMATORS:
+        raise ValueError(f"method must be one of {GLOBAL_ESTIMATORS} or a GlobalEstimator, got {method!r}")
+    if model is not None and method != "vrnet":
+        raise ValueError(f"model is only used by method 'vrnet', not {method!r}")
+    if method == "vrnet":
+        if model is None:
+            raise ValueError("method 'vrnet' needs a model")
+        if isinstance(model, SceneVRNet):
+            return SceneNetwork(model, global_points, backend)
+        return ObjectNetwork(model, network_points, device, backend)
+    if method == "fpfh":
+        return FpfhRansac(global_points, device)
+    if method == "fgr":
+        return Fgr(global_points, device)
+    return NoMotion()

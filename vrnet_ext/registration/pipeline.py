@@ -1,0 +1,121 @@
+"""The registration pipeline of real scans: a global estimate (:mod:`global_estimators`), then
+ICP (:mod:`refinement`) on both scans voxel-downsampled, with warnings when the result is doubtful."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from vrnet_ext.memory_plan import plan_registration
+from vrnet_ext.model import VRNet
+from vrnet_ext.model.scene import SceneVRNet
+from vrnet_ext.preprocessing import voxel_downsample, voxel_size_for
+from vrnet_ext.registration.global_estimators import GlobalEstimator, make_global_estimator
+from vrnet_ext.registration.refinement import IcpFailure, IcpSettings, icp
+from vrnet_ext.registration.result import RegistrationResult
+
+LOW_FITNESS = 0.2  # below this share of source points with a target point within reach, warn
+
+
+def _check_count(name: str, value, smallest: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < smallest:
+        raise ValueError(f"{name} must be an integer >= {smallest}, got {value!r}")
+
+
+def register(src: np.ndarray, tgt: np.ndarray, *, method: str | GlobalEstimator | None = None,
+             model: VRNet | SceneVRNet | None = None, global_points: int = 5000, network_points: int = 1024,
+             icp_settings: IcpSettings = IcpSettings(), seed: int = 0, device: str | torch.device = "cpu",
+             backend: str = "ext", max_memory: int | None = None) -> RegistrationResult:
+    """Estimates the rigid transform taking src (N, 3) onto tgt (M, 3), both in the same unit.
+
+    method: a :class:`GlobalEstimator` object, or the name of a built-in one: ``"vrnet"``: a
+    learned initial estimate from ``model`` (a :class:`SceneVRNet` on about ``global_points``
+    points per scan, or a ModelNet40 :class:`VRNet` on ``network_points`` subsampled points;
+    default: the shipped scene model); ``"fpfh"``: FPFH features + RANSAC on about
+    ``global_points`` points per scan; ``"fgr"``: the same features + Fast Global Registration;
+    ``"icp"``: ICP from no motion. None: ``"vrnet"`` when a model is given, else ``"icp"``.
+    icp_settings: the refinement (:class:`IcpSettings`). When the estimator asks for it
+    (``also_from_no_motion``: a ModelNet40 network), ICP runs from its estimate and from no motion,
+    and the refinement with the higher fitness wins (``initial`` is then the start it came from; a
+    warning says when that was not the estimator's). If ICP finds no pairs within reach, the result
+    is the initial estimate with a message in ``warnings``. max_memory: a budget in bytes for the
+    process's peak resident memory; the point counts are lowered to fit it
+    (:func:`vrnet_ext.memory_plan.plan_registration`, notes in ``warnings``; for a
+    GlobalEstimator object only ICP's) or MemoryBudgetError says at once what would fit.
+    """
+    if not isinstance(icp_settings, IcpSettings):
+        raise TypeError(f"icp_settings must be an IcpSettings, got {type(icp_settings).__name__}")
+    _check_count("global_points", global_points, 3)
+    _check_count("network_points", network_points, 1)
+    icp_points, voxel_size = icp_settings.points, icp_settings.voxel_size
+    if max_memory is not None and voxel_size is not None:
+        raise ValueError("give max_memory or voxel_size, not both (the budget chooses the ICP voxel)")
+    device = torch.device(device)
+    given = method if method is not None and not isinstance(method, str) else None
+    if given is not None:
+        if not callable(getattr(given, "estimate", None)):
+            raise TypeError(f"method must be a name or a GlobalEstimator, got {type(given).__name__}")
+        if model is not None:
+            raise ValueError("model is only used by method 'vrnet', not by a GlobalEstimator object")
+    else:
+        method = method or ("vrnet" if model is not None else "icp")
+        if method == "vrnet" and model is None:
+            from vrnet_ext.pretrained import DEFAULT_SCENE_MODEL, load_pretrained
+
+            model = load_pretrained(DEFAULT_SCENE_MODEL, device)
+    plan_notes = []
+    if max_memory is not None:
+        profile = None if given is not None else make_global_estimator(method, model).memory_profile
+        plan = plan_registration(max_memory, profile, len(src), len(tgt), global_points, network_points, icp_points)
+        global_points, network_points, icp_points = plan.global_points, plan.network_points, plan.icp_points
+        plan_notes = plan.notes
+    estimator = given or make_global_estimator(method, model, global_points, network_points, device, backend)
+    seconds, start = {}, time.perf_counter()
+    initial = np.asarray(estimator.estimate(src, tgt, seed), dtype=np.float64)
+    seconds["initial"] = time.perf_counter() - start
+    if initial.shape != (4, 4) or not np.isfinite(initial).all():
+        raise ValueError(f"the {estimator.name} estimator returned no finite 4x4 transform "
+                         f"(shape {initial.shape})")
+    points = {"source": len(src), "target": len(tgt)}
+    step = icp_settings.estimator
+    if icp_settings.max_iterations == 0:
+        return RegistrationResult(initial, initial, estimator.name, step, 0, False, float("nan"), float("nan"), 0,
+                                  seconds, points, plan_notes)
+    start = time.perf_counter()
+    voxel = voxel_size if voxel_size is not None else voxel_size_for(tgt, icp_points)
+    src_icp, tgt_icp = voxel_downsample(src, voxel), voxel_downsample(tgt, voxel)
+    seconds["downsample"] = time.perf_counter() - start
+    points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))
+    reach = icp_settings.max_distance if icp_settings.max_distance is not None else 3.0 * voxel
+    warnings = list(plan_notes)
+    own = f"the {estimator.name} estimate"
+    starts = {own: initial, "no motion": np.eye(4)} if estimator.also_from_no_motion else {own: initial}
+    start = time.perf_counter()
+    refined, failures = {}, []
+    for label, guess in starts.items():
+        try:
+            refined[label] = icp(src_icp, tgt_icp, guess, reach, icp_settings.max_iterations,
+                                 icp_settings.transform_tolerance, device, backend, step, icp_settings.settled)
+        except IcpFailure as failure:
+            failures.append(f"{failure} (from {label})")
+    seconds["icp"] = time.perf_counter() - start
+    if not refined:
+        warnings.append(f"{'; '.join(failures)}; returning the unrefined initial estimate")
+        return RegistrationResult(initial, initial, estimator.name, step, 0, False, 0.0, float("nan"), 0, seconds,
+                                  points, warnings)
+    label = max(refined, key=lambda name: (refined[name].fitness, -refined[name].inlier_rmse))
+    best = refined[label]
+    if label != own:
+        from_estimate = f"fitness {refined[own].fitness:.1%}" if own in refined else "no pairs within reach"
+        warnings.append(f"{own} does not fit these scans (ICP from it: {from_estimate}; from no motion: "
+                        f"{best.fitness:.1%}); returning the refinement that started from no motion")
+    if not best.converged:
+        warnings.append(f"ICP did not converge within {icp_settings.max_iterations} iterations (raise "
+                        f"IcpSettings.max_iterations)")
+    if best.fitness < LOW_FITNESS:
+        warnings.append(f"low fitness: only {best.fitness:.1%} of the source points have a target point within "
+                        f"{reach:.3g}; the scans may overlap little or the result may be wrong")
+    return RegistrationResult(best.T_target_source, best.initial, estimator.name, step, best.iterations,
+                              best.converged, best.fitness, best.inlier_rmse, best.correspondences, seconds, points,
+                              warnings)

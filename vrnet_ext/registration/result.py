@@ -1,0 +1,45 @@
+"""One result type for every registration (:func:`vrnet_ext.registration.register`, one ICP run)."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from vrnet_ext.metrics import rotation_error_deg, translation_error
+
+
+@dataclass
+class RegistrationResult:
+    """One registration of a source scan onto a target scan (of :func:`register`, or one ICP run).
+
+    ``T_target_source`` (4, 4) maps source points into the target frame (:mod:`vrnet_ext.transforms`);
+    ``initial`` is the transform the refinement started from.
+    """
+    T_target_source: np.ndarray
+    initial: np.ndarray
+    method: str             # the global estimate: "vrnet", "fpfh", "fgr" or "icp" (none)
+    estimator: str          # ICP's step: "point_to_point", "point_to_plane" or "gicp"
+    iterations: int         # ICP iterations run (0: no refinement)
+    converged: bool         # ICP stopped because the transform stopped changing
+    fitness: float          # share of the (downsampled) source points with a target point within reach
+    inlier_rmse: float      # in the scans' unit, over those points
+    correspondences: int    # how many source points those are
+    seconds: dict[str, float] = field(default_factory=dict)
+    points: dict[str, int] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        out["T_target_source"] = self.T_target_source.tolist()
+        out["initial"] = self.initial.tolist()
+        return out
+
+
+
+def transform_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """Rotation error (degrees, isotropic; :func:`vrnet_ext.metrics.rotation_error_deg`) and
+    translation error (same unit as the input) of two 4x4 transforms."""
+    est, gt = torch.as_tensor(estimate[None]), torch.as_tensor(truth[None])
+    return {"rotation_error_deg": float(rotation_error_deg(est[:, :3, :3], gt[:, :3, :3])),
+            "translation_error": float(translation_error(est[:, :3, 3], gt[:, :3, 3]))}
