@@ -21,6 +21,7 @@ TORCH_LIBRARY(vrnet_ext, m) {
   m.def("soft_match_backward(Tensor grad_out, Tensor grad_lse, Tensor query, Tensor key, Tensor values, Tensor out, Tensor lse, float scale) -> (Tensor, Tensor, Tensor)");
   m.def("normals(Tensor points, Tensor idx, float[] viewpoint) -> Tensor");
   m.def("fpfh(Tensor points, Tensor normals, Tensor idx, Tensor dist2, float radius) -> Tensor");
+  m.def("voxel_downsample(Tensor points, float voxel_size) -> Tensor");
 }
 
 extern "C" PyObject* PyInit__C(void) {

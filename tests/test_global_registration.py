@@ -91,7 +91,9 @@ def test_fpfh_ransac_finds_a_large_motion_that_icp_from_the_identity_cannot():
     assert errors["rotation_error_deg"] < 3.0 and errors["translation_error"] < 0.15, errors
     refined = register(src, tgt, method="fpfh", global_points=3000, icp_settings=IcpSettings(points=6000))
     assert transform_errors(refined.T_target_source, truth)["rotation_error_deg"] < 1.0
-    identity_start = register(src, tgt, icp_settings=IcpSettings(points=6000))
+    # fine ICP alone does not get there (the coarse start of ICP from no motion sometimes does, in
+    # this closed box)
+    identity_start = register(src, tgt, icp_settings=IcpSettings(points=6000, coarse_start=False))
     assert transform_errors(identity_start.T_target_source, truth)["rotation_error_deg"] > 10.0
 
 

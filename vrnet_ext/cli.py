@@ -258,6 +258,10 @@ def _register_parser(sub) -> None:
     p.add_argument("--max-distance", type=_positive_float, default=None,
                    help="ICP inlier reach, in the scans' unit (default: 3 voxels)")
     p.add_argument("--icp-iterations", type=_nonnegative_int, default=50, help="0: no ICP")
+    p.add_argument("--icp-tolerance", type=_positive_float, default=1e-4,
+                   help="ICP stops when a step moves the transform by less (radians; the scans' unit)")
+    p.add_argument("--coarse-start", action=argparse.BooleanOptionalAction, default=True,
+                   help="ICP from no motion first runs on 4x coarser voxels with a 4x longer reach")
     p.add_argument("--estimator", choices=("point_to_point", "point_to_plane", "gicp"), default="point_to_plane",
                    help="ICP step: point-to-point (Kabsch), point-to-plane, or plane-to-plane (GICP)")
     p.add_argument("--gt", default=None, help="ground-truth 4x4 transform file: report the errors")
@@ -295,7 +299,8 @@ def _run_register(args) -> int:
     src, tgt = read_points(args.source), read_points(args.target)
     truth = read_transform(args.gt) if args.gt else None
     icp_settings = IcpSettings(estimator=args.estimator, points=args.icp_points, voxel_size=args.voxel_size,
-                               max_distance=args.max_distance, max_iterations=args.icp_iterations)
+                               max_distance=args.max_distance, max_iterations=args.icp_iterations,
+                               transform_tolerance=args.icp_tolerance, coarse_start=args.coarse_start)
     result = register(src, tgt, method=method, model=model, global_points=args.global_points,
                       network_points=args.network_points, icp_settings=icp_settings, seed=args.seed,
                       device=args.device, backend=args.backend, max_memory=args.max_memory)

@@ -9,6 +9,7 @@ from vrnet_ext.ops.normals import normals
 from vrnet_ext.ops.pairwise_distance_loss import pairwise_distance_loss
 from vrnet_ext.ops.soft_match import soft_match
 from vrnet_ext.ops.svd3x3 import svd3x3
+from vrnet_ext.ops.voxel_downsample import voxel_downsample
 
 __all__ = ["knn", "edge_features", "gather_reduce", "svd3x3", "kabsch", "pairwise_distance_loss", "soft_match",
-           "normals", "fpfh"]
+           "normals", "fpfh", "voxel_downsample"]

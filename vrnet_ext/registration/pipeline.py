@@ -12,7 +12,7 @@ from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.preprocessing import voxel_downsample, voxel_size_for
 from vrnet_ext.registration.global_estimators import GlobalEstimator, make_global_estimator
-from vrnet_ext.registration.refinement import IcpFailure, IcpSettings, icp
+from vrnet_ext.registration.refinement import COARSE_FACTOR, IcpFailure, IcpSettings, icp
 from vrnet_ext.registration.result import RegistrationResult
 
 LOW_FITNESS = 0.2  # below this share of source points with a target point within reach, warn
@@ -21,6 +21,22 @@ LOW_FITNESS = 0.2  # below this share of source points with a target point withi
 def _check_count(name: str, value, smallest: int) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < smallest:
         raise ValueError(f"{name} must be an integer >= {smallest}, got {value!r}")
+
+
+def _coarse_start(src: np.ndarray, tgt: np.ndarray, voxel: float, reach: float, settings: IcpSettings,
+                  device: torch.device, backend: str) -> np.ndarray:
+    """ICP from no motion on both scans downsampled ``COARSE_FACTOR`` times coarser, with a reach
+    as much longer -> its 4x4 estimate (the identity if it finds no pairs)."""
+    coarse = COARSE_FACTOR * voxel
+    src_coarse, tgt_coarse = voxel_downsample(src, coarse), voxel_downsample(tgt, coarse)
+    if min(len(src_coarse), len(tgt_coarse)) < 3:
+        return np.eye(4)
+    try:
+        return icp(src_coarse, tgt_coarse, np.eye(4), COARSE_FACTOR * reach, settings.max_iterations,
+                   settings.transform_tolerance, device, backend, settings.estimator,
+                   settings.settled).T_target_source
+    except IcpFailure:
+        return np.eye(4)
 
 
 def register(src: np.ndarray, tgt: np.ndarray, *, method: str | GlobalEstimator | None = None,
@@ -95,8 +111,12 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | GlobalEstimator 
     refined, failures = {}, []
     for label, guess in starts.items():
         try:
-            refined[label] = icp(src_icp, tgt_icp, guess, reach, icp_settings.max_iterations,
+            start_at = guess
+            if icp_settings.coarse_start and np.array_equal(guess, np.eye(4)):
+                start_at = _coarse_start(src, tgt, voxel, reach, icp_settings, device, backend)
+            refined[label] = icp(src_icp, tgt_icp, start_at, reach, icp_settings.max_iterations,
                                  icp_settings.transform_tolerance, device, backend, step, icp_settings.settled)
+            refined[label].initial = guess
         except IcpFailure as failure:
             failures.append(f"{failure} (from {label})")
     seconds["icp"] = time.perf_counter() - start

@@ -16,6 +16,7 @@ from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.transforms import apply
 
 
+COARSE_FACTOR = 4  # IcpSettings.coarse_start: the coarse voxel edge and reach, in fine ones
 REFERENCE_KNN_ELEMENTS = 1 << 24  # 128 MB of float64 distances per chunk for backend="torch"
 
 
@@ -156,8 +157,13 @@ class IcpSettings:
     estimator: the step (:mod:`vrnet_ext.registration.estimators`); points: both scans are
     voxel-downsampled to about this many points (``voxel_size`` overrides); max_distance: the
     inlier reach (default 3 voxels); max_iterations: at most this many steps (0: no ICP); it stops
-    earlier once a step moves the transform by less than ``transform_tolerance`` or the fitness and
-    inlier RMSE change by less than ``settled`` (see :func:`icp`).
+    earlier once a step moves the transform by less than ``transform_tolerance`` (radians and the
+    scans' unit: 1e-4 is 0.006 degrees and 0.1 mm for scans in metres; finer steps are below what
+    the pairs of a real scan resolve, and GICP's Gauss-Newton steps circle there as pairs come and
+    go) or the fitness and inlier RMSE change by less than ``settled`` (see :func:`icp`).
+    coarse_start: ICP from no motion (the identity: method "icp", or the second start of a network
+    that may not transfer) first runs on both scans downsampled to a ``COARSE_FACTOR`` times coarser
+    voxel with a reach ``COARSE_FACTOR`` times longer, so it pulls in from farther off.
     """
 
     estimator: str = "point_to_plane"
@@ -165,11 +171,14 @@ class IcpSettings:
     voxel_size: float | None = None
     max_distance: float | None = None
     max_iterations: int = 50
-    transform_tolerance: float = 1e-6
+    transform_tolerance: float = 1e-4
     settled: float = 1e-6
+    coarse_start: bool = True
 
     def __post_init__(self) -> None:
         make_estimator(self.estimator)  # ValueError naming the estimator
+        if not isinstance(self.coarse_start, bool):
+            raise ValueError(f"IcpSettings.coarse_start must be True or False, got {self.coarse_start!r}")
         for name in ("points", "max_iterations"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < (name == "points"):

@@ -1,0 +1,83 @@
+import math
+from collections import defaultdict
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import DTYPES, non_contiguous, opcheck, requires_ext
+from vrnet_ext import ops
+from vrnet_ext.data.procedural import room_scan
+from vrnet_ext.ops.voxel_downsample import voxel_downsample_reference
+from vrnet_ext.preprocessing import voxel_downsample, voxel_size_for
+
+
+def brute_force(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
+    """Python dict of cells -> float64 sums, rows sorted by cell: the definition, one point at a time."""
+    low = points.amin(0)
+    cells = torch.floor((points - low) / voxel_size).long().tolist()
+    groups = defaultdict(list)
+    for cell, point in zip(cells, points.double().tolist()):
+        groups[tuple(cell)].append(point)
+    return torch.from_numpy(np.array([np.mean(groups[c], axis=0) for c in sorted(groups)], dtype=np.float64))
+
+
+@requires_ext
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("N,voxel_size", [(1, 0.1), (2, 10.0), (97, 0.05), (1000, 0.013), (5000, 1e-4), (3000, 7.0)])
+def test_kernel_matches_reference_and_brute_force(dtype, N, voxel_size):
+    g = torch.Generator().manual_seed(N)
+    points = (torch.rand(N, 3, generator=g, dtype=torch.float64) * torch.tensor([3.0, 0.5, 1.0]) - 1.7).to(dtype)
+    ext = ops.voxel_downsample(points, voxel_size)
+    assert ext.dtype == dtype
+    torch.testing.assert_close(ext, voxel_downsample_reference(points, voxel_size), rtol=0, atol=0)
+    torch.testing.assert_close(ext.double(), brute_force(points, voxel_size), rtol=0,
+                               atol=1e-12 if dtype == torch.float64 else 1e-6)
+
+
+@requires_ext
+def test_awkward_layouts_duplicates_and_cell_borders():
+    # points exactly on cell borders, repeated points, a (3, N) array seen transposed
+    grid = torch.stack(torch.meshgrid(*[torch.arange(4, dtype=torch.float64) * 0.25] * 3, indexing="ij"), -1).reshape(-1, 3)
+    points = torch.cat([grid, grid, grid[:5]])
+    for layout in (points, non_contiguous(points), points.T.contiguous().T):
+        ext = ops.voxel_downsample(layout, 0.25)
+        torch.testing.assert_close(ext, voxel_downsample_reference(points, 0.25), rtol=0, atol=0)
+    assert len(ops.voxel_downsample(points, 0.25)) == 64
+    assert len(ops.voxel_downsample(points, 1.0)) == 1  # extent 0.75 < 1: one voxel
+
+
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_bad_input(backend):
+    points = torch.rand(50, 3)
+    cases = [((points[:0], 0.1), ValueError, "at least one point"), ((points[:, :2], 0.1), ValueError, "points"),
+             ((points.long(), 0.1), TypeError, "points"), ((points, 0.0), ValueError, "voxel_size"),
+             ((points, float("nan")), ValueError, "voxel_size"), ((points, -1.0), ValueError, "voxel_size"),
+             ((points, True), ValueError, "voxel_size"),
+             ((points.masked_fill(points > 0.9, float("inf")), 0.1), ValueError, "NaN or Inf"),
+             ((torch.tensor([[0.0, 0.0, 0.0], [1e30, 0.0, 0.0]]), 1e-30), ValueError, "too small")]
+    for args, error, match in cases:
+        with pytest.raises(error, match=match):
+            ops.voxel_downsample(*args, backend=backend)
+
+
+@requires_ext
+def test_opcheck():
+    opcheck(torch.ops.vrnet_ext.voxel_downsample.default, (torch.rand(200, 3), 0.1))
+
+
+@requires_ext
+def test_low_precision_inputs_are_promoted():
+    points = torch.rand(300, 3)
+    torch.testing.assert_close(ops.voxel_downsample(points.bfloat16(), 0.2), ops.voxel_downsample(points.bfloat16().float(), 0.2))
+
+
+def test_numpy_front_end_and_voxel_size_for():
+    scan = room_scan(30_000, 0)
+    down = voxel_downsample(scan, 0.05)
+    assert down.dtype == scan.dtype and isinstance(down, np.ndarray)
+    for target in (1000, 5000, 20_000):
+        size = voxel_size_for(scan, target)
+        count = len(voxel_downsample(scan, size))
+        assert 0.9 * target <= count <= target, (target, count)
+    assert voxel_size_for(scan[:100], 5000) > 0 and math.isfinite(voxel_size_for(scan[:100], 5000))
