@@ -26,6 +26,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
+import numpy as np
 import torch
 
 from vrnet_ext import ops
@@ -207,6 +208,27 @@ def _fpfh_case(voxel=0.05):
     return Case("fpfh", f"room scan at {voxel} m voxels, r=5 voxels", make, impls)
 
 
+def _voxel_downsample_case(voxel):
+    """A 300k-point room scan. Columns: Open3D's voxel_down_sample (cloud construction included,
+    as a user holding an array pays it) and a numpy np.unique + bincount version."""
+    def make():
+        from vrnet_ext.data.procedural import room_scan
+
+        return (torch.as_tensor(room_scan(300_000, 0)),)
+    impls = {b: (lambda x, b=b: ops.voxel_downsample(x, voxel, backend=b)) for b in ("ext", "torch")}
+
+    def numpy_unique(x):
+        points = x.numpy()
+        cells = np.floor((points - points.min(0)) / voxel).astype(np.int64)
+        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+        inverse = inverse.reshape(-1)
+        return np.stack([np.bincount(inverse, points[:, a], len(counts)) for a in range(3)], 1) / counts[:, None]
+    impls["numpy"] = numpy_unique
+    if importlib.util.find_spec("open3d"):
+        impls["open3d"] = lambda x: _open3d_cloud(x).voxel_down_sample(voxel)
+    return Case("voxel_downsample", f"scan N=300k voxel={voxel}", make, impls)
+
+
 def _soft_match_case(B, N, c, D, backward=True, quick=True, skip_torch=None):
     """The best existing tool is torch's scaled_dot_product_attention (a flash-attention kernel on
     CPU and GPU): the same product, without the log-normaliser VRNet's matching statistics need."""
@@ -262,6 +284,8 @@ def all_cases(device: str = "cpu") -> list[Case]:
         _scan_knn_case(),
         _normals_case(),
         _fpfh_case(),
+        _voxel_downsample_case(0.02),
+        _voxel_downsample_case(0.1),
         _soft_match_case(16, 768, 128, 131),
         _soft_match_case(1, 8192, 32, 35, backward=False),
         _soft_match_case(1, 50000, 32, 35, backward=False, quick=False,

@@ -85,9 +85,9 @@ OPEN3D_SCRIPT = textwrap.dedent("""
                   else reg.TransformationEstimationPointToPlane())
         icp = reg.registration_icp(src_icp, tgt_icp, 3 * icp_voxel, ransac.transformation, method, criteria)
     seconds = time.perf_counter() - begin
-    json.dump({{"transform": np.asarray(icp.transformation).tolist(), "initial": np.asarray(ransac.transformation).tolist(),
+    json.dump({"transform": np.asarray(icp.transformation).tolist(), "initial": np.asarray(ransac.transformation).tolist(),
                "register_s": seconds, "fitness": icp.fitness,
-               "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}}, open(out, "w"))
+               "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}, open(out, "w"))
 """)
 
 
