@@ -10,7 +10,7 @@ split it was trained for define the test pairs: ``ModelNet40Pairs(partition="tes
 * ``vrnet``: the model's own estimate (RCPs, weighted when the model has a confidence head);
 * ``vcp``: Kabsch on the VCPs of the same forward pass (the network without its walk: DCP-v2's
   estimator on our features);
-* ``icp``: point-to-point ICP from the identity (``register.icp``: 50 iterations, every pair within
+* ``icp``: point-to-point ICP from the identity (``registration.icp``: 50 iterations, every pair within
   ``--icp-max-distance`` = 1.0 counts, i.e. the shapes' radius);
 * ``fpfh``: FPFH + RANSAC (``registration.ransac.fpfh_ransac``) with a ``--fpfh-voxel`` of 0.05: normals
   from 30 neighbours, features within 0.25, inliers within 0.075 (Open3D's tutorial ratios).
