@@ -4,6 +4,7 @@
 // the voxel coordinates (O(N) memory, sums in double in point order), then the V occupied voxels
 // sorted. Cell coordinates are computed in the points' dtype, as the reference does.
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <limits>
 #include <vector>
@@ -30,9 +31,16 @@ template <typename scalar_t>
 at::Tensor downsample(const at::Tensor& points, double voxel_size) {
   const int64_t N = points.size(0);
   const scalar_t* p = points.const_data_ptr<scalar_t>();
+  // One serial pass finds the minimum corner and checks finiteness (no parallel region: the op is
+  // serial, and a region's join costs a time slice beside a busy process).
   scalar_t low[3] = {p[0], p[1], p[2]};
-  for (int64_t i = 1; i < N; ++i)
-    for (int a = 0; a < 3; ++a) low[a] = std::min(low[a], p[3 * i + a]);
+  bool finite = true;
+  for (int64_t i = 0; i < N; ++i)
+    for (int a = 0; a < 3; ++a) {
+      finite &= std::isfinite(p[3 * i + a]);
+      low[a] = std::min(low[a], p[3 * i + a]);
+    }
+  TORCH_CHECK_VALUE(finite, "points contains NaN or Inf values");
   const scalar_t size = static_cast<scalar_t>(voxel_size);
   int64_t capacity = 16;
   while (capacity < 2 * N) capacity <<= 1;
@@ -84,7 +92,6 @@ at::Tensor downsample(const at::Tensor& points, double voxel_size) {
 at::Tensor voxel_downsample_cpu(const at::Tensor& points_in, double voxel_size) {
   check_voxel_downsample_inputs(points_in, voxel_size);
   const at::Tensor points = points_in.contiguous();
-  check_finite(points, "points");
   at::Tensor out;
   AT_DISPATCH_FLOATING_TYPES(points.scalar_type(), "voxel_downsample_cpu",
                              [&] { out = downsample<scalar_t>(points, voxel_size); });
