@@ -235,3 +235,18 @@ def test_streamed_matching_equals_the_dense_matrix_path(device, backend):
     assert streamed_grads.keys() == dense_grads.keys() and len(dense_grads) > 10
     for name, grad in dense_grads.items():  # float32 rounding, relative to each gradient's size
         assert (streamed_grads[name] - grad).abs().max() <= 1e-4 * grad.abs().max() + 1e-7, name
+
+
+def test_a_confidence_trunk_keeps_the_offsets_loss_out_of_the_confidences():
+    from vrnet_ext.losses import offset_log_loss
+
+    model = small_model(walk_gate=True, walk_confidence=True, walk_confidence_trunk=True).train()
+    assert model.walk.net[-1].out_channels == 4 and model.walk.confidence_net[-1].out_channels == 1
+    src, tgt = clouds()
+    out = model(src, tgt)
+    torch.testing.assert_close(out.weights, torch.full((2, 60), 0.5))  # zero-initialised like the shared head
+    offset_log_loss(out.rcp, src + 0.1, 0.01).mean().backward()
+    assert all(p.grad is None or not p.grad.any() for p in model.walk.confidence_net.parameters())
+    assert any(p.grad is not None and p.grad.any() for p in model.walk.net.parameters())
+    with pytest.raises(ValueError, match="walk_confidence_trunk needs walk_confidence"):
+        VRNetConfig.small(walk_confidence_trunk=True)

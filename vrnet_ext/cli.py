@@ -135,6 +135,8 @@ def _train_parser(sub) -> None:
                    help="1: the walk also predicts per-point confidences that weight the Procrustes; 0: unweighted")
     p.add_argument("--walk-match-stats", type=_parse_bool, default=None,
                    help="1: the walk also sees each point's largest matching weight and matching entropy")
+    p.add_argument("--walk-confidence-trunk", type=_parse_bool, default=None,
+                   help="1: the confidence has its own MLP (the offsets' loss L4 does not shape it)")
     p.add_argument("--irls-iterations", type=int, default=None,
                    help="Cauchy reweighting steps after the Procrustes solve (0: none)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -144,7 +146,8 @@ def build_train_config(args):
     """TrainConfig from parsed ``vrnet train`` flags: the preset, then every flag given."""
     from vrnet_ext.train_config import PRESETS, TrainConfig
 
-    model_keys = ("emb_dims", "k", "iterations", "walk_gate", "walk_confidence", "walk_match_stats", "irls_iterations")
+    model_keys = ("emb_dims", "k", "iterations", "walk_gate", "walk_confidence", "walk_match_stats",
+                  "walk_confidence_trunk", "irls_iterations")
     overrides = {k: v for k, v in vars(args).items() if k not in ("command", "preset", "no_progress") + model_keys}
     model = dict(PRESETS[args.preset]["model"])
     for key in model_keys:

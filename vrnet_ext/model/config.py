@@ -26,6 +26,9 @@ class VRNetConfig:
       ungated walk).
     * ``walk_confidence``: the walk also predicts a per-point confidence in (0, 1) that weights the
       final Procrustes (not in the paper, whose Procrustes is unweighted; False: unweighted).
+    * ``walk_confidence_trunk``: the confidence comes from its own MLP of the walk's widths instead
+      of a fourth output of the offsets' MLP, so the loss on the offsets (L4) does not shape the
+      features the confidence is read from (needs ``walk_confidence``; not in the paper).
     * ``walk_match_stats``: the walk also sees two statistics of each point's row of the soft
       matching, its largest entry and its entropy (how sure the match is; not in the paper).
     * ``procrustes_points``: the final Procrustes aligns the source with its RCPs (``"rcp"``, the
@@ -53,6 +56,7 @@ class VRNetConfig:
     walk_gate: bool = False
     walk_confidence: bool = False
     walk_match_stats: bool = False
+    walk_confidence_trunk: bool = False
     correction_walk: bool = True
     procrustes_points: str = "rcp"
     irls_iterations: int = 0
@@ -69,6 +73,8 @@ class VRNetConfig:
             raise ValueError(f"emb_dims ({self.emb_dims}) must be divisible by heads ({self.heads})")
         if self.k < 1 or self.iterations < 1:
             raise ValueError("k and iterations must be >= 1")
+        if self.walk_confidence_trunk and not self.walk_confidence:
+            raise ValueError("walk_confidence_trunk needs walk_confidence=True")
         if self.procrustes_points not in ("rcp", "vcp"):
             raise ValueError(f"procrustes_points must be 'rcp' or 'vcp', got {self.procrustes_points!r}")
         if self.irls_iterations < 0 or not self.irls_min_scale > 0:

@@ -30,7 +30,8 @@ class CorrectionWalk(nn.Module):
 
     1x1 convs with the widths of ``channels`` (ending in 3, the xyz offset); BatchNorm + ReLU after
     every layer but the last, which is a plain linear layer with bias so an offset can take any
-    sign. ``gate`` and ``confidence`` each add one output channel to that layer. ``zero_init``
+    sign. ``gate`` and ``confidence`` each add one output channel to that layer (``confidence_trunk``:
+    the confidence comes from a second MLP of the same widths instead). ``zero_init``
     starts the last layer at zero: every offset is 0 (RCP = VCP) and every confidence 0.5 until
     training moves them, and the gate starts nearly closed (bias ``GATE_CLOSED``, sigmoid 0.018), so
     that the walk opens it only where moving a VCP pays.
@@ -42,23 +43,17 @@ class CorrectionWalk(nn.Module):
     """
 
     def __init__(self, in_channels: int, channels: tuple[int, ...], zero_init: bool = True, gate: bool = False,
-                 confidence: bool = False) -> None:
+                 confidence: bool = False, confidence_trunk: bool = False) -> None:
         super().__init__()
+        if confidence_trunk and not confidence:
+            raise ValueError("confidence_trunk needs confidence=True")
         self.gate = gate
         self.confidence = confidence
-        layers: list[nn.Module] = []
-        width = in_channels
-        for out in channels[:-1]:
-            layers += [nn.Conv1d(width, out, 1, bias=False), nn.BatchNorm1d(out), nn.ReLU()]
-            width = out
-        last = nn.Conv1d(width, channels[-1] + int(gate) + int(confidence), 1, bias=True)
-        if zero_init:
-            nn.init.zeros_(last.weight)
-            nn.init.zeros_(last.bias)
-            if gate:
-                nn.init.constant_(last.bias[channels[-1]:channels[-1] + 1], GATE_CLOSED)
-        layers.append(last)
-        self.net = nn.Sequential(*layers)
+        shared_confidence = confidence and not confidence_trunk
+        self.net = _mlp(in_channels, channels, channels[-1] + int(gate) + int(shared_confidence), zero_init,
+                        GATE_CLOSED if gate else None, channels[-1])
+        # ``walk_confidence_trunk``: the confidence's own MLP, so L4 on the offsets does not shape it
+        self.confidence_net = _mlp(in_channels, channels, 1, zero_init) if confidence_trunk else None
 
     def forward(self, seeds: torch.Tensor) -> WalkOutput:
         out = self.net(seeds).transpose(1, 2)  # (B, N, 3 [+ gate] [+ confidence])
@@ -67,6 +62,28 @@ class CorrectionWalk(nn.Module):
         if self.gate:
             gate_logits, extra = extra[..., 0], extra[..., 1:]
             offset = torch.sigmoid(gate_logits).unsqueeze(-1) * offset
-        if self.confidence:
+        if self.confidence_net is not None:
+            confidence_logits = self.confidence_net(seeds)[:, 0]
+        elif self.confidence:
             confidence_logits = extra[..., 0]
         return WalkOutput(offset, gate_logits, confidence_logits)
+
+
+def _mlp(in_channels: int, channels: tuple[int, ...], outputs: int, zero_init: bool, gate_bias: float | None = None,
+         gate_channel: int = 0) -> nn.Sequential:
+    """1x1 convs of the widths ``channels[:-1]`` (BatchNorm + ReLU), then a linear layer with
+    ``outputs`` channels; ``zero_init`` zeroes that layer, and ``gate_bias`` then sets the bias of
+    its channel ``gate_channel``."""
+    layers: list[nn.Module] = []
+    width = in_channels
+    for out in channels[:-1]:
+        layers += [nn.Conv1d(width, out, 1, bias=False), nn.BatchNorm1d(out), nn.ReLU()]
+        width = out
+    last = nn.Conv1d(width, outputs, 1, bias=True)
+    if zero_init:
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
+        if gate_bias is not None:
+            nn.init.constant_(last.bias[gate_channel:gate_channel + 1], gate_bias)
+    layers.append(last)
+    return nn.Sequential(*layers)

@@ -111,7 +111,7 @@ class VRNet(nn.Module):
                                        cfg.decoder_layers, cfg.dropout)
         walk_inputs = 2 * cfg.emb_dims + (6 if cfg.walk_coordinates else 0) + (2 if cfg.walk_match_stats else 0)
         self.walk = (CorrectionWalk(walk_inputs, cfg.walk_channels, cfg.walk_zero_init, cfg.walk_gate,
-                                    cfg.walk_confidence) if cfg.correction_walk else None)
+                                    cfg.walk_confidence, cfg.walk_confidence_trunk) if cfg.correction_walk else None)
 
     def feature_modules(self) -> list[nn.Module]:
         """The feature extractor (DGCNN + Transformer): trained in stage 1, frozen in stage 2."""
