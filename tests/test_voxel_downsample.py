@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import DTYPES, non_contiguous, opcheck, requires_ext
+from conftest import DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext
 from vrnet_ext import ops
 from vrnet_ext.data.procedural import room_scan
 from vrnet_ext.ops.voxel_downsample import voxel_downsample_reference
@@ -64,6 +64,13 @@ def test_bad_input(backend):
 @requires_ext
 def test_opcheck():
     opcheck(torch.ops.vrnet_ext.voxel_downsample.default, (torch.rand(200, 3), 0.1))
+
+
+@requires_ext
+def test_torch_compile_fullgraph():
+    points = torch.rand(500, 3)
+    fn = compile_fullgraph(lambda p: ops.voxel_downsample(p, 0.1))  # data-dependent row count (fake kernel)
+    torch.testing.assert_close(fn(points), ops.voxel_downsample(points, 0.1), rtol=0, atol=0)
 
 
 @requires_ext

@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from vrnet_ext import ops
+
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Mean of the points in each occupied voxel of edge ``voxel_size`` -> (V, 3), same dtype
     (:func:`vrnet_ext.ops.voxel_downsample`, the compiled op; rows in (x, y, z) voxel order)."""
-    from vrnet_ext import ops
-
     return ops.voxel_downsample(torch.from_numpy(np.ascontiguousarray(points)), voxel_size).numpy()
 
 

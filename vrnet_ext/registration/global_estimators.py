@@ -18,12 +18,11 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from vrnet_ext import ops
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.preprocessing import subsample, voxel_downsample, voxel_size_for
 from vrnet_ext.registration.fgr import fast_global_registration
-from vrnet_ext.registration.ransac import fpfh_ransac, ransac
+from vrnet_ext.registration.ransac import fpfh_ransac, ransac, voxel_fpfh
 from vrnet_ext.transforms import to_homogeneous
 
 CPU = torch.device("cpu")
@@ -99,9 +98,8 @@ class Fgr(GlobalEstimator):
 
     def estimate(self, src, tgt, seed):
         src_down, tgt_down, voxel = downsampled_pair(src, tgt, self.points, self.device)
-        src_features = ops.fpfh(src_down, ops.normals(src_down), 5.0 * voxel)
-        tgt_features = ops.fpfh(tgt_down, ops.normals(tgt_down), 5.0 * voxel)
-        return fast_global_registration(src_down, tgt_down, src_features, tgt_features, seed=seed).cpu().numpy()
+        return fast_global_registration(src_down, tgt_down, voxel_fpfh(src_down, voxel), voxel_fpfh(tgt_down, voxel),
+                                        seed=seed).cpu().numpy()
 
 
 SCENE_PAIRS = 1000  # most confident (source, RCP) pairs the scene model hands to RANSAC

@@ -95,13 +95,16 @@ def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_d
     return transform, best_count
 
 
+def voxel_fpfh(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
+    """FPFH (N, 33) of a cloud voxel-downsampled at ``voxel_size``, at Open3D's tutorial radii:
+    normals from 30 neighbours, features within 5 voxels."""
+    return ops.fpfh(points, ops.normals(points), 5.0 * voxel_size)
+
+
 def fpfh_ransac(src: torch.Tensor, tgt: torch.Tensor, voxel_size: float, iterations: int = 50_000,
                 seed: int = 0) -> tuple[torch.Tensor, int]:
     """Initial estimate for two voxel-downsampled scans src (N, 3), tgt (M, 3) (same unit) ->
-    (4x4 transform taking src onto tgt, RANSAC inlier count). Radii follow Open3D's global
-    registration tutorial: normals from 30 neighbours, features within 5 voxels, inliers within
-    1.5 voxels."""
-    src_features = ops.fpfh(src, ops.normals(src), 5.0 * voxel_size)
-    tgt_features = ops.fpfh(tgt, ops.normals(tgt), 5.0 * voxel_size)
-    matches = mutual_matches(src_features, tgt_features)
+    (4x4 transform taking src onto tgt, RANSAC inlier count): :func:`voxel_fpfh` features,
+    mutual matches, inliers within 1.5 voxels (Open3D's global registration tutorial)."""
+    matches = mutual_matches(voxel_fpfh(src, voxel_size), voxel_fpfh(tgt, voxel_size))
     return ransac(src, tgt, matches, 1.5 * voxel_size, iterations, seed=seed)
