@@ -1,4 +1,6 @@
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -161,6 +163,27 @@ def test_cli_register(tmp_path, capsys):
     assert (tmp_path / "r.png").stat().st_size > 10_000
     assert main(["register", str(tmp_path / "src.ply"), str(tmp_path / "missing.ply")]) == 2
     assert "missing.ply: no such file" in capsys.readouterr().err
+
+
+def test_the_vrnet_executable_writes_everything_and_keeps_its_exit_status(tmp_path):
+    """``vrnet`` ends with os._exit: every output written, stdout flushed (even to a pipe), the status kept."""
+    src = room(2000)
+    write_ply(tmp_path / "src.ply", src)
+    np.save(tmp_path / "tgt.npy", apply(motion(3.0, [0.05, 0.0, 0.0]), src))
+    vrnet = [sys.executable, "-c", "import sys; from vrnet_ext.cli import run; sys.argv[0] = 'vrnet'; run()"]
+    done = subprocess.run(vrnet + ["register", str(tmp_path / "src.ply"), str(tmp_path / "tgt.npy"), "--method", "icp",
+                                   "--json", str(tmp_path / "r.json"), "--out", str(tmp_path / "moved.ply")],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.rstrip().endswith(f"wrote {tmp_path / 'r.json'}"), done.stdout
+    assert json.loads((tmp_path / "r.json").read_text())["T_target_source"]
+    assert len(read_points(tmp_path / "moved.ply")) == len(src)
+    missing = subprocess.run(vrnet + ["register", str(tmp_path / "src.ply"), str(tmp_path / "no.ply")],
+                             capture_output=True, text=True, timeout=300)
+    assert missing.returncode == 2 and "no.ply: no such file" in missing.stderr
+    usage = subprocess.run(vrnet + ["register", "--estimator", "bogus"], capture_output=True, text=True, timeout=300)
+    assert usage.returncode == 2 and "invalid choice" in usage.stderr
+    assert subprocess.run(vrnet + ["--help"], capture_output=True, text=True, timeout=300).returncode == 0
 
 
 @requires_modelnet

@@ -103,7 +103,7 @@ def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike
 
     state = read_checkpoint(checkpoint)
     weights = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
-    config = {k: v for k, v in state["config"].items() if k not in ("data_dir", "out_dir", "resume", "features_from")}
+    config = {k: v for k, v in state["config"].items() if k not in ("data_dir", "out_dir", "resume", "features_from", "walk_from")}
     overrides = dict(model_overrides or {})
     if set(overrides) - {"procrustes_points", "irls_iterations"}:
         raise ValueError(f"model_overrides may set procrustes_points and irls_iterations only, got {sorted(overrides)}")

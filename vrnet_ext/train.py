@@ -46,6 +46,7 @@ from vrnet_ext.losses import HybridLossWeights, correspondence_loss, hybrid_loss
 from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.plots import plot_metrics
 from vrnet_ext.runtime import set_flush_denormal
+from vrnet_ext.warm_start import init_features_from, init_walk_from
 from vrnet_ext.train_config import FIELD_HELP, PRECISIONS, PRESETS, TrainConfig, preset_values  # noqa: F401
 
 class _Run:
@@ -128,27 +129,6 @@ def _check_resumable(state: dict, model_cfg: VRNetConfig, path: str) -> None:
                          f"({', '.join(f'{k}={wanted[k]!r}' for k in differing)}); pass the same preset and options")
 
 
-FEATURE_FIELDS = ("k", "dgcnn_channels", "emb_dims", "negative_slope", "heads", "ff_dims", "encoder_layers",
-                  "decoder_layers")
-
-
-def init_features_from(model: VRNet, path: str) -> None:
-    """Copies the feature extractor (DGCNN + Transformer, weights and BatchNorm statistics) of
-    another run's checkpoint into ``model``: stage 2 (or an ablation arm) on trained stage-1
-    features, whatever that run's correction walk was."""
-    state = read_checkpoint(path)
-    saved = validate_model_config(state["config"]["model"], path)
-    differing = [k for k in FEATURE_FIELDS if getattr(saved, k) != getattr(model.config, k)]
-    if differing:
-        raise ValueError(f"features_from: {path} has other feature settings ({', '.join(differing)}) than this run")
-    prefixes = ("features.", "transformer.")
-    features = {k: v for k, v in state["model"].items() if k.startswith(prefixes)}
-    own = {k for k in model.state_dict() if k.startswith(prefixes)}
-    if set(features) != own:
-        raise ValueError(f"features_from: {path} does not hold this model's feature extractor")
-    model.load_state_dict(features, strict=False)
-
-
 class _StopRequest:
     """SIGINT / SIGTERM (Ctrl-C, ``kill``, a scheduler's stop) ask for a stop after the current
     batch instead of killing the run: it then writes a mid-epoch ``last.pt`` and returns, and
@@ -213,6 +193,8 @@ def train(cfg: TrainConfig) -> dict:
                          f"{len(train_set)} training pairs")
     if cfg.features_from and not cfg.resume:
         init_features_from(model, cfg.features_from)
+    if cfg.walk_from and not cfg.resume:
+        init_walk_from(model, cfg.walk_from)
     state = read_checkpoint(cfg.resume, run.device) if cfg.resume else None
     if state is not None:
         _check_resumable(state, model_cfg, cfg.resume)

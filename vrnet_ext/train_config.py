@@ -57,6 +57,8 @@ FIELD_HELP = {
     "resume": "continue from this last.pt (same model options as the run that wrote it; a larger epoch count "
               "extends a finished stage, and this run's --lr-milestones apply)",
     "features_from": "start from the feature extractor of this checkpoint (e.g. stage 2 on another run's features)",
+    "walk_from": "start the correction walk from this checkpoint's walk (a shared-trunk walk is split in two "
+                 "when this run has --walk-confidence-trunk 1)",
     "flush_denormal": "flush denormal floats to zero (1/0; much faster soft matching on x86)",
 }
 
@@ -102,6 +104,7 @@ class TrainConfig:
     checkpoint_minutes: float = 10.0
     resume: str | None = None
     features_from: str | None = None
+    walk_from: str | None = None
     flush_denormal: bool = True
     progress: bool = True
 
