@@ -175,3 +175,21 @@ def test_resume_extends_a_finished_stage_with_this_runs_milestones(tmp_path):
     assert [r["epoch"] for r in stage2] == [1, 2, 3]
     # the lr logged after an epoch is the next epoch's: the milestone at 2 lowers it from then on
     assert [r["lr"] for r in stage2] == pytest.approx([lr, lr * 0.1, lr * 0.1])
+
+
+def test_freeze_confidence_trains_the_offsets_only():
+    from vrnet_ext.model import VRNet, VRNetConfig
+    from vrnet_ext.train import set_stage, stage_train_mode
+
+    model = VRNet(VRNetConfig.small(k=6, dgcnn_channels=(16, 16, 32), emb_dims=32, ff_dims=64,
+                                    walk_channels=(32, 16, 3), walk_confidence=True, walk_confidence_trunk=True))
+    params = set_stage(model, 2, freeze_confidence=True)
+    stage_train_mode(model, 2, freeze_confidence=True)
+    assert {id(p) for p in params} == {id(p) for p in model.walk.net.parameters()}
+    assert not any(p.requires_grad for p in model.walk.confidence_net.parameters())
+    assert not any(p.requires_grad for m in model.feature_modules() for p in m.parameters())
+    assert model.walk.net.training and not model.walk.confidence_net.training  # BatchNorm statistics kept
+    params = set_stage(model, 2)
+    assert {id(p) for p in params} == {id(p) for p in model.walk.parameters()}
+    with pytest.raises(ValueError, match="freeze_confidence needs walk_confidence_trunk"):
+        TrainConfig.from_preset("tiny", freeze_confidence=True)

@@ -82,19 +82,31 @@ def _datasets(cfg: TrainConfig):
     return train, val
 
 
-def set_stage(model: VRNet, stage: int) -> list[torch.nn.Parameter]:
-    """Trainable parameters of a stage; frozen modules are put in eval mode by :func:`stage_train_mode`."""
+def _stage_modules(model: VRNet, stage: int, freeze_confidence: bool) -> tuple[list, list]:
+    """(trainable, frozen) modules of a stage: stage 1 the feature extractor, stage 2 the walk
+    (without its confidence MLP when ``freeze_confidence``)."""
     walk = [model.walk] if model.walk is not None else []
-    trainable = model.feature_modules() if stage == 1 else walk
-    for module in model.feature_modules() + walk:
-        module.requires_grad_(module in trainable)
+    if stage == 1:
+        return model.feature_modules(), walk
+    if freeze_confidence:
+        return [model.walk.net], model.feature_modules() + [model.walk.confidence_net]
+    return walk, model.feature_modules()
+
+
+def set_stage(model: VRNet, stage: int, freeze_confidence: bool = False) -> list[torch.nn.Parameter]:
+    """Trainable parameters of a stage; frozen modules are put in eval mode by :func:`stage_train_mode`."""
+    trainable, frozen = _stage_modules(model, stage, freeze_confidence)
+    for module in frozen:
+        module.requires_grad_(False)
+    for module in trainable:
+        module.requires_grad_(True)
     return [p for m in trainable for p in m.parameters()]
 
 
-def stage_train_mode(model: VRNet, stage: int) -> None:
+def stage_train_mode(model: VRNet, stage: int, freeze_confidence: bool = False) -> None:
     model.train()
     if stage == 2:
-        for module in model.feature_modules():
+        for module in _stage_modules(model, stage, freeze_confidence)[1]:
             module.eval()
 
 
@@ -219,7 +231,7 @@ def _train_stages(cfg, run, model, train_set, val_set, sampler, state, loss_weig
     for stage, epochs, lr in ((1, cfg.stage1_epochs, cfg.lr_stage1), (2, cfg.stage2_epochs, cfg.lr_stage2)):
         if state is not None and (state["stage"] > stage or (state["stage"] == stage and state["epoch"] + 1 >= epochs)):
             continue  # this stage is already complete in the checkpoint
-        params = set_stage(model, stage)
+        params = set_stage(model, stage, cfg.freeze_confidence)
         optimizer = torch.optim.Adam(params, lr=lr, weight_decay=cfg.weight_decay)
         scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.lr_milestones, cfg.lr_gamma)
         first_epoch, best, partial = 0, float("inf"), None
@@ -235,7 +247,7 @@ def _train_stages(cfg, run, model, train_set, val_set, sampler, state, loss_weig
             global_epoch = epoch if stage == 1 else cfg.stage1_epochs + epoch
             train_set.set_epoch(global_epoch)
             sampler.set_epoch(global_epoch)
-            stage_train_mode(model, stage)
+            stage_train_mode(model, stage, cfg.freeze_confidence)
             epoch_started = started = time.time()
             totals, batches = {}, 0
             if partial is not None and partial["epoch"] == epoch:

@@ -59,6 +59,9 @@ FIELD_HELP = {
     "features_from": "start from the feature extractor of this checkpoint (e.g. stage 2 on another run's features)",
     "walk_from": "start the correction walk from this checkpoint's walk (a shared-trunk walk is split in two "
                  "when this run has --walk-confidence-trunk 1)",
+    "freeze_confidence": "stage 2 leaves the walk's confidence MLP as it is (weights and BatchNorm statistics; "
+                         "needs --walk-confidence-trunk 1): train the offsets on a trained walk's confidences "
+                         "(with --walk-from)",
     "flush_denormal": "flush denormal floats to zero (1/0; much faster soft matching on x86)",
 }
 
@@ -105,6 +108,7 @@ class TrainConfig:
     resume: str | None = None
     features_from: str | None = None
     walk_from: str | None = None
+    freeze_confidence: bool = False
     flush_denormal: bool = True
     progress: bool = True
 
@@ -127,6 +131,8 @@ class TrainConfig:
             raise ValueError(f"loss_l4_form must be one of {L4_FORMS}, got {self.loss_l4_form!r}")
         if not self.checkpoint_minutes > 0:
             raise ValueError(f"checkpoint_minutes must be > 0, got {self.checkpoint_minutes}")
+        if self.freeze_confidence and not self.model.get("walk_confidence_trunk"):
+            raise ValueError("freeze_confidence needs walk_confidence_trunk (a confidence MLP of its own)")
 
 
 __all__ = ["FIELD_HELP", "L4_FORMS", "PRECISIONS", "PRESETS", "TrainConfig", "preset_values"]
