@@ -122,3 +122,20 @@ def test_hybrid_loss_with_the_log_offset_form():
     log_form, log_parts = losses.hybrid_loss(out, src, R, t, losses.HybridLossWeights(l4=10.0, l4_form="log"))
     assert torch.isfinite(paper) and torch.isfinite(log_form)
     assert log_parts["L4"] == pytest.approx(float(torch.log1p(torch.tensor(0.1 * 3 ** 0.5 / 0.01))), rel=1e-6)
+
+
+def test_the_motion_term_measures_the_estimate_against_the_truth():
+    src, R, t, truth = rigid()
+    out = make_output(src, R, t, truth, torch.zeros_like(truth))
+    weights = losses.HybridLossWeights(motion=2.0)
+    _, exact = losses.hybrid_loss(out, src, R, t, weights, backend="torch")
+    assert exact["LM"] == pytest.approx(0.0, abs=1e-9)
+    angle = torch.tensor(0.1, dtype=src.dtype)
+    about_z = torch.tensor([[angle.cos(), -angle.sin(), 0], [angle.sin(), angle.cos(), 0], [0, 0, 1]], dtype=src.dtype)
+    off = make_output(src, R @ about_z, t + 0.3, truth, torch.zeros_like(truth))
+    without, parts_without = losses.hybrid_loss(off, src, R, t, losses.HybridLossWeights(), backend="torch")
+    total, parts = losses.hybrid_loss(off, src, R, t, weights, backend="torch")
+    # rmse(Rz - I): four entries off by (1 - cos, sin) of 9; rmse(t): 0.3 on every axis
+    expected = float(((2 * (1 - angle.cos()) ** 2 + 2 * angle.sin() ** 2) / 9).sqrt()) + 0.3
+    assert parts["LM"] == pytest.approx(expected, rel=1e-9) and "LM" not in parts_without
+    assert float(total - without) == pytest.approx(2.0 * expected, rel=1e-9)

@@ -3,7 +3,9 @@
 With the walk's gate and confidence heads (``VRNetConfig.walk_gate`` / ``walk_confidence``, not
 in the paper) stage 2 adds two binary cross-entropies: LG teaches the gate which VCPs lie farther
 than ``correct_within`` from their true position (those need a correction), LC teaches the
-confidence which RCPs lie within it (those should carry the Procrustes solve).
+confidence which RCPs lie within it (those should carry the Procrustes solve). ``motion`` > 0 adds
+LM, the supervised motion loss of DCP (rmse(R^T R_gt, I) + rmse(t, t_gt) of the estimate the network
+returns), which trains the confidences through the weighted Procrustes for what is measured.
 
 ``rmse(a, b) = sqrt(mean((a - b)^2))`` per pair, then averaged over the batch. Its square root is
 taken of ``max(mean, 1e-20)`` so the gradient stays finite at a perfect fit.
@@ -56,10 +58,15 @@ def local_motion_consensus_loss(src: torch.Tensor, rcp: torch.Tensor, rotation: 
     sub_src = src.gather(1, subsets).reshape(B * groups, size, 3)
     sub_rcp = rcp.gather(1, subsets).reshape(B * groups, size, 3)
     R_g, t_g = kabsch(sub_src, sub_rcp, backend=backend)
-    R = rotation.repeat_interleave(groups, dim=0)
-    t = translation.repeat_interleave(groups, dim=0)
-    eye = torch.eye(3, dtype=src.dtype, device=src.device).expand_as(R)
-    return (rmse(R_g.mT @ R, eye) + rmse(t_g, t)).mean()
+    return motion_difference(R_g, t_g, rotation.repeat_interleave(groups, dim=0),
+                             translation.repeat_interleave(groups, dim=0)).mean()
+
+
+def motion_difference(rotation: torch.Tensor, translation: torch.Tensor, other_rotation: torch.Tensor,
+                      other_translation: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3), (B, 3) twice -> (B,) rmse(R^T R', I) + rmse(t, t'): L1's term, and LM's against the truth."""
+    eye = torch.eye(3, dtype=rotation.dtype, device=rotation.device).expand_as(rotation)
+    return rmse(rotation.mT @ other_rotation, eye) + rmse(translation, other_translation)
 
 
 def offset_log_loss(rcp: torch.Tensor, truth: torch.Tensor, scale: float) -> torch.Tensor:
@@ -85,13 +92,14 @@ class HybridLossWeights:
     gate: float = 1.0
     confidence: float = 1.0
     l4_log_scale: float = 0.01
+    motion: float = 0.0  # weight of LM (not in the paper)
     correct_within: float = 0.03  # a VCP / RCP this close to R_gt x + t_gt counts as correct (unit-sphere shapes)
 
 
 def hybrid_loss(out: VRNetOutput, src: torch.Tensor, gt_rotation: torch.Tensor, gt_translation: torch.Tensor,
                 weights: HybridLossWeights | None = None, generator: torch.Generator | None = None,
                 backend: str = "ext") -> tuple[torch.Tensor, dict[str, float]]:
-    """Stage-2 loss L (Eq. 12) [+ LG + LC]. Returns (L, {"L1": .., "L2": .., "L3": .., "L4": .. [, "LG", "LC"]})."""
+    """Stage-2 loss L (Eq. 12) [+ LM + LG + LC]. Returns (L, {"L1": .., "L2": .., "L3": .., "L4": .. [, "LM", "LG", "LC"]})."""
     w = weights or HybridLossWeights()
     l1 = local_motion_consensus_loss(src, out.rcp, out.rotation, out.translation, w.groups, w.subset_size,
                                      generator, backend)
@@ -102,6 +110,10 @@ def hybrid_loss(out: VRNetOutput, src: torch.Tensor, gt_rotation: torch.Tensor, 
           else offset_log_loss(out.rcp, truth, w.l4_log_scale)).mean()
     total = w.l1 * l1 + w.l2 * l2 + w.l3 * l3 + w.l4 * l4
     parts = {"L1": float(l1.detach()), "L2": float(l2.detach()), "L3": float(l3.detach()), "L4": float(l4.detach())}
+    if w.motion > 0:
+        lm = motion_difference(out.rotation, out.translation, gt_rotation, gt_translation).mean()
+        total = total + w.motion * lm
+        parts["LM"] = float(lm.detach())
     if out.gate_logits is not None:
         needs_correction = correspondence_error(out.vcp.detach(), src, gt_rotation, gt_translation) > w.correct_within
         lg = F.binary_cross_entropy_with_logits(out.gate_logits.float(), needs_correction.float())

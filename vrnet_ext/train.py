@@ -211,7 +211,7 @@ def train(cfg: TrainConfig) -> dict:
     if state is not None:
         _check_resumable(state, model_cfg, cfg.resume)
         model.load_state_dict(state["model"])
-    loss_weights = HybridLossWeights(l4=cfg.loss_l4, l4_form=cfg.loss_l4_form)
+    loss_weights = HybridLossWeights(l4=cfg.loss_l4, l4_form=cfg.loss_l4_form, motion=cfg.loss_motion)
     step = state["step"] if state else 0
     best_rmse = state.get("best_rmse", float("inf")) if state else float("inf")
     train_seconds = state.get("train_seconds", 0.0) if state else 0.0
