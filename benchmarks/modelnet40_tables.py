@@ -1,6 +1,6 @@
 """The paper's ModelNet40 tables (I: consistent clouds, II: PV / RS / PV+RS) for our methods, in one run.
 
-    python benchmarks/modelnet40_tables.py [--models vrnet-pv-upc-weighted-vcp ...] [--data-dir DIR] [--max-items N]
+    python benchmarks/modelnet40_tables.py [--models vrnet-pv-upc-rcp ...] [--data-dir DIR] [--max-items N]
                                             [--methods vrnet vcp icp fpfh] [--json tables.json] [--markdown tables.md]
 
 For every model (a shipped name or a checkpoint path; default: every shipped model) the setting and

@@ -188,7 +188,7 @@ def _eval_parser(sub) -> None:
                        description="Prints the paper's table (RMSE/MAE of Euler angles and translation) "
                                    "plus isotropic errors, recall, Chamfer distances and match ratios; writes JSON.")
     p.add_argument("--checkpoint", required=True,
-                   help="a shipped model name (e.g. vrnet-pv-upc-weighted-vcp) or best.pt / last.pt written by `vrnet train`")
+                   help="a shipped model name (e.g. vrnet-pv-upc-rcp) or best.pt / last.pt written by `vrnet train`")
     p.add_argument("--setting", choices=SETTINGS, default=None, help="default: the checkpoint's")
     p.add_argument("--split", choices=("UPC", "UC", "ND"), default=None, help="default: the checkpoint's")
     p.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
@@ -398,7 +398,7 @@ def _export_parser(sub) -> None:
                                    "card). load_pretrained(NAME) then finds it when OUT_DIR is vrnet_ext/weights.",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("checkpoint", help="best.pt / last.pt of `vrnet train` (metrics.jsonl beside it is read too)")
-    p.add_argument("name", help="model name, e.g. vrnet-pv-upc-weighted-vcp")
+    p.add_argument("name", help="model name, e.g. vrnet-pv-upc-rcp")
     p.add_argument("--out-dir", default=None, help="folder to write to (default: the package's weights folder)")
     p.add_argument("--test-json", default=None, help="`vrnet eval --json` output on the test split (a VRNet), or a Markdown results table (a scene model), for the card")
     p.add_argument("--summary", default="", help="one paragraph: what the model is for")

@@ -17,7 +17,7 @@ import torch
 from vrnet_ext.model import VRNet
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-DEFAULT_MODEL = "vrnet-pv-upc-weighted-vcp"
+DEFAULT_MODEL = "vrnet-pv-upc-rcp"
 DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-kitchen"  # vrnet register --method vrnet (vrnet_ext.model.scene)
 FORMAT = "vrnet_ext.pretrained/1"
 
