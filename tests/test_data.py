@@ -36,6 +36,52 @@ def test_settings_counts_and_ground_truth(setting, count):
     assert np.abs(pair["translation"]).max() <= 0.5
 
 
+def view_direction(cloud, view):
+    """Unit vector from the centre of ``cloud`` (N, 3) away from the centroid of the points a partial
+    ``view`` (V, 3) of it dropped: towards the far point that cut the view."""
+    kept = np.linalg.norm(cloud[:, None] - view[None], axis=-1).min(axis=1) < 1e-5
+    away = cloud.mean(axis=0) - cloud[~kept].mean(axis=0)
+    return away / np.linalg.norm(away)
+
+
+@pytest.mark.parametrize("far_points", ["prnet", "sphere", "mixed"])
+def test_partial_views_look_along_the_diagonal_only_with_prnet_far_points(far_points):
+    rng = np.random.default_rng(0)
+    sphere = rng.standard_normal((1024, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    sphere.setflags(write=False)
+    diagonal = np.ones(3) / np.sqrt(3)
+    off_diagonal = []
+    for seed in range(40):
+        pair = make_pair(sphere, PairSpec(setting="PV", far_points=far_points), np.random.default_rng(seed))
+        assert pair["src"].shape == pair["tgt"].shape == (768, 3)
+        off_diagonal.append(1 - abs(view_direction(sphere, pair["src"]) @ diagonal))
+    off_diagonal = np.array(off_diagonal)
+    if far_points == "prnet":
+        assert off_diagonal.max() < 0.02, off_diagonal
+    elif far_points == "sphere":
+        assert (off_diagonal > 0.05).mean() > 0.7, off_diagonal
+    else:
+        assert 0.2 < (off_diagonal < 0.02).mean() < 0.8, off_diagonal
+    with pytest.raises(ValueError, match="far_points must be one of"):
+        PairSpec(far_points="north")
+
+
+def test_prnet_far_points_keep_the_pairs_of_earlier_versions():
+    """The default pairs are drawn exactly as before ``far_points`` existed (same random stream)."""
+    rng = np.random.default_rng(5)
+    base = rng.standard_normal((1024, 3))
+    pair = make_pair(base, PairSpec(setting="PV"), np.random.default_rng(11))
+    replay = np.random.default_rng(11)
+    rotation = Rotation.from_euler("zyx", replay.uniform(0, np.deg2rad(45), 3)[::-1]).as_matrix()
+    translation = replay.uniform(-0.5, 0.5, 3)
+    far = replay.random(3) + 500.0 * replay.choice((1, -1))
+    keep = np.sort(np.argpartition(((base - far) ** 2).sum(axis=1), 767)[:768])
+    np.testing.assert_allclose(pair["rotation"], rotation, atol=1e-6)
+    np.testing.assert_allclose(pair["translation"], translation, atol=1e-6)
+    np.testing.assert_array_equal(np.sort(pair["src"], axis=0), np.sort(base[keep].astype(np.float32), axis=0))
+
+
 def test_noise_is_bounded_and_never_touches_the_source_array():
     base = np.random.default_rng(0).standard_normal((1024, 3)).astype(np.float32)
     before = base.copy()

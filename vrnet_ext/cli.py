@@ -17,7 +17,7 @@ import typing
 from dataclasses import fields
 from pathlib import Path
 
-from vrnet_ext.data.protocol import SETTINGS
+from vrnet_ext.data.protocol import FAR_POINTS, SETTINGS
 
 
 def _parse_bool(text: str) -> bool:
@@ -128,6 +128,8 @@ def _train_parser(sub) -> None:
             p.add_argument(flag, choices=("ext", "torch"), default=None, help=description)
         elif f.name == "loss_l4_form":
             p.add_argument(flag, choices=L4_FORMS, default=None, help=description)
+        elif f.name == "far_points":
+            p.add_argument(flag, choices=FAR_POINTS, default=None, help=description)
         elif kind is bool:
             p.add_argument(flag, type=_parse_bool, default=None, help=description)
         else:
@@ -196,6 +198,9 @@ def _eval_parser(sub) -> None:
     p.add_argument("--max-items", type=_positive_int, default=None,
                    help="evaluate the first N test shapes only (default: the whole test split)")
     p.add_argument("--iterations", type=int, default=None, help="ICP-like passes (paper Table 'with iteration')")
+    p.add_argument("--far-points", choices=FAR_POINTS, default="prnet",
+                   help="partial views: prnet = the paper's far points near the diagonal; sphere = in a random "
+                        "direction for each cloud; mixed = one of the two per pair")
     p.add_argument("--backend", choices=("ext", "torch"), default="ext")
     p.add_argument("--device", default="cpu")
     p.add_argument("--json", default=None, help="output JSON path (default: next to the checkpoint)")
@@ -212,13 +217,15 @@ def _run_eval(args) -> int:
         model.config.iterations = args.iterations
     # the paper's protocol unless the checkpoint says otherwise (shipped weights carry no data path)
     setting, split = args.setting or cfg.get("setting", "PV"), args.split or cfg.get("split", "UPC")
-    spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768))
+    spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768),
+                    far_points=args.far_points)
     data = ModelNet40Pairs(args.data_dir or cfg.get("data_dir"), partition="test", setting=setting, split=split,
                            max_items=args.max_items, seed=cfg.get("seed", 1234), spec=spec)
     model.to(args.device)
     result = evaluate(model, data, args.batch_size, args.device, args.backend)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
-    result.update(setting=setting, split=split, checkpoint=str(args.checkpoint), iterations=model.config.iterations)
+    result.update(setting=setting, split=split, far_points=args.far_points, checkpoint=str(args.checkpoint),
+                  iterations=model.config.iterations)
     print(format_table({k: v for k, v in result.items() if isinstance(v, (int, float))}, f"VRNet {setting} {split}"))
     out = Path(args.json) if args.json else Path(args.checkpoint).with_name(f"eval_{setting}_{split}.json".replace("+", ""))
     _write_json(out, result)

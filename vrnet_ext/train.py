@@ -74,7 +74,7 @@ class _Run:
 
 
 def _datasets(cfg: TrainConfig):
-    spec = dict(num_points=cfg.num_points, num_subsampled=cfg.num_subsampled)
+    spec = dict(num_points=cfg.num_points, num_subsampled=cfg.num_subsampled, far_points=cfg.far_points)
     common = dict(root=cfg.data_dir, setting=cfg.setting, split=cfg.split, val_fraction=cfg.val_fraction,
                   classes=cfg.classes, seed=cfg.seed)
     train = ModelNet40Pairs(partition="train", max_items=cfg.max_train_items, spec=PairSpec(**spec), **common)

@@ -5,7 +5,9 @@
   translation uniform in [-0.5, 0.5] per axis. ``tgt = R src + t``.
 * Settings (crops are taken in each cloud's own frame, independently):
   CO all points; PV the ``num_subsampled`` points nearest to a random far point
-  (PRNet: U[0,1]^3 + 500 s (1,1,1), s in {1,-1} for the source and {1,-1,2,-2} for the target);
+  (``far_points="prnet"``, the paper's: U[0,1]^3 + 500 s (1,1,1), s in {1,-1} for the source and
+  {1,-1,2,-2} for the target, so every view looks along the diagonal; ``"sphere"``: 500 times a
+  uniformly random direction, drawn for each cloud; ``"mixed"``: one of the two per pair, at random);
   RS ``num_subsampled`` random points per cloud; PV+RS first ``pvrs_presample`` random points,
   then the PV crop of those.
 * Both clouds are shuffled; ``gt_idx[i]`` is the row of the target holding source point i's
@@ -20,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 SETTINGS = ("CO", "PV", "RS", "PV+RS")
+FAR_POINTS = ("prnet", "sphere", "mixed")
 
 
 @dataclass
@@ -31,8 +34,11 @@ class PairSpec:
     pvrs_presample: int | None = None  # PV+RS random pre-sample; default 896/1024 of num_points
     max_angle_deg: float = 45.0
     max_translation: float = 0.5
+    far_points: str = "prnet"  # where PV's far points lie: see the module docstring
 
     def __post_init__(self) -> None:
+        if self.far_points not in FAR_POINTS:
+            raise ValueError(f"far_points must be one of {FAR_POINTS}, got {self.far_points!r}")
         if self.pvrs_presample is None:
             self.pvrs_presample = max(self.num_subsampled, round(self.num_points * 896 / 1024))
         if self.setting not in SETTINGS:
@@ -53,24 +59,32 @@ def random_motion(rng: np.random.Generator, max_angle_deg: float, max_translatio
     return rotation, translation, np.rad2deg([az, ay, ax])
 
 
-def nearest_to_far_point(points: np.ndarray, count: int, rng: np.random.Generator, scales) -> np.ndarray:
-    """Indices of the ``count`` points nearest to a random far point (PRNet partial view)."""
-    far = rng.random(3) + 500.0 * rng.choice(scales)
+def far_point(rng: np.random.Generator, scheme: str, scales) -> np.ndarray:
+    """A far point of a partial view (3,): PRNet's near the diagonal (``scales`` of it), or 500 times a
+    uniformly random direction (``scheme="sphere"``)."""
+    if scheme == "sphere":
+        direction = rng.standard_normal(3)
+        return 500.0 * direction / max(float(np.linalg.norm(direction)), 1e-12)
+    return rng.random(3) + 500.0 * rng.choice(scales)
+
+
+def nearest_to_far_point(points: np.ndarray, count: int, far: np.ndarray) -> np.ndarray:
+    """Indices of the ``count`` points nearest to ``far`` (a partial view), in ascending order."""
     d2 = ((points - far) ** 2).sum(axis=1)
     return np.sort(np.argpartition(d2, count - 1)[:count])
 
 
-def select(points: np.ndarray, spec: PairSpec, rng: np.random.Generator, scales) -> np.ndarray:
-    """Indices kept by the setting's crop, in ascending order."""
+def select(points: np.ndarray, spec: PairSpec, rng: np.random.Generator, scales, scheme: str) -> np.ndarray:
+    """Indices kept by the setting's crop, in ascending order (``scheme``: "prnet" or "sphere")."""
     n = points.shape[0]
     if spec.setting == "CO":
         return np.arange(n)
     if spec.setting == "RS":
         return np.sort(rng.choice(n, spec.num_subsampled, replace=False))
     if spec.setting == "PV":
-        return nearest_to_far_point(points, spec.num_subsampled, rng, scales)
+        return nearest_to_far_point(points, spec.num_subsampled, far_point(rng, scheme, scales))
     pre = np.sort(rng.choice(n, spec.pvrs_presample, replace=False))
-    return pre[nearest_to_far_point(points[pre], spec.num_subsampled, rng, scales)]
+    return pre[nearest_to_far_point(points[pre], spec.num_subsampled, far_point(rng, scheme, scales))]
 
 
 def jitter(points: np.ndarray, rng: np.random.Generator, sigma: float = 0.01, clip: float = 0.05) -> np.ndarray:
@@ -83,8 +97,9 @@ def make_pair(base: np.ndarray, spec: PairSpec, rng: np.random.Generator) -> dic
         base = base[np.sort(rng.choice(base.shape[0], spec.num_points, replace=False))]
     rotation, translation, euler = random_motion(rng, spec.max_angle_deg, spec.max_translation)
     moved = base @ rotation.T + translation
-    src_keep = select(base, spec, rng, scales=(1, -1))
-    tgt_keep = select(moved, spec, rng, scales=(1, -1, 2, -2))
+    scheme = spec.far_points if spec.far_points != "mixed" else ("prnet", "sphere")[int(rng.integers(2))]
+    src_keep = select(base, spec, rng, (1, -1), scheme)
+    tgt_keep = select(moved, spec, rng, (1, -1, 2, -2), scheme)
     src_keep = src_keep[rng.permutation(src_keep.size)]
     tgt_keep = tgt_keep[rng.permutation(tgt_keep.size)]
     row_in_tgt = np.full(base.shape[0], -1, dtype=np.int64)
