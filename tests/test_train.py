@@ -193,3 +193,5 @@ def test_freeze_confidence_trains_the_offsets_only():
     assert {id(p) for p in params} == {id(p) for p in model.walk.parameters()}
     with pytest.raises(ValueError, match="freeze_confidence needs walk_confidence_trunk"):
         TrainConfig.from_preset("tiny", freeze_confidence=True)
+    with pytest.raises(ValueError, match="loss_motion must be >= 0"):
+        TrainConfig.from_preset("tiny", loss_motion=-1.0)

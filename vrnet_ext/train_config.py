@@ -137,6 +137,8 @@ class TrainConfig:
             raise ValueError(f"loss_l4_form must be one of {L4_FORMS}, got {self.loss_l4_form!r}")
         if not self.checkpoint_minutes > 0:
             raise ValueError(f"checkpoint_minutes must be > 0, got {self.checkpoint_minutes}")
+        if not self.loss_motion >= 0:
+            raise ValueError(f"loss_motion must be >= 0, got {self.loss_motion}")
         if self.freeze_confidence and not self.model.get("walk_confidence_trunk"):
             raise ValueError("freeze_confidence needs walk_confidence_trunk (a confidence MLP of its own)")
 
