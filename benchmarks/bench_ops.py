@@ -91,6 +91,15 @@ def _edge_conv_case(B, C, O, N, k):
     return Case("EdgeConv", f"{C}->{O} train fwd+bwd B={B} N={N} k={k}", make, impls)
 
 
+def _edge_norm_max_case(B, O, N, k):
+    def make():
+        projections = _clouds(B, 2 * O, N).requires_grad_()
+        idx = torch.randint(0, N, (B, N, k), generator=torch.Generator().manual_seed(1))
+        return projections, idx, torch.ones(O, requires_grad=True), torch.zeros(O, requires_grad=True)
+    impls = {b: _fwd_bwd(lambda p, i, w, bias, b=b: ops.edge_norm_max(p, i, w, bias, backend=b)) for b in ("ext", "torch")}
+    return Case("edge_norm_max", f"batch stats fwd+bwd B={B} O={O} N={N} k={k}", make, impls)
+
+
 def _graph_case(op, fn, B, C, N, k):
     def make():
         x = _clouds(B, C, N).requires_grad_()
@@ -276,6 +285,7 @@ def all_cases(device: str = "cpu") -> list[Case]:
         _knn_case(8, 4096, 64, 20, quick=False),
         _graph_case("edge_features", lambda x, i, b: ops.edge_features(x, i, backend=b), 8, 64, 1024, 20),
         _graph_case("gather_reduce", lambda x, i, b: ops.gather_reduce(x, i, "max", backend=b), 8, 64, 1024, 20),
+        _edge_norm_max_case(8, 64, 1024, 20),
         _edge_conv_case(8, 64, 64, 1024, 20),
         _svd_case(65536),
         _kabsch_case(65536, 16),
@@ -321,6 +331,23 @@ def _time(fn, inputs, repeats: int, device: str) -> float:
             end.synchronize()
             times.append(begin.elapsed_time(end) / 1000.0)
     return statistics.median(times)
+
+
+def _time_threads(fn, inputs, repeats: int, thread_counts: tuple[int, ...]) -> dict[int, float]:
+    """CPU medians of fn(*inputs) at each intra-op thread count, the counts taking turns call by
+    call (so a change in the machine's load between calls hits every count alike)."""
+    times: dict[int, list[float]] = {n: [] for n in thread_counts}
+    for n in thread_counts:  # warm-up at each count
+        torch.set_num_threads(n)
+        fn(*inputs)
+    for _ in range(repeats):
+        for n in thread_counts:
+            torch.set_num_threads(n)
+            start = time.perf_counter()
+            fn(*inputs)
+            times[n].append(time.perf_counter() - start)
+    torch.set_num_threads(thread_counts[0])
+    return {n: statistics.median(t) for n, t in times.items()}
 
 
 def cuda_peak_mb(fn, inputs) -> float:
@@ -388,7 +415,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where inputs live (default cpu)")
     parser.add_argument("--beside-busy", action="store_true",
                         help="time while another process keeps one core busy (a shared machine, a DDP rank, a "
-                             "data-loader worker); compare --threads 2 with --threads 1 under it")
+                             "data-loader worker); the compiled ops also run at 1 thread, the two counts taking turns "
+                             "call by call (impl 'ext, 1 thread')")
+    parser.add_argument("--repeats", type=int, default=None, help="timed calls per cell (default 7, 3 with --quick)")
     parser.add_argument("--measure-memory", nargs=3, metavar=("OP", "CASE", "IMPL"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     busy = None
@@ -413,7 +442,7 @@ def _run(args) -> None:
         return
     selected = [c for c in cases if (c.quick or not args.quick)
                 and (args.only is None or c.op in args.only.split(","))]
-    repeats = 3 if args.quick else 7
+    repeats = args.repeats or (3 if args.quick else 7)
     records = []
     for case in selected:
         inputs = to_device(case.make_inputs(), args.device)
@@ -422,6 +451,11 @@ def _run(args) -> None:
             record = {"op": case.op, "case": case.name, "impl": impl, "median_s": None, "peak_mb": None}
             if reason:
                 record["skipped"] = reason
+            elif impl == "ext" and args.beside_busy and args.device == "cpu" and args.threads != 1:
+                medians = _time_threads(fn, inputs, repeats, (args.threads, 1))
+                record["median_s"] = medians[args.threads]
+                records.append({"op": case.op, "case": case.name, "impl": "ext, 1 thread", "median_s": medians[1],
+                                "peak_mb": None})
             else:
                 record["median_s"] = _time(fn, inputs, repeats, args.device)
                 if not args.no_memory:

@@ -11,6 +11,8 @@ TORCH_LIBRARY(vrnet_ext, m) {
   m.def("edge_features_backward(Tensor grad_out, Tensor idx, int num_points) -> Tensor");
   m.def("gather_reduce(Tensor values, Tensor idx, str reduce) -> (Tensor, Tensor)");
   m.def("gather_reduce_backward(Tensor grad_out, Tensor idx, Tensor arg, str reduce, int num_values) -> Tensor");
+  m.def("edge_norm_max(Tensor projections, Tensor idx, Tensor? weight, Tensor? bias, Tensor? running_mean, Tensor? running_var, float eps, float negative_slope) -> (Tensor, Tensor, Tensor, Tensor)");
+  m.def("edge_norm_max_backward(Tensor grad_out, Tensor projections, Tensor idx, Tensor arg, Tensor? weight, Tensor? bias, Tensor mean, Tensor var, bool batch_stats, float eps, float negative_slope) -> (Tensor, Tensor, Tensor)");
   m.def("svd3x3(Tensor A) -> (Tensor, Tensor, Tensor)");
   m.def("svd3x3_backward(Tensor grad_U, Tensor grad_S, Tensor grad_V, Tensor U, Tensor S, Tensor V) -> Tensor");
   m.def("kabsch(Tensor src, Tensor tgt, Tensor weights) -> (Tensor, Tensor)");

@@ -123,6 +123,41 @@ def check_gather_reduce(values, idx, reduce):
 
 
 @st.composite
+def edge_norm_max_case(draw):
+    """Projections (B, 2O, N) from the cloud strategy (offsets, scales, coincident values), a graph
+    into the same N points, BN parameters of either sign, batch or running statistics."""
+    values = draw(clouds(channels=[2, 4, 16])).transpose(1, 2)  # (B, 2O, N)
+    B, _, N = values.shape
+    k = draw(st.integers(1, 8))
+    g = torch.Generator().manual_seed(draw(st.integers(0, 2**31 - 1)))
+    idx = torch.randint(0, N, (B, N, k), generator=g)
+    O = values.shape[1] // 2
+    weight = (torch.rand(O, generator=g, dtype=torch.float64) * 4 - 2).to(values.dtype)
+    bias = torch.randn(O, generator=g, dtype=torch.float64).to(values.dtype)
+    running = None
+    if draw(st.booleans()) or B * N * k == 1:
+        running = (values[:, :O].mean(dim=(0, 2)) + values[:, O:].mean(dim=(0, 2)), torch.rand(O, generator=g, dtype=torch.float64).to(values.dtype) + 0.1)
+    return values, idx, weight, bias, running
+
+
+def check_edge_norm_max(projections, idx, weight, bias, running):
+    from vrnet_ext.ops.edge_norm_max import edge_norm_max_reference
+
+    stats = running or (None, None)
+    out, mean, var = ops.edge_norm_max(projections, idx, weight, bias, *stats)
+    wide = [t.double() if t is not None else None for t in (projections, weight, bias, *stats)]
+    expected, expected_mean, expected_var = edge_norm_max_reference(wide[0], idx, *wide[1:])
+    # float32 storage of a value of size |v| is off by |v| eps; normalised, that is |v| eps |w| / sqrt(var + eps)
+    spread = float(projections.double().abs().amax()) + float(expected_mean.abs().amax())
+    gain = float(weight.double().abs().amax() / (expected_var.amin() + 1e-5).sqrt())
+    tolerance = 64 * idx.shape[2] * EPS[projections.dtype] * (spread * gain + float(bias.double().abs().amax()) + 1)
+    assert float((out.double() - expected).abs().max()) <= tolerance
+    assert float((mean.double() - expected_mean).abs().max()) <= 64 * EPS[projections.dtype] * spread
+    assert float((var.double() - expected_var).abs().max()) <= 64 * EPS[projections.dtype] * (
+        spread * spread + float(expected_var.amax()))
+
+
+@st.composite
 def matrices(draw):
     dtype = draw(st.sampled_from([torch.float32, torch.float64]))
     B = draw(st.integers(1, 20))
@@ -218,6 +253,8 @@ MALFORMED = [
     lambda: ops.edge_features(torch.randn(2, 3, 5), torch.zeros(2, 5, 2)),
     lambda: ops.gather_reduce(torch.randn(2, 3, 5), torch.zeros(2, 4, 2, dtype=torch.long), "median"),
     lambda: ops.gather_reduce(torch.randn(2, 3, 0), torch.zeros(2, 4, 2, dtype=torch.long)),
+    lambda: ops.edge_norm_max(torch.randn(2, 3, 5), torch.zeros(2, 5, 2, dtype=torch.long)),
+    lambda: ops.edge_norm_max(torch.randn(2, 4, 5), torch.zeros(2, 5, 2, dtype=torch.long), torch.ones(3)),
     lambda: ops.svd3x3(torch.randn(2, 3, 4)),
     lambda: ops.svd3x3(torch.full((2, 3, 3), float("inf"))),
     lambda: ops.kabsch(torch.randn(2, 2, 3), torch.randn(2, 2, 3)),
@@ -324,6 +361,7 @@ def run_checkpoints(examples: int) -> None:
 OPS = {
     "knn": (knn_case(), check_knn),
     "gather_reduce": (graph_case(), check_gather_reduce),
+    "edge_norm_max": (edge_norm_max_case(), check_edge_norm_max),
     "svd3x3": (matrices().map(lambda A: (A,)), check_svd3x3),
     "kabsch": (kabsch_case(), check_kabsch),
     "pairwise_distance_loss": (pdl_case(), check_pairwise_distance_loss),

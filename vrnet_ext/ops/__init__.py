@@ -1,6 +1,7 @@
 """Public ops. Each takes ``backend="ext"`` (compiled kernel, the default) or ``"torch"``
 (the pure-PyTorch reference, same signature)."""
 from vrnet_ext.ops.edge_features import edge_features
+from vrnet_ext.ops.edge_norm_max import edge_norm_max
 from vrnet_ext.ops.fpfh import fpfh
 from vrnet_ext.ops.gather_reduce import gather_reduce
 from vrnet_ext.ops.kabsch import kabsch
@@ -11,5 +12,5 @@ from vrnet_ext.ops.soft_match import soft_match
 from vrnet_ext.ops.svd3x3 import svd3x3
 from vrnet_ext.ops.voxel_downsample import voxel_downsample
 
-__all__ = ["knn", "edge_features", "gather_reduce", "svd3x3", "kabsch", "pairwise_distance_loss", "soft_match",
+__all__ = ["knn", "edge_features", "gather_reduce", "edge_norm_max", "svd3x3", "kabsch", "pairwise_distance_loss", "soft_match",
            "normals", "fpfh", "voxel_downsample"]

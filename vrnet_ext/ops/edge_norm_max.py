@@ -1,0 +1,187 @@
+"""EdgeConv's tail after its one projection: BatchNorm over the edges, LeakyReLU, max over neighbours.
+
+``projections`` (B, 2O, N) holds ``a = W1 x`` in its first O channels and ``b = (W2 - W1) x`` in
+its last O, so edge (n, j) of the graph ``idx`` (B, N, k) has the value ``z = a[idx[n, j]] + b[n]``
+(DGCNN's ``W [x_j - x_i; x_i]``). The op returns
+
+    out[b, o, n] = leaky_relu(max_j (weight_o * (z - mean_o) / sqrt(var_o + eps) + bias_o))
+
+with the statistics of the (B, N, k) edges of each channel (batch statistics, biased variance), or
+``running_mean`` / ``running_var`` when given, without the (B, O, N, k) edge tensor: per channel
+the normalisation and the LeakyReLU are monotone, so the max over j is taken of ``a`` where
+``weight_o >= 0`` and the min where it is negative; the batch statistics follow from per-point sums.
+
+Three implementations: the compiled CPU kernel (two or three parallel regions per call with tasks
+the threads claim, so it keeps its speed beside a busy process; it reads ``projections`` fastest
+point-major, i.e. stored as (B, N, 2O), and returns point-major outputs), a composite of
+``gather_reduce`` calls for devices without that kernel (closed-form statistics, no edge tensor
+either), and the materialising reference.
+"""
+from __future__ import annotations
+
+import torch
+from torch.nn import functional as F
+
+from vrnet_ext._extension import has_extension, use_extension
+from vrnet_ext.ops._checks import check_float, float32_region, promote_low_precision
+from vrnet_ext.ops.edge_features import gather_neighbours, validate_graph
+from vrnet_ext.ops.gather_reduce import gather_reduce
+
+EdgeNormMaxResult = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def _validate(projections: torch.Tensor, idx: torch.Tensor, channel_tensors: dict[str, torch.Tensor | None],
+              eps: float) -> None:
+    validate_graph(projections, idx, "projections")
+    if projections.shape[1] % 2 or projections.shape[1] == 0:
+        raise ValueError("projections must have shape (B, 2O, N) (neighbour terms, then centre terms), "
+                         f"got {tuple(projections.shape)}")
+    if idx.shape[1] != projections.shape[2]:
+        raise ValueError(f"idx must have shape (B, N, k) with N = {projections.shape[2]}, got {tuple(idx.shape)}")
+    if (channel_tensors["running_mean"] is None) != (channel_tensors["running_var"] is None):
+        raise ValueError("running_mean and running_var must be given together")
+    if not (eps > 0 and eps < float("inf")):
+        raise ValueError(f"eps must be a finite number > 0, got {eps}")
+    for name, t in channel_tensors.items():
+        if t is not None:
+            check_float(t, name)
+            if t.shape != (projections.shape[1] // 2,):
+                raise ValueError(f"{name} must have shape ({projections.shape[1] // 2},), got {tuple(t.shape)}")
+            if t.device != projections.device:
+                raise ValueError(f"{name} is on {t.device} but projections is on {projections.device}")
+    if channel_tensors["running_mean"] is None and idx.numel() <= 1:
+        raise ValueError(f"batch statistics need more than one edge per channel, got idx of shape {tuple(idx.shape)}")
+
+
+def _normalise(z: torch.Tensor, mean: torch.Tensor, var: torch.Tensor, weight: torch.Tensor | None,
+               bias: torch.Tensor | None, eps: float) -> torch.Tensor:
+    """z (B, O, ...) -> weight * (z - mean) / sqrt(var + eps) + bias, per channel."""
+    shape = (1, -1) + (1,) * (z.dim() - 2)
+    scale = torch.rsqrt(var + eps)
+    if weight is not None:
+        scale = scale * weight
+    out = (z - mean.view(shape)) * scale.view(shape)
+    return out + bias.view(shape) if bias is not None else out
+
+
+def edge_norm_max_reference(projections: torch.Tensor, idx: torch.Tensor, weight: torch.Tensor | None = None,
+                            bias: torch.Tensor | None = None, running_mean: torch.Tensor | None = None,
+                            running_var: torch.Tensor | None = None, eps: float = 1e-5,
+                            negative_slope: float = 0.2) -> EdgeNormMaxResult:
+    """Pure PyTorch on the materialised (B, O, N, k) edge tensor."""
+    channels = projections.shape[1] // 2
+    z = gather_neighbours(projections[:, :channels], idx) + projections[:, channels:].unsqueeze(-1)
+    if running_mean is None:
+        var, mean = torch.var_mean(z, dim=(0, 2, 3), correction=0)
+    else:
+        mean, var = running_mean, running_var
+    out = F.leaky_relu(_normalise(z, mean, var, weight, bias, eps), negative_slope)
+    return out.max(dim=-1).values, mean, var
+
+
+def _edge_norm_max_composite(projections: torch.Tensor, idx: torch.Tensor, weight: torch.Tensor | None,
+                             bias: torch.Tensor | None, running_mean: torch.Tensor | None,
+                             running_var: torch.Tensor | None, eps: float, negative_slope: float) -> EdgeNormMaxResult:
+    """For devices without the fused kernel: ``gather_reduce`` calls and closed-form statistics.
+
+    With ``deg[m]`` the in-degree of point m and ``s[n] = sum_j a[idx[n, j]]``,
+    ``sum z = sum_n (s[n] + k b[n])`` and ``sum z^2 = sum_m deg[m] a[m]^2 + 2 sum_n b[n] s[n] + k sum_n b[n]^2``
+    (about detached shifts, which leave the variance and its gradient unchanged and avoid cancellation).
+    """
+    channels = projections.shape[1] // 2
+    a, b = projections[:, :channels], projections[:, channels:]
+    if running_mean is None:
+        B, N, k = idx.shape
+        count = B * N * k
+        a_shift = a.detach().mean(dim=(0, 2), keepdim=True)
+        b_shift = b.detach().mean(dim=(0, 2), keepdim=True)
+        a_c, b_c = a - a_shift, b - b_shift
+        degree = torch.zeros(B, 1, N, dtype=a.dtype, device=a.device)
+        degree.scatter_add_(2, idx.reshape(B, 1, N * k), torch.ones(B, 1, N * k, dtype=a.dtype, device=a.device))
+        neighbour_sum = gather_reduce(a_c, idx, "sum")
+        total = neighbour_sum.sum(dim=(0, 2)) + k * b_c.sum(dim=(0, 2))
+        total_sq = ((degree * a_c.square()).sum(dim=(0, 2)) + 2 * (b_c * neighbour_sum).sum(dim=(0, 2))
+                    + k * b_c.square().sum(dim=(0, 2)))
+        mean_c = total / count
+        var = (total_sq / count - mean_c.square()).clamp_min(0)
+        mean = mean_c + (a_shift + b_shift).flatten()
+    else:
+        mean, var = running_mean, running_var
+    direction = torch.ones(channels, dtype=a.dtype, device=a.device)
+    if weight is not None:
+        direction = torch.where(weight.detach() >= 0, 1.0, -1.0).to(a.dtype)
+    direction = direction.view(1, -1, 1)
+    extreme = direction * gather_reduce(a * direction, idx, "max")
+    return F.leaky_relu(_normalise(extreme + b, mean, var, weight, bias, eps), negative_slope), mean, var
+
+
+def edge_norm_max(projections: torch.Tensor, idx: torch.Tensor, weight: torch.Tensor | None = None,
+                  bias: torch.Tensor | None = None, running_mean: torch.Tensor | None = None,
+                  running_var: torch.Tensor | None = None, eps: float = 1e-5, negative_slope: float = 0.2,
+                  backend: str = "ext") -> EdgeNormMaxResult:
+    """BatchNorm over the edges of a kNN graph, LeakyReLU, max over each point's neighbours.
+
+    Args:
+        projections: (B, 2O, N): ``W1 x`` in channels [0, O), ``(W2 - W1) x`` in [O, 2O)
+            (bfloat16/float16 are promoted to float32).
+        idx: (B, N, k) int64 neighbour indices into the N points.
+        weight, bias: (O,) BatchNorm affine parameters, or None (1 and 0).
+        running_mean, running_var: (O,) statistics to normalise with, or None for the batch
+            statistics of the B * N * k edges (then more than one edge is needed).
+        eps: added to the variance; negative_slope: of the LeakyReLU.
+        backend: ``"ext"`` or ``"torch"``.
+
+    Returns:
+        out (B, O, N) and the per-channel mean and biased variance (O,) it normalised with (for a
+        running-statistics update; not differentiable). ``weight`` and ``bias`` (and projections) get
+        gradients; the max routes them to the first neighbour holding it.
+    """
+    projections = promote_low_precision(projections)
+    channel_tensors = {"weight": weight, "bias": bias, "running_mean": running_mean, "running_var": running_var}
+    _validate(projections, idx, channel_tensors, eps)
+    weight, bias, running_mean, running_var = (
+        None if t is None else t.to(projections.dtype) for t in channel_tensors.values())
+    args = (projections, idx, weight, bias, running_mean, running_var, float(eps), float(negative_slope))
+    if use_extension(backend, projections.device) and projections.device.type == "cpu":  # no CUDA kernel yet
+        out, mean, var, _ = torch.ops.vrnet_ext.edge_norm_max(*args)
+        return out, mean, var
+    with float32_region(projections):
+        if use_extension(backend, projections.device):
+            return _edge_norm_max_composite(*args)
+        return edge_norm_max_reference(*args)
+
+
+if has_extension():
+
+    @torch.library.register_fake("vrnet_ext::edge_norm_max")
+    def _edge_norm_max_fake(projections, idx, weight, bias, running_mean, running_var, eps, negative_slope):
+        B, O, N = projections.shape[0], projections.shape[1] // 2, projections.shape[2]
+        # point-major like the kernel's: (B, N, O) storage seen as (B, O, N)
+        return (projections.new_empty((B, N, O)).mT, projections.new_empty((O,)), projections.new_empty((O,)),
+                projections.new_empty((B, N, O), dtype=torch.int32).mT)
+
+    @torch.library.register_fake("vrnet_ext::edge_norm_max_backward")
+    def _edge_norm_max_backward_fake(grad_out, projections, idx, arg, weight, bias, mean, var, batch_stats, eps,
+                                     negative_slope):
+        channels = projections.shape[1] // 2
+        return (projections.new_empty((projections.shape[0], projections.shape[2], 2 * channels)).mT,
+                projections.new_empty((channels,)), projections.new_empty((channels,)))
+
+    def _edge_norm_max_setup_context(ctx, inputs, output):
+        projections, idx, weight, bias, running_mean, _, eps, negative_slope = inputs
+        _, mean, var, arg = output
+        ctx.mark_non_differentiable(mean, var, arg)
+        ctx.save_for_backward(projections, idx, arg, weight, bias, mean, var)
+        ctx.batch_stats = running_mean is None
+        ctx.eps, ctx.negative_slope = eps, negative_slope
+
+    def _edge_norm_max_backward(ctx, grad_out, _grad_mean, _grad_var, _grad_arg):
+        projections, idx, arg, weight, bias, mean, var = ctx.saved_tensors
+        grad_projections, grad_weight, grad_bias = torch.ops.vrnet_ext.edge_norm_max_backward(
+            grad_out, projections, idx, arg, weight, bias, mean, var, ctx.batch_stats, ctx.eps, ctx.negative_slope)
+        return (grad_projections, None, grad_weight if weight is not None else None,
+                grad_bias if bias is not None else None, None, None, None, None)
+
+    torch.library.register_autograd(
+        "vrnet_ext::edge_norm_max", _edge_norm_max_backward, setup_context=_edge_norm_max_setup_context
+    )
