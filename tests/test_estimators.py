@@ -6,8 +6,10 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from vrnet_ext.data.procedural import room_scan
+from vrnet_ext.ops.normals import neighbourhood
 from vrnet_ext.registration import icp, transform_errors
-from vrnet_ext.registration.estimators import ESTIMATORS, make_estimator, se3_exp
+from vrnet_ext.registration.estimators import (ESTIMATORS, PLANE_FLATNESS, gauss_newton_step, make_estimator,
+                                               plane_covariances, se3_exp, symmetric_inverse)
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +42,36 @@ def test_se3_exp_matches_rodrigues():
     np.testing.assert_allclose(T[:3, :3].numpy(), Rotation.from_rotvec(xi[:3].numpy()).as_matrix(), atol=1e-12)
     tiny = se3_exp(torch.tensor([0, 0, 0, 1.0, 2.0, 3.0], dtype=torch.float64))
     np.testing.assert_allclose(tiny[:3, 3].numpy(), [1.0, 2.0, 3.0])
+
+
+def test_symmetric_inverse_matches_lapack():
+    A = torch.randn(500, 3, 3, dtype=torch.float64)
+    M = A @ A.mT + 1e-3 * torch.eye(3, dtype=torch.float64)  # down to badly conditioned
+    torch.testing.assert_close(symmetric_inverse(M), torch.linalg.inv(M), rtol=1e-8, atol=1e-8)
+
+
+def test_plane_covariances_flatten_the_local_covariance():
+    """Eigenvectors of each point's covariance (itself + neighbours), eigenvalues (eps, 1, 1)."""
+    torch.manual_seed(0)
+    points = torch.randn(300, 3, dtype=torch.float64) * torch.tensor([1.0, 1.0, 0.05], dtype=torch.float64)
+    _, idx = neighbourhood(points, 10)
+    around = torch.cat([points[:, None], points[idx]], dim=1)
+    centred = around - around.mean(dim=1, keepdim=True)
+    vectors = torch.linalg.eigh(centred.mT @ centred)[1]
+    scale = torch.tensor([PLANE_FLATNESS, 1.0, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(plane_covariances(points, 10),
+                               vectors @ torch.diag_embed(scale.expand(300, 3)) @ vectors.mT, rtol=1e-7, atol=1e-7)
+
+
+def test_gauss_newton_with_information_equals_whitened_step():
+    torch.manual_seed(1)
+    J, residual, weights = torch.randn(50, 3, 6, dtype=torch.float64), torch.randn(50, 3, dtype=torch.float64), torch.rand(50, dtype=torch.float64)
+    A = torch.randn(50, 3, 3, dtype=torch.float64)
+    information = A @ A.mT + torch.eye(3, dtype=torch.float64)
+    L = torch.linalg.cholesky(information).mT  # L^T L = information
+    T = se3_exp(torch.tensor([0.1, -0.2, 0.05, 0.3, 0.0, -0.1], dtype=torch.float64))
+    whitened = gauss_newton_step(L @ J, (L @ residual[..., None])[..., 0], weights, T)
+    torch.testing.assert_close(gauss_newton_step(J, residual, weights, T, information), whitened)
 
 
 def test_unknown_estimator_names_the_argument():
