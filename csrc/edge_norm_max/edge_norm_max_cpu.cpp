@@ -13,7 +13,6 @@
 // Regions: training forward 2 (statistics + extremes, then the output), 1 with running statistics;
 // backward 3 (reverse graph + gradient sums, then the input gradient).
 #include <ATen/ops/empty.h>
-#include <ATen/ops/zeros.h>
 #include <torch/library.h>
 
 #include <cstring>
