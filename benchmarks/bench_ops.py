@@ -420,6 +420,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per cell (default 7, 3 with --quick)")
     parser.add_argument("--measure-memory", nargs=3, metavar=("OP", "CASE", "IMPL"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.repeats is not None and args.repeats < 1:
+        parser.error(f"--repeats must be >= 1, got {args.repeats}")
     busy = None
     if args.beside_busy:
         busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])

@@ -47,6 +47,7 @@ def test_matches_reference_and_composite(device, dtype, running, affine, B, O, N
                 assert g is None, name
                 continue
             torch.testing.assert_close(g, e, **tolerance(dtype), msg=lambda m: f"{impl.__name__} {name}: {m}")
+        assert not any(t.requires_grad for t in (got[1], got[2], expected[1], expected[2]))  # statistics, every path
 
 
 @requires_ext

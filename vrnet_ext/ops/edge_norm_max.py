@@ -76,7 +76,7 @@ def edge_norm_max_reference(projections: torch.Tensor, idx: torch.Tensor, weight
     else:
         mean, var = running_mean, running_var
     out = F.leaky_relu(_normalise(z, mean, var, weight, bias, eps), negative_slope)
-    return out.max(dim=-1).values, mean, var
+    return out.max(dim=-1).values, mean.detach(), var.detach()
 
 
 def _edge_norm_max_composite(projections: torch.Tensor, idx: torch.Tensor, weight: torch.Tensor | None,
@@ -112,7 +112,8 @@ def _edge_norm_max_composite(projections: torch.Tensor, idx: torch.Tensor, weigh
         direction = torch.where(weight.detach() >= 0, 1.0, -1.0).to(a.dtype)
     direction = direction.view(1, -1, 1)
     extreme = direction * gather_reduce(a * direction, idx, "max")
-    return F.leaky_relu(_normalise(extreme + b, mean, var, weight, bias, eps), negative_slope), mean, var
+    out = F.leaky_relu(_normalise(extreme + b, mean, var, weight, bias, eps), negative_slope)
+    return out, mean.detach(), var.detach()
 
 
 def edge_norm_max(projections: torch.Tensor, idx: torch.Tensor, weight: torch.Tensor | None = None,
