@@ -28,8 +28,11 @@ def _want_cuda() -> bool:
 
 
 def _extension():
-    cpp_sources = sorted(glob.glob(os.path.join("csrc", "**", "*.cpp"), recursive=True))
-    cuda_sources = sorted(glob.glob(os.path.join("csrc", "**", "*.cu"), recursive=True))
+    # csrc/cuda_emu is the CPU emulator of the CUDA kernels, built only by the tests (tests/cuda_emu).
+    sources = [p for p in glob.glob(os.path.join("csrc", "**", "*.*"), recursive=True)
+               if not p.startswith(os.path.join("csrc", "cuda_emu", ""))]
+    cpp_sources = sorted(p for p in sources if p.endswith(".cpp"))
+    cuda_sources = sorted(p for p in sources if p.endswith(".cu"))
     # -ffp-contract=off: no fused multiply-adds behind our back, so the CPU kernels round exactly as
     # written (the CUDA kNN rounds the same way with __fadd_rn/__fmul_rn; tests compare them bit for bit).
     cxx_flags = ["-O3", "-fopenmp", "-ffp-contract=off", "-DTORCH_ASSERT_ONLY_METHOD_OPERATORS"]

@@ -60,3 +60,13 @@ def non_contiguous(t: torch.Tensor) -> torch.Tensor:
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)
+
+
+def pytest_terminal_summary(terminalreporter):
+    """After a run that executed the emulated CUDA kernels: which ran, how often, on how many cases."""
+    import sys
+
+    module = sys.modules.get("test_cuda_emulation")
+    if module is not None and hasattr(torch.ops.vrnet_ext_emu, "emu_stats"):
+        terminalreporter.section("CUDA kernels executed under the emulator")
+        terminalreporter.write_line(module.summary())

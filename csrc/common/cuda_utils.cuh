@@ -1,44 +1,52 @@
-// Helpers shared by the CUDA kernels: launch geometry, the current stream, warp reductions, exact
-// (never FMA-contracted) arithmetic for results that must match the CPU kernels bit for bit, and
+// Host side of the CUDA ops (the torch glue in csrc/<op>/<op>_cuda.cu): launch geometry, one launch
+// helper that takes tensors for the kernel's pointer parameters, the device guard and stream, and
 // the inverse of a neighbour graph used by every deterministic scatter-free backward.
+//
+// launch<kernel>(config, args...) is `kernel<<<grid, block, shared_bytes, stream>>>(args...)` under
+// nvcc, with each at::Tensor argument passed as its data pointer of the parameter's type. Under the
+// CPU emulator (VRNET_CUDA_EMULATION) the same call runs the kernel through cuda_emu, which checks
+// every access against those tensors' extents. VRNET_CUDA_IMPL registers the glue as the op's CUDA
+// kernel (vrnet_ext, CUDA) or, emulated, as a CPU op of the test library vrnet_ext_emu.
 #pragma once
 
 #include <ATen/ops/arange.h>
 #include <ATen/ops/searchsorted.h>
 #include <ATen/ops/sort.h>
-#include <c10/cuda/CUDAException.h>
-#include <c10/cuda/CUDAGuard.h>
-#include <c10/cuda/CUDAStream.h>
 
 #include <algorithm>
 #include <cstdint>
+#include <tuple>
+#include <type_traits>
+#include <utility>
 
 #include "common/common.h"
+#include "common/cuda_device.cuh"
+#include "common/kernel_args.h"
+
+#ifdef VRNET_CUDA_EMULATION
+#include "cuda_emu/launch.h"
+#define VRNET_CUDA_GUARD(tensor) ((void)0)
+#define VRNET_CUDA_IMPL(m) TORCH_LIBRARY_IMPL(vrnet_ext_emu, CPU, m)
+#else
+#include <c10/cuda/CUDAException.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#define VRNET_CUDA_GUARD(tensor) const c10::cuda::CUDAGuard vrnet_device_guard((tensor).device())
+#define VRNET_CUDA_IMPL(m) TORCH_LIBRARY_IMPL(vrnet_ext, CUDA, m)
+#endif
 
 namespace vrnet {
 
-constexpr int kThreads = 256;
-
-inline unsigned int blocks_for(int64_t work, int threads = kThreads) {
-  return static_cast<unsigned int>(std::max<int64_t>(1, (work + threads - 1) / threads));
-}
-
+#ifndef VRNET_CUDA_EMULATION
 inline cudaStream_t current_stream() { return c10::cuda::getCurrentCUDAStream().stream(); }
 
-// a + b and a * b rounded once each: nvcc would otherwise contract a * b + c into an FMA and the
-// results would differ from the CPU kernels in the last bit.
-__device__ inline float add_rn(float a, float b) { return __fadd_rn(a, b); }
-__device__ inline double add_rn(double a, double b) { return __dadd_rn(a, b); }
-__device__ inline float sub_rn(float a, float b) { return __fsub_rn(a, b); }
-__device__ inline double sub_rn(double a, double b) { return __dsub_rn(a, b); }
-__device__ inline float mul_rn(float a, float b) { return __fmul_rn(a, b); }
-__device__ inline double mul_rn(double a, double b) { return __dmul_rn(a, b); }
-
-// Sum over the 32 lanes of a warp; every lane gets the total (fixed order: deterministic).
-__device__ inline double warp_sum(double v) {
-  for (int offset = 16; offset > 0; offset >>= 1) v += __shfl_xor_sync(0xffffffffu, v, offset);
-  return v;
+template <auto Kernel, typename Params, typename... Args, std::size_t... I>
+void launch_indexed(const LaunchConfig& config, std::index_sequence<I...>, Args&&... args) {
+  Kernel<<<config.grid, config.block, config.shared_bytes, current_stream()>>>(
+      launch_detail::convert<std::tuple_element_t<I, Params>>(std::forward<Args>(args))...);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
+#endif
 
 // Inverse of a neighbour graph idx (B, N, k) with values in [0, M): for target m of batch b, the
 // flat positions p = n * k + j with idx[b, n, j] == m are order[b, row_ptr[b, m] : row_ptr[b, m + 1]],

@@ -4,10 +4,9 @@
 #include <string>
 
 #include "edge_features/edge_features.h"
+#include "gather_reduce/reduce.h"
 
 namespace vrnet {
-
-enum class Reduce { kMax, kMin, kSum, kMean };
 
 inline Reduce parse_reduce(c10::string_view name) {
   if (name == "max") return Reduce::kMax;

@@ -81,8 +81,11 @@ def edge_norm_max_reference(projections: torch.Tensor, idx: torch.Tensor, weight
 
 def _edge_norm_max_composite(projections: torch.Tensor, idx: torch.Tensor, weight: torch.Tensor | None,
                              bias: torch.Tensor | None, running_mean: torch.Tensor | None,
-                             running_var: torch.Tensor | None, eps: float, negative_slope: float) -> EdgeNormMaxResult:
+                             running_var: torch.Tensor | None, eps: float, negative_slope: float,
+                             gather=gather_reduce) -> EdgeNormMaxResult:
     """For devices without the fused kernel: ``gather_reduce`` calls and closed-form statistics.
+
+    ``gather`` is the gather_reduce to use (the tests pass the emulated CUDA kernels).
 
     With ``deg[m]`` the in-degree of point m and ``s[n] = sum_j a[idx[n, j]]``,
     ``sum z = sum_n (s[n] + k b[n])`` and ``sum z^2 = sum_m deg[m] a[m]^2 + 2 sum_n b[n] s[n] + k sum_n b[n]^2``
@@ -98,7 +101,7 @@ def _edge_norm_max_composite(projections: torch.Tensor, idx: torch.Tensor, weigh
         a_c, b_c = a - a_shift, b - b_shift
         degree = torch.zeros(B, 1, N, dtype=a.dtype, device=a.device)
         degree.scatter_add_(2, idx.reshape(B, 1, N * k), torch.ones(B, 1, N * k, dtype=a.dtype, device=a.device))
-        neighbour_sum = gather_reduce(a_c, idx, "sum")
+        neighbour_sum = gather(a_c, idx, "sum")
         total = neighbour_sum.sum(dim=(0, 2)) + k * b_c.sum(dim=(0, 2))
         total_sq = ((degree * a_c.square()).sum(dim=(0, 2)) + 2 * (b_c * neighbour_sum).sum(dim=(0, 2))
                     + k * b_c.square().sum(dim=(0, 2)))
@@ -111,7 +114,7 @@ def _edge_norm_max_composite(projections: torch.Tensor, idx: torch.Tensor, weigh
     if weight is not None:
         direction = torch.where(weight.detach() >= 0, 1.0, -1.0).to(a.dtype)
     direction = direction.view(1, -1, 1)
-    extreme = direction * gather_reduce(a * direction, idx, "max")
+    extreme = direction * gather(a * direction, idx, "max")
     out = F.leaky_relu(_normalise(extreme + b, mean, var, weight, bias, eps), negative_slope)
     return out, mean.detach(), var.detach()
 

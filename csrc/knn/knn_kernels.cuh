@@ -1,0 +1,210 @@
+// CUDA kNN kernels. knn3_kernel (C = 3): one thread per query scans the reference cloud in
+// shared-memory tiles and keeps its top-k in a register-resident sorted buffer (RegisterTopK; exact
+// differences, as the CPU grid search). Other C, as the CPU's GEMM-tiled search: knn_chunk_kernel
+// merges chunks of dot products of the centred clouds into per-query candidate buffers,
+// knn_rerank_kernel re-ranks them by exact distance, and knn_exact_rows_kernel scans exhaustively
+// the rows where the approximation could have dropped a true neighbour. The backward kernels gather
+// per output (the reference side through the inverse graph), so they are deterministic.
+#pragma once
+
+#include <limits>
+
+#include "common/cuda_device.cuh"
+#include "knn/topk.h"
+
+namespace vrnet {
+
+constexpr int kKnnTile = 256;  // reference points per shared-memory tile (C = 3)
+
+template <typename scalar_t>
+__device__ inline scalar_t knn_sq_dist3(scalar_t qx, scalar_t qy, scalar_t qz, const scalar_t* r) {
+  const scalar_t dx = qx - r[0], dy = qy - r[1], dz = qz - r[2];
+  return add_rn(add_rn(mul_rn(dx, dx), mul_rn(dy, dy)), mul_rn(dz, dz));
+}
+
+// The first k entries of a buffer to global memory (the guard keeps the indices compile-time).
+template <typename scalar_t, int KMAX>
+__device__ inline void knn_store(const RegisterTopK<scalar_t, KMAX>& top, int64_t k, scalar_t* dist, int64_t* idx) {
+  VRNET_UNROLL
+  for (int j = 0; j < KMAX; ++j)
+    if (j < k) {
+      dist[j] = top.dist[j];
+      idx[j] = top.idx[j];
+    }
+}
+
+template <typename scalar_t, int KMAX>
+__global__ void knn3_kernel(const scalar_t* __restrict__ query, const scalar_t* __restrict__ ref, int64_t N,
+                            int64_t M, int64_t k, bool exclude_self, scalar_t* __restrict__ dist_out,
+                            int64_t* __restrict__ idx_out) {
+  VRNET_SHARED(scalar_t, tile, 3 * kKnnTile);
+  const int64_t b = blockIdx.y;
+  const int64_t n = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  const bool active = n < N;
+  RegisterTopK<scalar_t, KMAX> top;
+  top.reset(static_cast<int32_t>(M));
+  scalar_t worst = top.worst();
+  scalar_t qx = 0, qy = 0, qz = 0;
+  if (active) {
+    const scalar_t* q = query + (b * N + n) * 3;
+    qx = q[0];
+    qy = q[1];
+    qz = q[2];
+  }
+  const int64_t self = exclude_self ? n : -1;
+  for (int64_t r0 = 0; r0 < M; r0 += kKnnTile) {
+    const int count = static_cast<int>(M - r0 < kKnnTile ? M - r0 : kKnnTile);
+    __syncthreads();
+    for (int t = threadIdx.x; t < 3 * count; t += blockDim.x) tile[t] = ref[(b * M + r0) * 3 + t];
+    __syncthreads();
+    if (!active) continue;
+    for (int j = 0; j < count; ++j) {
+      const scalar_t d = knn_sq_dist3(qx, qy, qz, tile + 3 * j);
+      if (d <= worst && r0 + j != self) {
+        top.push(d, static_cast<int32_t>(r0 + j));
+        worst = top.worst();
+      }
+    }
+  }
+  if (active) knn_store(top, k, dist_out + (b * N + n) * k, idx_out + (b * N + n) * k);
+}
+
+// Exact squared distance of two rows of C values, summed in order with one rounding per operation
+// (the CPU kernels' definition, so that both give the same bits).
+template <typename scalar_t>
+__device__ inline scalar_t knn_exact_sq_dist(const scalar_t* q, const scalar_t* r, int64_t C) {
+  scalar_t acc = 0;
+  for (int64_t c = 0; c < C; ++c) {
+    const scalar_t diff = sub_rn(q[c], r[c]);
+    acc = add_rn(acc, mul_rn(diff, diff));
+  }
+  return acc;
+}
+
+// Merges one chunk of dot products dots[b, j, n] = ref_c[b, r0 + j] . query_c[b, q0 + n] (clouds
+// centred on the reference mean) into the running `width` best candidates of queries q0.., ranked by
+// the approximate distance max(|q|^2 + |r|^2 - 2 q.r, 0) (+inf where not finite), as the CPU tiles
+// compute it. State kept in cand_dist / cand_idx (B, N, width) between chunks.
+template <typename scalar_t, int KMAX>
+__global__ void knn_chunk_kernel(const scalar_t* __restrict__ dots, const scalar_t* __restrict__ query_norm,
+                                 const scalar_t* __restrict__ ref_norm, int64_t N, int64_t M, int64_t q0,
+                                 int64_t query_count, int64_t r0, int64_t ref_count, int64_t width, bool exclude_self,
+                                 scalar_t* __restrict__ cand_dist, int64_t* __restrict__ cand_idx) {
+  const int64_t b = blockIdx.y;
+  const int64_t local = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (local >= query_count) return;
+  const int64_t n = q0 + local;
+  RegisterTopK<scalar_t, KMAX> top;
+  top.reset(static_cast<int32_t>(M));
+  scalar_t* d_row = cand_dist + (b * N + n) * width;
+  int64_t* i_row = cand_idx + (b * N + n) * width;
+  if (r0 > 0) {  // the best of the earlier chunks (the other KMAX - width slots stay empty)
+    VRNET_UNROLL
+    for (int j = 0; j < KMAX; ++j)
+      if (j < width) {
+        top.dist[j] = d_row[j];
+        top.idx[j] = static_cast<int32_t>(i_row[j]);
+      }
+  }
+  scalar_t worst = top.worst();
+  const scalar_t qn = query_norm[b * N + n];
+  const scalar_t* col = dots + b * ref_count * query_count + local;
+  const scalar_t largest = std::numeric_limits<scalar_t>::max();
+  for (int64_t j = 0; j < ref_count; ++j) {
+    const int64_t m = r0 + j;
+    scalar_t d = sub_rn(add_rn(qn, ref_norm[b * M + m]), mul_rn(scalar_t(2), col[j * query_count]));
+    d = d <= largest ? (d > scalar_t(0) ? d : scalar_t(0)) : std::numeric_limits<scalar_t>::infinity();
+    if (d <= worst && !(exclude_self && m == n)) {
+      top.push(d, static_cast<int32_t>(m));
+      worst = top.worst();
+    }
+  }
+  knn_store(top, width, d_row, i_row);
+}
+
+// Re-ranks each query's candidates by exact distance and writes its k best. The approximate
+// distances are wrong by at most `slack` = relative_error (|q|^2 + max |r|^2); if a candidate dropped
+// from the full buffer could still be among the k nearest (the last candidate is within 2 slack of
+// the k-th, or the norms overflow), the row is flagged for the exhaustive exact scan.
+template <typename scalar_t, int KMAX>
+__global__ void knn_rerank_kernel(const scalar_t* __restrict__ query, const scalar_t* __restrict__ ref,
+                                  const scalar_t* __restrict__ cand_dist, const int64_t* __restrict__ cand_idx,
+                                  const scalar_t* __restrict__ query_norm, const scalar_t* __restrict__ ref_norm_max,
+                                  int64_t N, int64_t M, int64_t C, int64_t width, int64_t k, scalar_t relative_error,
+                                  scalar_t* __restrict__ dist_out, int64_t* __restrict__ idx_out,
+                                  int32_t* __restrict__ exhaustive) {
+  const int64_t b = blockIdx.y;
+  const int64_t n = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (n >= N) return;
+  const int64_t row = b * N + n;
+  const scalar_t* d_row = cand_dist + row * width;
+  const int64_t* i_row = cand_idx + row * width;
+  const scalar_t* q = query + row * C;
+  RegisterTopK<scalar_t, KMAX> top;
+  top.reset(static_cast<int32_t>(M));
+  for (int64_t j = 0; j < width; ++j) {
+    const int64_t m = i_row[j];
+    if (m < M) top.push(knn_exact_sq_dist(q, ref + (b * M + m) * C, C), static_cast<int32_t>(m));
+  }
+  knn_store(top, k, dist_out + row * k, idx_out + row * k);
+  const scalar_t slack = relative_error * (query_norm[row] + ref_norm_max[b]);
+  const scalar_t kth = d_row[k - 1], last = d_row[width - 1];
+  const bool full = i_row[width - 1] < M;
+  const scalar_t largest = std::numeric_limits<scalar_t>::max();
+  exhaustive[row] = !(slack <= largest) || !(kth <= largest) || (full && last <= kth + 2 * slack);
+}
+
+// The exact k nearest of each flagged query row, by a scan of all M references.
+template <typename scalar_t, int KMAX>
+__global__ void knn_exact_rows_kernel(const scalar_t* __restrict__ query, const scalar_t* __restrict__ ref,
+                                      const int32_t* __restrict__ exhaustive, int64_t N, int64_t M, int64_t C,
+                                      int64_t k, bool exclude_self, scalar_t* __restrict__ dist_out,
+                                      int64_t* __restrict__ idx_out) {
+  const int64_t b = blockIdx.y;
+  const int64_t n = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (n >= N || !exhaustive[b * N + n]) return;
+  const scalar_t* q = query + (b * N + n) * C;
+  RegisterTopK<scalar_t, KMAX> top;
+  top.reset(static_cast<int32_t>(M));
+  for (int64_t m = 0; m < M; ++m)
+    if (!(exclude_self && m == n)) top.push(knn_exact_sq_dist(q, ref + (b * M + m) * C, C), static_cast<int32_t>(m));
+  knn_store(top, k, dist_out + (b * N + n) * k, idx_out + (b * N + n) * k);
+}
+
+// grad_query[b, n, c] = sum_j 2 g[b, n, j] (q[b, n, c] - r[b, idx, c]).
+template <typename scalar_t>
+__global__ void knn_grad_query_kernel(const scalar_t* __restrict__ grad, const scalar_t* __restrict__ query,
+                                      const scalar_t* __restrict__ ref, const int64_t* __restrict__ idx, int64_t B,
+                                      int64_t N, int64_t M, int64_t C, int64_t k, scalar_t* __restrict__ grad_query) {
+  const int64_t t = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (t >= B * N * C) return;
+  const int64_t c = t % C, bn = t / C, b = bn / N;
+  const scalar_t q = query[t];
+  scalar_t acc = 0;
+  for (int64_t j = 0; j < k; ++j) {
+    const int64_t m = idx[bn * k + j];
+    acc += 2 * grad[bn * k + j] * (q - ref[(b * M + m) * C + c]);
+  }
+  grad_query[t] = acc;
+}
+
+// grad_ref[b, m, c] = -sum over edges (n, j) into m of 2 g[b, n, j] (q[b, n, c] - r[b, m, c]).
+template <typename scalar_t>
+__global__ void knn_grad_ref_kernel(const scalar_t* __restrict__ grad, const scalar_t* __restrict__ query,
+                                    const scalar_t* __restrict__ ref, const int64_t* __restrict__ order,
+                                    const int64_t* __restrict__ row_ptr, int64_t B, int64_t N, int64_t M, int64_t C,
+                                    int64_t k, scalar_t* __restrict__ grad_ref) {
+  const int64_t t = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (t >= B * M * C) return;
+  const int64_t c = t % C, bm = t / C, b = bm / M, m = bm % M;
+  const scalar_t r = ref[t];
+  const int64_t* edges = order + b * N * k;
+  scalar_t acc = 0;
+  for (int64_t e = row_ptr[b * (M + 1) + m]; e < row_ptr[b * (M + 1) + m + 1]; ++e) {
+    const int64_t pos = edges[e], n = pos / k;
+    acc -= 2 * grad[b * N * k + pos] * (query[(b * N + n) * C + c] - r);
+  }
+  grad_ref[t] = acc;
+}
+
+}  // namespace vrnet

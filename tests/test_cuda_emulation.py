@@ -1,0 +1,351 @@
+"""Every CUDA kernel of csrc/ executed on the CPU under the CUDA emulator (csrc/cuda_emu), with its
+sanitizer on: the emulator's self-tests (broken kernels it must report, good patterns it must pass),
+then the CUDA glue of every op (torch.ops.vrnet_ext_emu) against the CPU op (torch.ops.vrnet_ext) on
+the same inputs, forward and backward, and the same named errors for bad input.
+
+The emulated module is built by tests/cuda_emu/build.py (about 30 s on 2 cores, incremental). The
+last test checks that every __global__ function in csrc/ ran; the run prints per-kernel launch
+counts (see conftest.py)."""
+from __future__ import annotations
+
+import collections
+import importlib
+import math
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+from conftest import DTYPES, non_contiguous, tolerances
+from cuda_emu import build as emu_build
+
+CSRC = Path(__file__).resolve().parents[1] / "csrc"
+CASES: collections.Counter = collections.Counter()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def emulated():
+    emu_build.load()
+    torch.ops.vrnet_ext_emu.emu_configure(0, True, True)
+
+
+def cpu_op(name):
+    return getattr(torch.ops.vrnet_ext, name)
+
+
+def emu_op(name):
+    return getattr(torch.ops.vrnet_ext_emu, name)
+
+
+def run_both(name: str, *args):
+    """The CPU op and the emulated CUDA op on the same arguments: both results, or the same error."""
+    CASES[name] += 1
+    try:
+        expected = cpu_op(name)(*args)
+    except Exception as error:  # bad input: the CUDA glue raises the same error naming the same argument
+        with pytest.raises(type(error)) as raised:
+            emu_op(name)(*args)
+        assert str(raised.value).split()[0] == str(error).split()[0], (str(raised.value), str(error))
+        return None, None
+    got = emu_op(name)(*args)
+    as_tuple = lambda r: r if isinstance(r, (tuple, list)) else (r,)
+    return as_tuple(expected), as_tuple(got)
+
+
+def assert_same(name: str, *args, exact: bool = False, scale: float = 1.0):
+    expected, got = run_both(name, *args)
+    if expected is None:
+        return None
+    for a, b in zip(expected, got):
+        assert a.shape == b.shape and a.dtype == b.dtype, name
+        if exact or not a.is_floating_point():
+            assert torch.equal(a, b) or (a.is_floating_point() and torch.equal(a.isnan(), b.isnan())
+                                         and torch.equal(a.nan_to_num(), b.nan_to_num())), name
+        else:
+            tol = tolerances(a.dtype)
+            torch.testing.assert_close(b, a, rtol=tol["rtol"] * scale, atol=tol["atol"] * scale, equal_nan=True)
+    return expected
+
+
+# --------------------------------------------------------------------------------------------------
+# The emulator's self-tests.
+
+def selftest(name: str, x: torch.Tensor) -> torch.Tensor:
+    return torch.ops.vrnet_ext_emu.selftest(name, x)
+
+
+@pytest.mark.parametrize("name, finding", [
+    ("oob_write", r"out-of-bounds global write of 4 bytes .* past the end of argument 2.*block \(1,0,0\), thread \(0,0,0\)"),
+    ("missing_sync", r"never written in this launch|without a barrier in between"),
+    ("partial_barrier", r"__syncthreads\(\) not reached by every thread of the block: 32 of 64"),
+    ("divergent_barrier", r"divergent __syncthreads\(\)"),
+    ("shared_race", r"shared-memory race: write-write on shared offset 0"),
+    ("invalid_shuffle_width", r"warp shuffle with width 24"),
+    ("shuffle_missing_lanes", r"warp collective never completes: .* lanes \{16,17"),
+    ("inter_block_race", r"inter-block race on argument 1"),
+])
+def test_broken_kernels_are_reported(name, finding):
+    with pytest.raises(RuntimeError, match=finding) as raised:
+        selftest(name, torch.randn(64))
+    assert f"kernel {name}_kernel" in str(raised.value)
+
+
+def test_order_dependent_reduction_is_reported():
+    """One float atomicAdd per block: the blocks in a seeded order and concurrently round differently."""
+    generator = torch.Generator().manual_seed(1)
+    x = ((torch.rand(64, generator=generator) - 0.5) * 10.0 ** torch.randint(-3, 9, (64,), generator=generator)).float()
+    with pytest.raises(RuntimeError, match="results depend on the order of blocks: argument 1"):
+        selftest("order_dependent_sum", x)
+
+
+def test_wrong_shuffle_width_gives_a_wrong_sum():
+    x = torch.arange(32, dtype=torch.float32)
+    assert not torch.equal(selftest("narrow_shuffle_sum", x), torch.full((32,), float(x.sum())))
+
+
+def test_good_patterns_pass():
+    x = torch.randn(1000)
+    sums = selftest("block_sum", x)  # divergent `if (warp == 0)` second-level shuffle reduction
+    torch.testing.assert_close(sums, torch.stack([c.double().sum().float() for c in x.split(256)]))
+    x = torch.randn(128)
+    early = selftest("early_warp_exit", x)  # warps 2 and 3 return before warps 0 and 1 shuffle
+    torch.testing.assert_close(early[:64], x[:64].view(2, 32).double().sum(1).float().repeat_interleave(32))
+    torch.testing.assert_close(selftest("dynamic_shared", x), x.flip(0))
+    counters = selftest("integer_atomics", torch.randint(-50, 50, (300,)).float().requires_grad_(False))
+    assert counters.shape == (3,)
+
+
+def test_warp_intrinsics():
+    x = torch.randn(32)
+    out = selftest("warp_intrinsics", x).view(32, 8)
+    lanes = torch.arange(32)
+    ballot = sum(1 << i for i in range(16) if x[i] > 0)
+    assert torch.all(out[:, 0] == ballot)
+    assert torch.all(out[:, 1] == float(bool((x > 2).any())))
+    assert torch.all(out[:, 2] == 1.0)
+    torch.testing.assert_close(out[:, 3], x[(lanes // 16) * 16 + 3])
+    up = torch.where(lanes % 8 >= 2, lanes - 2, lanes)
+    torch.testing.assert_close(out[:, 4], x[up])
+    down = torch.where(lanes % 8 + 3 < 8, lanes + 3, lanes)
+    torch.testing.assert_close(out[:, 5], x[down])
+    torch.testing.assert_close(out[:, 6], x[lanes ^ 5])
+    even = lanes[::2]
+    torch.testing.assert_close(out[::2, 7], x[torch.where(even + 2 < 32, even + 2, even)])
+    assert torch.all(out[1::2, 7] == -1)
+
+
+def test_integer_atomics_match():
+    x = torch.randint(-50, 50, (300,)).float()
+    counters = selftest("integer_atomics", x)
+    assert counters.tolist() == [float(x.sum()), float(x.min()), float(x.max())]
+
+
+def test_launch_errors_are_python_errors():
+    with pytest.raises(ValueError, match="unknown self-test kernel"):
+        selftest("no_such_kernel", torch.randn(4))
+
+
+# --------------------------------------------------------------------------------------------------
+# Parity: the CUDA glue and kernels, emulated, against the CPU ops.
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("B,N,M,C,k,exclude", [
+    (1, 1, 1, 3, 1, False), (2, 301, 257, 3, 20, False), (1, 50, 50, 3, 49, True), (3, 97, 130, 3, 129, False),
+    (2, 37, 53, 5, 17, False), (1, 129, 100, 64, 8, False), (1, 40, 40, 1, 40, False), (1, 60, 60, 8, 10, True),
+    (1, 70, 90, 16, 70, False), (0, 5, 5, 3, 2, False), (1, 0, 5, 3, 2, False),
+])
+def test_knn(dtype, B, N, M, C, k, exclude):
+    query = torch.randn(B, N, C, dtype=dtype)
+    ref = query if exclude else torch.randn(B, M, C, dtype=dtype)
+    dist, idx = assert_same("knn", query, ref, k, exclude, exact=True)
+    grad = torch.randn(dist.shape, dtype=dtype)
+    assert_same("knn_backward", grad, query, ref, idx)
+
+
+@pytest.mark.parametrize("C", [3, 7])
+def test_knn_far_from_origin_and_ties(C):
+    """Clouds 1e4 away from the origin (the expanded formula cancels without centring) and duplicated
+    points (exact ties, broken by the lower index)."""
+    base = torch.randn(1, 40, C) * 0.01 + 1e4
+    ref = torch.cat([base, base[:, :10]], dim=1)
+    assert_same("knn", base, ref, 12, False, exact=True)
+    assert_same("knn", non_contiguous(torch.randn(2, 33, C)), torch.randn(2, 45, C), 5, False, exact=True)
+
+
+def test_knn_bad_input_same_errors():
+    q = torch.randn(1, 10, 3)
+    assert run_both("knn", q, q, 11, False) == (None, None)
+    assert run_both("knn", q, torch.randn(1, 10, 4), 2, False) == (None, None)
+    bad = q.clone()
+    bad[0, 3, 1] = math.nan
+    assert run_both("knn", bad, q, 2, False) == (None, None)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("B,C,N,k", [(1, 1, 1, 1), (3, 5, 129, 20), (2, 64, 257, 9), (1, 3, 30, 30)])
+def test_edge_features_and_gather_reduce(dtype, B, C, N, k):
+    x = torch.randn(B, C, N, dtype=dtype)
+    idx = torch.randint(0, N, (B, N, k))
+    out = assert_same("edge_features", x, idx, exact=True)[0]
+    assert_same("edge_features_backward", torch.randn(out.shape, dtype=dtype), idx, N)
+    assert_same("edge_features", non_contiguous(x), idx, exact=True)
+    assert run_both("edge_features", x, idx - 1) == (None, None)
+    assert run_both("edge_features_backward", out, idx, N + 1) == (None, None)
+    x_nan = x.clone()
+    x_nan.view(-1)[:: max(1, x.numel() // 5)] = math.nan
+    for values in (x, x_nan):
+        for reduce in ("max", "min", "sum", "mean"):
+            out, arg = assert_same("gather_reduce", values, idx, reduce, exact=reduce in ("max", "min"))
+            assert_same("gather_reduce_backward", torch.randn(out.shape, dtype=dtype), idx, arg, reduce, N)
+    assert run_both("gather_reduce", x, idx, "median") == (None, None)
+    assert run_both("gather_reduce", x, idx + N, "max") == (None, None)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_svd3x3(dtype):
+    A = torch.randn(301, 3, 3, dtype=dtype)
+    A[0] = 0
+    A[1] = torch.eye(3, dtype=dtype)
+    A[2] = torch.outer(torch.randn(3, dtype=dtype), torch.randn(3, dtype=dtype))  # rank 1
+    A[3] = torch.diag(torch.tensor([2.0, 2.0, 1.0], dtype=dtype))  # repeated singular values
+    U, S, V = assert_same("svd3x3", A)
+    grads = [torch.randn(t.shape, dtype=dtype) for t in (U, S, V)]
+    assert_same("svd3x3_backward", *grads, U, S, V, scale=10)
+    assert_same("svd3x3", torch.empty(0, 3, 3, dtype=dtype))
+    assert run_both("svd3x3", torch.randn(2, 3, 4, dtype=dtype)) == (None, None)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("B,N", [(1, 3), (37, 45), (2, 1000)])
+def test_kabsch(dtype, B, N):
+    src, tgt = torch.randn(B, N, 3, dtype=dtype), torch.randn(B, N, 3, dtype=dtype)
+    weights = torch.rand(B, N, dtype=dtype)
+    weights[:, ::4] = 0
+    assert_same("kabsch", src, tgt, weights)
+    assert_same("kabsch_backward", torch.randn(B, 3, 3, dtype=dtype), torch.randn(B, 3, dtype=dtype), src, tgt,
+                weights, scale=10)
+    assert_same("kabsch", non_contiguous(src), tgt, weights)
+
+
+def test_kabsch_huge_weights_scaled_by_their_maximum():
+    """Weights near the largest double: their raw sum overflows; scaled by the maximum it does not."""
+    src, tgt = torch.randn(2, 37, 3, dtype=torch.float64), torch.randn(2, 37, 3, dtype=torch.float64)
+    weights = torch.full((2, 37), 1e307, dtype=torch.float64)
+    R, t = assert_same("kabsch", src, tgt, weights)
+    assert torch.isfinite(R).all() and torch.isfinite(t).all()
+    gR, gt = torch.randn(2, 3, 3, dtype=torch.float64), torch.randn(2, 3, dtype=torch.float64)
+    grads = assert_same("kabsch_backward", gR, gt, src, tgt, weights, scale=10)
+    assert all(torch.isfinite(g).all() for g in grads)
+
+
+def test_kabsch_weight_gradient_terms_stay_double():
+    """float32 coordinates ~1e37: the weight gradient's per-point terms (coordinates times gradients)
+    overflow float32 (the CPU keeps them in double; the CUDA kernel must too)."""
+    src = torch.randn(1, 40, 3) * 1e37
+    tgt = torch.randn(1, 40, 3) * 1e37
+    weights = (torch.rand(1, 40) + 0.1) * 1e6  # the final gradient divides by the total weight: finite
+    grads = assert_same("kabsch_backward", torch.randn(1, 3, 3), torch.randn(1, 3) * 100, src, tgt, weights, scale=10)
+    assert torch.isfinite(grads[2]).all()
+
+
+def test_kabsch_bad_input_same_errors():
+    src = torch.randn(1, 5, 3)
+    assert run_both("kabsch", src, src, -torch.ones(1, 5)) == (None, None)
+    assert run_both("kabsch", src, src, torch.zeros(1, 5)) == (None, None)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("B,N", [(1, 2), (3, 37), (2, 300)])
+def test_pairwise_distance_loss(dtype, B, N):
+    x, y = torch.randn(B, N, 3, dtype=dtype), torch.randn(B, N, 3, dtype=dtype)
+    x[0, 1] = x[0, 0]  # a zero distance: its gradient term is 0
+    (loss,) = assert_same("pairwise_distance_loss", x, y)
+    assert_same("pairwise_distance_loss_backward", torch.randn(B, dtype=dtype), x, y, loss)
+    assert_same("pairwise_distance_loss", non_contiguous(x), y)
+    assert run_both("pairwise_distance_loss", x, y[:, :1]) == (None, None)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("B,N,M,C,D", [(1, 1, 1, 1, 1), (2, 37, 53, 5, 3), (1, 100, 130, 64, 3), (1, 257, 20, 3, 1),
+                                       (1, 5, 7, 1500, 2)])
+def test_soft_match(dtype, B, N, M, C, D):
+    query, key = torch.randn(B, N, C, dtype=dtype), torch.randn(B, M, C, dtype=dtype)
+    values = torch.randn(B, M, D, dtype=dtype)
+    scale = 1.0 / math.sqrt(C)
+    out, lse, argmax = assert_same("soft_match", query, key, values, scale)
+    grad_out, grad_lse = torch.randn(out.shape, dtype=dtype), torch.randn(lse.shape, dtype=dtype)
+    assert_same("soft_match_backward", grad_out, grad_lse, query, key, values, out, lse, scale, scale=10)
+    assert_same("soft_match", non_contiguous(query), key, values, 8.0)  # peaked rows
+
+
+def test_soft_match_bad_input_same_errors():
+    q = torch.randn(1, 4, 3)
+    assert run_both("soft_match", q, q, torch.randn(1, 5, 2), 1.0) == (None, None)
+    assert run_both("soft_match", q, q, q, math.inf) == (None, None)
+
+
+class EmulatedGatherReduce(torch.autograd.Function):
+    """gather_reduce with the emulated CUDA kernels forward and backward."""
+
+    @staticmethod
+    def forward(ctx, values, idx, reduce):
+        CASES["gather_reduce"] += 1
+        out, arg = emu_op("gather_reduce")(values, idx, reduce)
+        ctx.save_for_backward(idx, arg)
+        ctx.reduce, ctx.num_values = reduce, values.shape[2]
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        CASES["gather_reduce_backward"] += 1
+        idx, arg = ctx.saved_tensors
+        return emu_op("gather_reduce_backward")(grad.contiguous(), idx, arg, ctx.reduce, ctx.num_values), None, None
+
+
+@pytest.mark.parametrize("running", [False, True])
+@pytest.mark.parametrize("B,O,N,k", [(1, 1, 5, 5), (2, 7, 70, 9)])
+def test_edge_norm_max_composite_on_cuda_kernels(running, B, O, N, k):
+    """CUDA has no fused edge_norm_max kernel: it runs the composite of gather_reduce calls (two
+    launches, closed-form statistics, no edge tensor). Here the composite on the emulated kernels
+    against the CPU's fused op, outputs and gradients."""
+    module = importlib.import_module("vrnet_ext.ops.edge_norm_max")
+
+    projections = torch.randn(B, 2 * O, N, dtype=torch.float64, requires_grad=True)
+    idx = torch.randint(0, N, (B, N, k))
+    weight = torch.randn(O, dtype=torch.float64, requires_grad=True)
+    bias = torch.randn(O, dtype=torch.float64, requires_grad=True)
+    stats = (torch.randn(O, dtype=torch.float64), torch.rand(O, dtype=torch.float64) + 0.5) if running else (None, None)
+    args = (projections, idx, weight, bias, *stats, 1e-5, 0.2)
+    expected = module.edge_norm_max(*args)
+    got = module._edge_norm_max_composite(*args, gather=EmulatedGatherReduce.apply)
+    for a, b in zip(expected, got):
+        torch.testing.assert_close(b, a, **tolerances(torch.float64))
+    projection = torch.randn(expected[0].shape, dtype=torch.float64)
+    inputs = (projections, weight, bias)
+    grads_expected = torch.autograd.grad((expected[0] * projection).sum(), inputs)
+    grads_got = torch.autograd.grad((got[0] * projection).sum(), inputs)
+    for a, b in zip(grads_expected, grads_got):
+        torch.testing.assert_close(b, a, rtol=1e-8, atol=1e-9)
+
+
+# --------------------------------------------------------------------------------------------------
+
+def test_every_kernel_ran():
+    """Every __global__ function in csrc/ was launched by the tests above (run the whole file)."""
+    kernels = set()
+    for path in CSRC.rglob("*.cuh"):
+        kernels.update(re.findall(r"__global__\s+void\s+(\w+)", path.read_text()))
+    for path in CSRC.rglob("*.cu"):
+        kernels.update(re.findall(r"__global__\s+void\s+(\w+)", path.read_text()))
+    launched = {line.split()[0] for line in torch.ops.vrnet_ext_emu.emu_stats().splitlines()}
+    assert kernels, "no kernels found"
+    assert not kernels - launched, f"never launched: {sorted(kernels - launched)}"
+
+
+def summary() -> str:
+    """Per-kernel launches, blocks and threads, and parity cases per op (printed by conftest)."""
+    lines = ["kernel launches blocks threads"]
+    lines += torch.ops.vrnet_ext_emu.emu_stats().splitlines()
+    lines += ["", "op parity-cases"] + [f"{name} {count}" for name, count in sorted(CASES.items())]
+    return "\n".join(lines)
