@@ -93,8 +93,40 @@ def test_fpfh_ransac_finds_a_large_motion_that_icp_from_the_identity_cannot():
     assert transform_errors(refined.T_target_source, truth)["rotation_error_deg"] < 1.0
     # fine ICP alone does not get there (the coarse start of ICP from no motion sometimes does, in
     # this closed box)
-    identity_start = register(src, tgt, icp_settings=IcpSettings(points=6000, coarse_start=False))
+    identity_start = register(src, tgt, method="icp", icp_settings=IcpSettings(points=6000, coarse_start=False))
     assert transform_errors(identity_start.T_target_source, truth)["rotation_error_deg"] > 10.0
+
+
+def test_an_estimator_that_does_not_transfer_is_never_worse_than_fpfh():
+    """A learned estimator also starts ICP from FPFH + RANSAC (``also_start_from``): a wrong estimate
+    loses to it and the result names the start that won; a good one keeps its own start."""
+    from vrnet_ext.registration import GlobalEstimator
+
+    src = closed_room()
+    truth = motion(75.0, [0.3, -0.2, 0.1])
+    tgt = apply(truth, closed_room(seed=1))
+
+    class Learned(GlobalEstimator):
+        name = "learned"
+        also_start_from = ("fpfh",)
+
+        def __init__(self, value):
+            self.value = value
+
+        def estimate(self, src, tgt, seed):
+            return self.value
+
+    settings = IcpSettings(points=6000)
+    wrong = register(src, tgt, method=Learned(motion(150.0, [1.0, 0.0, 0.0])), global_points=3000,
+                     icp_settings=settings)
+    assert wrong.method == "learned" and wrong.start == "fpfh", wrong
+    assert any("the learned estimate does not fit these scans" in w for w in wrong.warnings), wrong.warnings
+    assert transform_errors(wrong.T_target_source, truth)["rotation_error_deg"] < 1.0
+    assert "initial (fpfh)" in wrong.seconds
+    right = register(src, tgt, method=Learned(truth), global_points=3000, icp_settings=settings)
+    assert right.start == "learned" and not right.warnings, right.warnings
+    default = register(src, tgt, global_points=3000, icp_settings=settings)
+    assert default.method == default.start == "fpfh"
 
 
 def test_one_initial_estimate_at_a_time(tmp_path, capsys):

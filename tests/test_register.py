@@ -142,7 +142,8 @@ def test_icp_out_of_reach_returns_the_initial_estimate_with_a_warning():
     far = to_homogeneous(np.eye(3), np.array([50.0, 0.0, 0.0]))
     with pytest.raises(IcpFailure, match="fewer than 3 point pairs"):
         icp(src, src, far, max_distance=0.1)
-    result = register(src, src + np.array([50.0, 0.0, 0.0]), icp_settings=IcpSettings(max_distance=0.1))
+    result = register(src, src + np.array([50.0, 0.0, 0.0]), method="icp",
+                      icp_settings=IcpSettings(max_distance=0.1))
     assert result.iterations == 0 and np.array_equal(result.T_target_source, np.eye(4))
     assert "unrefined initial estimate" in result.warnings[0]
 
@@ -211,10 +212,10 @@ def test_real_lidar_pair_icp_matches_reference():
     independent fast_gicp estimate within 0.23 deg / 1.9 cm)."""
     src, tgt = read_points(LIDAR / "source.ply"), read_points(LIDAR / "target.ply")
     truth = read_transform(LIDAR / "T_target_source.txt")
-    errors = transform_errors(register(src, tgt).T_target_source, truth)
+    errors = transform_errors(register(src, tgt, method="icp").T_target_source, truth)
     assert errors["rotation_error_deg"] < 0.5 and errors["translation_error"] < 0.05, errors
     # the coarse start is what reaches the pair's 0.5 m offset: the fine reach is 3 voxels of ~2.3 cm
-    fine_only = register(src, tgt, icp_settings=IcpSettings(coarse_start=False))
+    fine_only = register(src, tgt, method="icp", icp_settings=IcpSettings(coarse_start=False))
     assert transform_errors(fine_only.T_target_source, truth)["translation_error"] > 0.1
 
 
@@ -247,10 +248,10 @@ def test_cli_register_rejects_bad_options_before_any_work(tmp_path, capsys):
 def test_a_stray_far_point_in_the_target_does_not_change_the_icp_result():
     src = room(20000)
     tgt = apply(motion(3.0, [0.1, -0.05, 0.02]), room(20000, seed=1))
-    clean = register(src, tgt, icp_settings=IcpSettings(points=5000))
+    clean = register(src, tgt, method="icp", icp_settings=IcpSettings(points=5000))
     for distance in (1e3, 1e5):
         stray = np.vstack([tgt, [[distance, 0.0, 0.0]]])
-        result = register(src, stray, icp_settings=IcpSettings(points=5000))
+        result = register(src, stray, method="icp", icp_settings=IcpSettings(points=5000))
         assert transform_errors(result.T_target_source, clean.T_target_source)["rotation_error_deg"] < 0.05, distance
         # the voxel search may settle a hair finer or coarser; never coarse (the old failure)
         assert abs(result.points["target_icp"] - clean.points["target_icp"]) <= 0.01 * clean.points["target_icp"]
@@ -288,7 +289,7 @@ def test_a_network_estimate_that_fits_worse_than_no_motion_is_dropped_with_a_war
 def test_low_fitness_and_unconverged_icp_are_reported():
     src = room(4000)
     far_off = apply(motion(40.0, [1.0, 0.5, 0.0]), room(4000, seed=1))
-    result = register(src, far_off, icp_settings=IcpSettings(points=2000, max_iterations=2))
+    result = register(src, far_off, method="icp", icp_settings=IcpSettings(points=2000, max_iterations=2))
     assert any("did not converge" in w for w in result.warnings), result.warnings
     assert any("low fitness" in w for w in result.warnings) or result.fitness >= 0.2
     assert result.to_dict()["warnings"] == result.warnings
@@ -328,8 +329,8 @@ def test_a_coarse_start_gives_the_fine_icp_a_head_start():
     src = room(20000)
     truth = motion(4.0, [0.35, -0.2, 0.05])
     tgt = apply(truth, room(20000, seed=1))
-    fine_only = register(src, tgt, icp_settings=IcpSettings(voxel_size=0.03, coarse_start=False))
-    coarse = register(src, tgt, icp_settings=IcpSettings(voxel_size=0.03))
+    fine_only = register(src, tgt, method="icp", icp_settings=IcpSettings(voxel_size=0.03, coarse_start=False))
+    coarse = register(src, tgt, method="icp", icp_settings=IcpSettings(voxel_size=0.03))
     for result in (fine_only, coarse):
         errors = transform_errors(result.T_target_source, truth)
         assert errors["rotation_error_deg"] < 0.01 and errors["translation_error"] < 0.001, errors

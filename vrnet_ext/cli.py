@@ -245,18 +245,22 @@ def _run_plot(args) -> int:
 
 
 def _register_parser(sub) -> None:
+    from vrnet_ext.registration.global_estimators import DEFAULT_METHOD, GLOBAL_ESTIMATORS
+
     p = sub.add_parser(
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
-        description="Estimates the rigid transform taking SOURCE onto TARGET: a global estimate (--method vrnet: "
-                    "the shipped scene model, FPFH descriptors under VRNet's head, or --checkpoint; --method fpfh: "
-                    "FPFH + RANSAC; --method fgr: FPFH + Fast Global Registration; --method icp: none), refined by ICP "
+        description="Estimates the rigid transform taking SOURCE onto TARGET: a global estimate (--method fpfh: "
+                    "FPFH + RANSAC, the default; --method vrnet: the shipped scene model, FPFH descriptors under "
+                    "VRNet's head, or --checkpoint, with ICP also started from FPFH + RANSAC and the better fit "
+                    "kept; --method fgr: FPFH + Fast Global Registration; --method icp: none), refined by ICP "
                     "(--estimator) on voxel-downsampled clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform and "
                     "writes JSON.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("source", help="point-cloud file to move")
     p.add_argument("target", help="point-cloud file to align to (same unit)")
-    p.add_argument("--method", choices=("vrnet", "fpfh", "fgr", "icp"), default=None,
-                   help="global estimate (default: vrnet; fpfh with --fpfh)")
+    p.add_argument("--method", choices=GLOBAL_ESTIMATORS, default=None,
+                   help=f"global estimate (default: {DEFAULT_METHOD}, the best recall on real scans the learned "
+                        f"models never saw; vrnet when --checkpoint is given)")
     initial = p.add_mutually_exclusive_group()
     initial.add_argument("--checkpoint", default=None,
                          help="with --method vrnet: shipped model name or checkpoint (a scene model of `vrnet "
@@ -296,6 +300,8 @@ INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "fgr": "FPFH + FGR",
 def _run_register(args) -> int:
     import numpy as np
 
+    from vrnet_ext.registration.global_estimators import DEFAULT_METHOD
+
     from vrnet_ext.io import read_points, read_transform, write_ply
     from vrnet_ext.registration import IcpSettings, register, transform_errors
     from vrnet_ext.transforms import apply
@@ -304,7 +310,7 @@ def _run_register(args) -> int:
         from vrnet_ext.memory_plan import require_headroom
 
         require_headroom(args.max_memory)
-    method = args.method or ("fpfh" if args.fpfh else "vrnet")
+    method = args.method or ("vrnet" if args.checkpoint else DEFAULT_METHOD)
     if args.fpfh and method != "fpfh" or args.checkpoint and method != "vrnet":
         raise ValueError(f"--method {method} does not take {'--fpfh' if args.fpfh else '--checkpoint'}")
     model = None
@@ -326,7 +332,7 @@ def _run_register(args) -> int:
     record.update(source=str(args.source), target=str(args.target), checkpoint=args.checkpoint, peak_rss_mb=peak_mb)
     unconverged = " (not converged)" if result.iterations and not result.converged else ""
     print(f"source {len(src)} points, target {len(tgt)} points; "
-          f"initial estimate: {INITIAL_NAMES[method]}; "
+          f"initial estimate: {INITIAL_NAMES[result.start or method]}; "
           f"ICP ({result.estimator}) iterations {result.iterations}{unconverged}, "
           f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}; "
           f"{sum(result.seconds.values()):.1f} s, peak memory {peak_mb:.0f} MB")

@@ -32,15 +32,16 @@ class GlobalEstimator:
     """What :func:`~vrnet_ext.registration.register` needs of a global estimate.
 
     Subclass it (or give any object these attributes): ``name`` labels the result
-    (``RegistrationResult.method``); ``also_from_no_motion``: ICP also starts from the identity and
-    the refinement with the higher fitness wins (for estimators that may not transfer to a pair,
-    such as a network trained on other data); ``memory_profile``: the key of
+    (``RegistrationResult.method``); ``also_start_from``: names of built-in estimators whose
+    estimates ICP also starts from, the refinement with the higher fitness winning (for estimators
+    that may not transfer to a pair, such as a network trained on other data: the result is then
+    never worse than theirs); ``memory_profile``: the key of
     :func:`vrnet_ext.memory_plan.plan_registration`'s per-point costs, or None when unknown (a
     ``max_memory`` budget then plans only the ICP stage).
     """
 
     name: ClassVar[str] = "custom"
-    also_from_no_motion: ClassVar[bool] = False
+    also_start_from: ClassVar[tuple[str, ...]] = ()
     memory_profile: ClassVar[str | None] = None
 
     def estimate(self, src: np.ndarray, tgt: np.ndarray, seed: int) -> np.ndarray:
@@ -109,12 +110,14 @@ SCENE_PAIRS = 1000  # most confident (source, RCP) pairs the scene model hands t
 class SceneNetwork(GlobalEstimator):
     """The scene model (:mod:`vrnet_ext.model.scene`): both scans voxel-downsampled to about
     ``points`` points, FPFH, VRNet's head, then RANSAC (inliers within 1.5 voxels) over the
-    ``SCENE_PAIRS`` (source point, RCP) pairs of highest confidence."""
+    ``SCENE_PAIRS`` (source point, RCP) pairs of highest confidence. It was trained on a few scans,
+    so ICP also starts from FPFH + RANSAC's estimate and the better fit wins."""
 
     model: SceneVRNet
     points: int = 5000
     backend: str = "ext"
     name: ClassVar[str] = "vrnet"
+    also_start_from: ClassVar[tuple[str, ...]] = ("fpfh",)
     memory_profile: ClassVar[str | None] = "scene"
 
     def estimate(self, src, tgt, seed):
@@ -145,7 +148,7 @@ class ObjectNetwork(GlobalEstimator):
     device: torch.device = field(default=CPU)
     backend: str = "ext"
     name: ClassVar[str] = "vrnet"
-    also_from_no_motion: ClassVar[bool] = True
+    also_start_from: ClassVar[tuple[str, ...]] = ("icp",)
     memory_profile: ClassVar[str | None] = "modelnet"
 
     def estimate(self, src, tgt, seed):
@@ -167,7 +170,8 @@ class ObjectNetwork(GlobalEstimator):
         return to_homogeneous(R, scale * t_normalised + centre - R @ centre)
 
 
-GLOBAL_ESTIMATORS = ("vrnet", "fpfh", "fgr", "icp")
+GLOBAL_ESTIMATORS = ("fpfh", "vrnet", "fgr", "icp")
+DEFAULT_METHOD = "fpfh"  # the best recall on real pairs the learned models never saw (docs/registration.md)
 
 
 def make_global_estimator(method: str, model: VRNet | SceneVRNet | None = None, global_points: int = 5000,

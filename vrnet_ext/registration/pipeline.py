@@ -11,11 +11,12 @@ from vrnet_ext.memory_plan import plan_registration
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.preprocessing import voxel_downsample, voxel_size_for
-from vrnet_ext.registration.global_estimators import GlobalEstimator, make_global_estimator
+from vrnet_ext.registration.global_estimators import DEFAULT_METHOD, GlobalEstimator, make_global_estimator
 from vrnet_ext.registration.refinement import COARSE_FACTOR, IcpFailure, IcpSettings, icp
 from vrnet_ext.registration.result import RegistrationResult
 
 LOW_FITNESS = 0.2  # below this share of source points with a target point within reach, warn
+FITNESS_TIE = 0.005  # refinements whose fitness differs by less converged to the same fit
 
 
 def _check_count(name: str, value, smallest: int) -> None:
@@ -45,16 +46,17 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | GlobalEstimator 
              backend: str = "ext", max_memory: int | None = None) -> RegistrationResult:
     """Estimates the rigid transform taking src (N, 3) onto tgt (M, 3), both in the same unit.
 
-    method: a :class:`GlobalEstimator` object, or the name of a built-in one: ``"vrnet"``: a
-    learned initial estimate from ``model`` (a :class:`SceneVRNet` on about ``global_points``
-    points per scan, or a ModelNet40 :class:`VRNet` on ``network_points`` subsampled points;
-    default: the shipped scene model); ``"fpfh"``: FPFH features + RANSAC on about
-    ``global_points`` points per scan; ``"fgr"``: the same features + Fast Global Registration;
-    ``"icp"``: ICP from no motion. None: ``"vrnet"`` when a model is given, else ``"icp"``.
+    method: a :class:`GlobalEstimator` object, or the name of a built-in one: ``"fpfh"``: FPFH
+    features + RANSAC on about ``global_points`` points per scan; ``"vrnet"``: a learned initial
+    estimate from ``model`` (a :class:`SceneVRNet` on about ``global_points`` points per scan, or a
+    ModelNet40 :class:`VRNet` on ``network_points`` subsampled points; default: the shipped scene
+    model); ``"fgr"``: FPFH + Fast Global Registration; ``"icp"``: ICP from no motion. None:
+    ``"vrnet"`` when a model is given, else ``"fpfh"`` (the default of ``vrnet register`` too).
     icp_settings: the refinement (:class:`IcpSettings`). When the estimator asks for it
-    (``also_from_no_motion``: a ModelNet40 network), ICP runs from its estimate and from no motion,
-    and the refinement with the higher fitness wins (``initial`` is then the start it came from; a
-    warning says when that was not the estimator's). If ICP finds no pairs within reach, the result
+    (``also_start_from``: the scene network also starts from FPFH + RANSAC, a ModelNet40 network
+    from no motion), ICP runs from each start and the refinement with the higher fitness wins
+    (``initial`` is the start it came from, ``start`` names it; a warning says when that was not the
+    estimator's own). If ICP finds no pairs within reach, the result
     is the initial estimate with a message in ``warnings``. max_memory: a budget in bytes for the
     process's peak resident memory; the point counts are lowered to fit it
     (:func:`vrnet_ext.memory_plan.plan_registration`, notes in ``warnings``; for a
@@ -75,7 +77,7 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | GlobalEstimator 
         if model is not None:
             raise ValueError("model is only used by method 'vrnet', not by a GlobalEstimator object")
     else:
-        method = method or ("vrnet" if model is not None else "icp")
+        method = method or ("vrnet" if model is not None else DEFAULT_METHOD)
         if method == "vrnet" and model is None:
             from vrnet_ext.pretrained import DEFAULT_SCENE_MODEL, load_pretrained
 
@@ -93,11 +95,17 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | GlobalEstimator 
     if initial.shape != (4, 4) or not np.isfinite(initial).all():
         raise ValueError(f"the {estimator.name} estimator returned no finite 4x4 transform "
                          f"(shape {initial.shape})")
+    starts = {estimator.name: initial}
+    for name in estimator.also_start_from:
+        start = time.perf_counter()
+        starts[name] = np.asarray(make_global_estimator(name, None, global_points, network_points, device, backend)
+                                  .estimate(src, tgt, seed), dtype=np.float64)
+        seconds[f"initial ({name})"] = time.perf_counter() - start
     points = {"source": len(src), "target": len(tgt)}
     step = icp_settings.estimator
     if icp_settings.max_iterations == 0:
         return RegistrationResult(initial, initial, estimator.name, step, 0, False, float("nan"), float("nan"), 0,
-                                  seconds, points, plan_notes)
+                                  seconds, points, plan_notes, start=estimator.name)
     start = time.perf_counter()
     voxel = voxel_size if voxel_size is not None else voxel_size_for(tgt, icp_points)
     src_icp, tgt_icp = voxel_downsample(src, voxel), voxel_downsample(tgt, voxel)
@@ -105,31 +113,33 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | GlobalEstimator 
     points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))
     reach = icp_settings.max_distance if icp_settings.max_distance is not None else 3.0 * voxel
     warnings = list(plan_notes)
-    own = f"the {estimator.name} estimate"
-    starts = {own: initial, "no motion": np.eye(4)} if estimator.also_from_no_motion else {own: initial}
     start = time.perf_counter()
     refined, failures = {}, []
-    for label, guess in starts.items():
+    for name, guess in starts.items():
         try:
             start_at = guess
             if icp_settings.coarse_start and np.array_equal(guess, np.eye(4)):
                 start_at = _coarse_start(src, tgt, voxel, reach, icp_settings, device, backend)
-            refined[label] = icp(src_icp, tgt_icp, start_at, reach, icp_settings.max_iterations,
-                                 icp_settings.transform_tolerance, device, backend, step, icp_settings.settled)
-            refined[label].initial = guess
+            refined[name] = icp(src_icp, tgt_icp, start_at, reach, icp_settings.max_iterations,
+                                icp_settings.transform_tolerance, device, backend, step, icp_settings.settled)
+            refined[name].initial = guess
         except IcpFailure as failure:
-            failures.append(f"{failure} (from {label})")
+            failures.append(f"{failure} (from {_label(name)})")
     seconds["icp"] = time.perf_counter() - start
     if not refined:
         warnings.append(f"{'; '.join(failures)}; returning the unrefined initial estimate")
         return RegistrationResult(initial, initial, estimator.name, step, 0, False, 0.0, float("nan"), 0, seconds,
-                                  points, warnings)
-    label = max(refined, key=lambda name: (refined[name].fitness, -refined[name].inlier_rmse))
-    best = refined[label]
-    if label != own:
-        from_estimate = f"fitness {refined[own].fitness:.1%}" if own in refined else "no pairs within reach"
-        warnings.append(f"{own} does not fit these scans (ICP from it: {from_estimate}; from no motion: "
-                        f"{best.fitness:.1%}); returning the refinement that started from no motion")
+                                  points, warnings, start=estimator.name)
+    winner = max(refined, key=lambda name: (refined[name].fitness, -refined[name].inlier_rmse))
+    if estimator.name in refined and refined[estimator.name].fitness >= refined[winner].fitness - FITNESS_TIE:
+        winner = estimator.name  # the estimator's own start unless another fits clearly better
+    best = refined[winner]
+    if winner != estimator.name:
+        own = estimator.name
+        from_own = f"fitness {refined[own].fitness:.1%}" if own in refined else "no pairs within reach"
+        warnings.append(f"{_label(own)} does not fit these scans (ICP from it: {from_own}; from "
+                        f"{_label(winner)}: {best.fitness:.1%}); returning the refinement that started from "
+                        f"{_label(winner)}")
     if not best.converged:
         warnings.append(f"ICP did not converge within {icp_settings.max_iterations} iterations (raise "
                         f"IcpSettings.max_iterations)")
@@ -138,4 +148,9 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | GlobalEstimator 
                         f"{reach:.3g}; the scans may overlap little or the result may be wrong")
     return RegistrationResult(best.T_target_source, best.initial, estimator.name, step, best.iterations,
                               best.converged, best.fitness, best.inlier_rmse, best.correspondences, seconds, points,
-                              warnings)
+                              warnings, start=winner)
+
+
+def _label(name: str) -> str:
+    """How a start is named in warnings."""
+    return "no motion" if name == "icp" else f"the {name} estimate"

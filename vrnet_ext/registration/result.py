@@ -28,6 +28,7 @@ class RegistrationResult:
     seconds: dict[str, float] = field(default_factory=dict)
     points: dict[str, int] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    start: str = ""         # the estimate ICP started from: ``method``, or an estimate it also tried
 
     def to_dict(self) -> dict:
         out = asdict(self)
