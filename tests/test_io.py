@@ -56,7 +56,7 @@ def test_npy_text_csv_and_kitti(tmp_path, points):
     np.concatenate([points, np.zeros((len(points), 1), np.float32)], axis=1).astype("<f4").tofile(tmp_path / "h.bin")
     for name in ("e.npy", "f.xyz", "g.csv", "h.bin"):
         got = read_points(tmp_path / name)
-        assert got.dtype == np.float32 and got.shape == points.shape, name
+        assert got.dtype == np.float64 and got.shape == points.shape, name
         np.testing.assert_allclose(got, points, rtol=1e-6, err_msg=name)
 
 
@@ -173,3 +173,41 @@ def test_ascii_ply_is_read_without_per_line_python_objects(tmp_path):
     rows, extra_mb = out.stdout.split()
     assert int(rows) == 400_000
     assert float(extra_mb) < 4 * size_mb, (extra_mb, size_mb)
+
+
+def test_georeferenced_coordinates_keep_their_precision(tmp_path):
+    """UTM-sized coordinates: float32 spacing there is 0.5 m. Reading (float64) and writing (double
+    when float would blur the cloud) keep them."""
+    cloud = np.random.default_rng(0).normal(size=(100, 3)) * 10 + np.array([5e5, 5e6, 100.0])
+    np.save(tmp_path / "utm.npy", cloud)
+    np.testing.assert_array_equal(read_points(tmp_path / "utm.npy"), cloud)
+    write_ply(tmp_path / "utm.ply", cloud)
+    np.testing.assert_array_equal(read_points(tmp_path / "utm.ply"), cloud)
+    write_ply(tmp_path / "near.ply", cloud - cloud.mean(0))  # near the origin: float is enough
+    assert b"property float x" in (tmp_path / "near.ply").read_bytes()[:200]
+
+
+def test_as_points_takes_arrays_tensors_point_clouds_and_paths(tmp_path):
+    import torch
+
+    from vrnet_ext.io import as_points
+
+    cloud = np.random.default_rng(1).normal(size=(20, 3))
+    np.save(tmp_path / "c.npy", cloud)
+
+    class PointCloud:  # what Open3D's PointCloud offers: a `points` attribute convertible by numpy
+        points = cloud.tolist()
+
+    for given in (cloud, cloud.astype(np.float32), torch.as_tensor(cloud), PointCloud(), tmp_path / "c.npy",
+                  str(tmp_path / "c.npy")):
+        got = as_points(given, "source")
+        assert got.dtype == np.float64 and got.shape == (20, 3)
+        np.testing.assert_allclose(got, cloud, rtol=1e-6)
+    with pytest.raises(ValueError, match="source must have shape"):
+        as_points(np.zeros((4, 4)), "source")
+    with pytest.raises(ValueError, match="source needs at least 3 points"):
+        as_points(np.zeros((2, 3)), "source")
+    with pytest.raises(ValueError, match="source has NaN"):
+        as_points(np.full((5, 3), np.nan), "source")
+    with pytest.raises(ValueError, match="source must be an"):
+        as_points(object(), "source")

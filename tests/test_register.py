@@ -219,6 +219,42 @@ def test_real_lidar_pair_icp_matches_reference():
     assert transform_errors(fine_only.T_target_source, truth)["translation_error"] > 0.1
 
 
+@pytest.mark.skipif(not (LIDAR / "source.ply").exists(), reason=f"LiDAR pair not found under {LIDAR}")
+def test_georeferenced_lidar_pair_through_the_cli(tmp_path):
+    """The LiDAR pair shifted to UTM-like coordinates (5e5, 5e6, 100) m, in float64 files, through
+    `vrnet register`: every moved point within 1 cm of the unshifted result (float32 alone is 0.5 m
+    coarse there)."""
+    from vrnet_ext.transforms import in_shifted_frames
+
+    src, tgt = read_points(LIDAR / "source.ply"), read_points(LIDAR / "target.ply")
+    shift = np.array([5e5, 5e6, 100.0])
+    np.save(tmp_path / "src.npy", src + shift)
+    np.save(tmp_path / "tgt.npy", tgt + shift)
+    assert main(["register", str(tmp_path / "src.npy"), str(tmp_path / "tgt.npy"), "--json",
+                 str(tmp_path / "shifted.json"), "--out", str(tmp_path / "moved.ply")]) == 0
+    shifted = np.array(json.loads((tmp_path / "shifted.json").read_text())["T_target_source"])
+    unshifted = in_shifted_frames(register(src, tgt).T_target_source, shift)
+    moved = apply(shifted, src + shift)
+    assert np.abs(moved - apply(unshifted, src + shift)).max() < 0.01
+    assert np.abs(read_points(tmp_path / "moved.ply") - moved).max() < 1e-6
+
+
+def test_python_register_gives_the_cli_result_from_numpy(tmp_path):
+    """vrnet_ext.register with default arguments on numpy arrays = `vrnet register` on the files."""
+    import vrnet_ext
+
+    kitchen = DATA_DIR / "scenes" / "3dmatch_redkitchen"
+    if not (kitchen / "cloud_bin_0.ply").exists():
+        pytest.skip(f"kitchen fragments not found under {kitchen}")
+    for source, target in (("cloud_bin_4.ply", "cloud_bin_0.ply"), ("cloud_bin_10.ply", "cloud_bin_4.ply")):
+        assert main(["register", str(kitchen / source), str(kitchen / target), "--json", str(tmp_path / "r.json")]) == 0
+        record = json.loads((tmp_path / "r.json").read_text())
+        result = vrnet_ext.register(read_points(kitchen / source), read_points(kitchen / target))
+        assert result.method == record["method"] == "fpfh"
+        difference = transform_errors(result.T_target_source, np.array(record["T_target_source"]))
+        assert difference["rotation_error_deg"] < 0.01 and difference["translation_error"] < 1e-4, difference
+
+
 def test_cli_register_rejects_bad_options_before_any_work(tmp_path, capsys):
     from vrnet_ext.cli import main
 

@@ -4,9 +4,10 @@ Attributes load on first use (``vrnet_ext.ops`` imports torch and the compiled k
 from vrnet_ext._lazy import lazy_attributes
 
 __version__ = "0.1.0"
-__all__ = ["ops", "nn", "VRNet", "VRNetConfig", "VRNetOutput", "has_extension", "load_pretrained",
-           "set_flush_denormal", "__version__"]
+__all__ = ["register", "RegistrationResult", "ops", "nn", "VRNet", "VRNetConfig", "VRNetOutput", "has_extension",
+           "load_pretrained", "set_flush_denormal", "__version__"]
 __getattr__ = lazy_attributes(__name__, {
+    "register": "vrnet_ext.registration", "RegistrationResult": "vrnet_ext.registration",
     "ops": "vrnet_ext.ops", "nn": "vrnet_ext.nn", "VRNet": "vrnet_ext.model", "VRNetConfig": "vrnet_ext.model",
     "VRNetOutput": "vrnet_ext.model", "has_extension": "vrnet_ext._extension",
     "load_pretrained": "vrnet_ext.pretrained", "set_flush_denormal": "vrnet_ext.runtime",

@@ -300,10 +300,10 @@ INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "fgr": "FPFH + FGR",
 def _run_register(args) -> int:
     import numpy as np
 
-    from vrnet_ext.registration.global_estimators import DEFAULT_METHOD
-
     from vrnet_ext.io import read_points, read_transform, write_ply
+    from vrnet_ext.pretrained import DEFAULT_SCENE_MODEL
     from vrnet_ext.registration import IcpSettings, register, transform_errors
+    from vrnet_ext.registration.global_estimators import DEFAULT_METHOD
     from vrnet_ext.transforms import apply
 
     if args.max_memory is not None:
@@ -316,7 +316,6 @@ def _run_register(args) -> int:
     model = None
     if method == "vrnet":  # before the scans: a bad checkpoint fails at once
         from vrnet_ext.checkpoints import load_model
-        from vrnet_ext.pretrained import DEFAULT_SCENE_MODEL
 
         model = load_model(args.checkpoint or DEFAULT_SCENE_MODEL, args.device)[0]
     src, tgt = read_points(args.source), read_points(args.target)
@@ -329,7 +328,8 @@ def _run_register(args) -> int:
                       device=args.device, backend=args.backend, max_memory=args.max_memory)
     record = result.to_dict()
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    record.update(source=str(args.source), target=str(args.target), checkpoint=args.checkpoint, peak_rss_mb=peak_mb)
+    record.update(source=str(args.source), target=str(args.target), peak_rss_mb=peak_mb,
+                  checkpoint=args.checkpoint or (DEFAULT_SCENE_MODEL if method == "vrnet" else None))
     unconverged = " (not converged)" if result.iterations and not result.converged else ""
     print(f"source {len(src)} points, target {len(tgt)} points; "
           f"initial estimate: {INITIAL_NAMES[result.start or method]}; "

@@ -1,4 +1,5 @@
-"""Point-cloud files: ``read_points(path) -> (N, 3) float32`` and ``write_ply(path, points)``.
+"""Point clouds in and out: ``read_points(path) -> (N, 3) float64``, ``write_ply(path, points)``, and
+``as_points(cloud)`` for any in-memory cloud (array, tensor, an object with ``.points``) or path.
 
 Formats (by extension): PLY (``ascii``, ``binary_little_endian``, ``binary_big_endian``; the x, y, z
 properties of the ``vertex`` element, whatever else it holds), PCD (``DATA ascii`` and ``binary``),
@@ -217,7 +218,8 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
     """Reads the x, y, z coordinates of a point-cloud file.
 
     Returns:
-        (N, 3) float32 array, N >= 3, all values finite.
+        (N, 3) float64 array, N >= 3, all values finite (float64 whatever the file stores, so that
+        georeferenced coordinates such as UTM northings keep their centimetres).
     """
     path = Path(path)
     kind = READERS.get(path.suffix.lower())
@@ -232,7 +234,7 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
     else:
         data = path.read_bytes()
         points = {"ply": _read_ply, "pcd": _read_pcd, "kitti": _read_kitti}[kind](path, data)
-    points = np.ascontiguousarray(points, dtype=np.float32)
+    points = np.ascontiguousarray(points, dtype=np.float64)
     if points.shape[0] < MIN_POINTS:
         raise _fail(path, f"needs at least {MIN_POINTS} points, has {points.shape[0]}")
     bad = ~np.isfinite(points).all(axis=1)
@@ -241,13 +243,44 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
     return points
 
 
+def as_points(cloud, name: str = "cloud") -> np.ndarray:
+    """Any point cloud as an (N, 3) float64 array: a numpy array or torch tensor of shape (N, 3), an
+    object with a ``points`` attribute holding one (an Open3D ``PointCloud``, without importing
+    Open3D), or a file path (:func:`read_points`). Raises ``ValueError`` naming ``name`` when it is
+    none of these, has another shape, fewer than 3 points, or NaN/Inf coordinates."""
+    if isinstance(cloud, (str, os.PathLike)):
+        return read_points(cloud)
+    if hasattr(cloud, "points") and not hasattr(cloud, "shape"):
+        cloud = cloud.points
+    if hasattr(cloud, "detach"):  # a torch tensor, on any device
+        cloud = cloud.detach().cpu().numpy()
+    try:
+        points = np.asarray(cloud, dtype=np.float64)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{name} must be an (N, 3) array, tensor, point cloud or file path, "
+                         f"got {type(cloud).__name__}") from error
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {points.shape}")
+    if points.shape[0] < MIN_POINTS:
+        raise ValueError(f"{name} needs at least {MIN_POINTS} points, has {points.shape[0]}")
+    if not np.isfinite(points).all():
+        raise ValueError(f"{name} has NaN or Inf coordinates")
+    return np.ascontiguousarray(points)
+
+
 def write_ply(path: str | os.PathLike, points: np.ndarray) -> None:
-    """Writes (N, 3) points as a binary little-endian PLY with float x, y, z."""
-    points = np.asarray(points, dtype="<f4")
+    """Writes (N, 3) points as a binary little-endian PLY with float x, y, z, or double where float
+    would blur them (coordinates far from the origin compared with the cloud's extent)."""
+    points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    extent = float(np.max(points.max(axis=0) - points.min(axis=0))) if len(points) else 0.0
+    largest = float(np.abs(points).max()) if len(points) else 0.0
+    wide = float(np.spacing(np.float32(largest))) > 1e-6 * extent
+    points = points.astype("<f8" if wide else "<f4")
+    kind = "double" if wide else "float"
     header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
-              "property float x\nproperty float y\nproperty float z\nend_header\n")
+              f"property {kind} x\nproperty {kind} y\nproperty {kind} z\nend_header\n")
     with open(path, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(np.ascontiguousarray(points).tobytes())

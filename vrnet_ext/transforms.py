@@ -28,4 +28,15 @@ def to_homogeneous(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     return T
 
 
-__all__ = ["apply", "move", "to_homogeneous"]
+def translation(vector) -> np.ndarray:
+    """(3,) t -> the (4, 4) float64 matrix of the pure translation by t."""
+    return to_homogeneous(np.eye(3), vector)
+
+
+def in_shifted_frames(T, shift) -> np.ndarray:
+    """A (4, 4) motion estimated between clouds that were both shifted by ``-shift`` (3,), expressed
+    between the original clouds: ``translation(shift) @ T @ translation(-shift)``."""
+    return translation(shift) @ np.asarray(T, dtype=np.float64) @ translation(-np.asarray(shift, dtype=np.float64))
+
+
+__all__ = ["apply", "in_shifted_frames", "move", "to_homogeneous", "translation"]

@@ -7,6 +7,7 @@ import time
 import numpy as np
 import torch
 
+from vrnet_ext.io import as_points
 from vrnet_ext.memory_plan import plan_registration
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
@@ -14,6 +15,7 @@ from vrnet_ext.preprocessing import voxel_downsample, voxel_size_for
 from vrnet_ext.registration.global_estimators import DEFAULT_METHOD, GlobalEstimator, make_global_estimator
 from vrnet_ext.registration.refinement import COARSE_FACTOR, IcpFailure, IcpSettings, icp
 from vrnet_ext.registration.result import RegistrationResult
+from vrnet_ext.transforms import in_shifted_frames
 
 LOW_FITNESS = 0.2  # below this share of source points with a target point within reach, warn
 FITNESS_TIE = 0.005  # refinements whose fitness differs by less converged to the same fit
@@ -40,11 +42,18 @@ def _coarse_start(src: np.ndarray, tgt: np.ndarray, voxel: float, reach: float, 
         return np.eye(4)
 
 
-def register(src: np.ndarray, tgt: np.ndarray, *, method: str | GlobalEstimator | None = None,
+def register(src, tgt, *, method: str | GlobalEstimator | None = None,
              model: VRNet | SceneVRNet | None = None, global_points: int = 5000, network_points: int = 1024,
              icp_settings: IcpSettings = IcpSettings(), seed: int = 0, device: str | torch.device = "cpu",
              backend: str = "ext", max_memory: int | None = None) -> RegistrationResult:
     """Estimates the rigid transform taking src (N, 3) onto tgt (M, 3), both in the same unit.
+
+    src, tgt: numpy arrays or torch tensors of shape (N, 3), objects with a ``points`` attribute
+    (an Open3D point cloud) or file paths (:func:`vrnet_ext.io.as_points`). They are handled in
+    float64; when they lie so far from the origin that float32 would blur them (georeferenced
+    coordinates: UTM, ~1e6 m), both are shifted by the target's median before any float32
+    computation (an estimator object then sees the shifted clouds), and the result is expressed
+    in the original frames.
 
     method: a :class:`GlobalEstimator` object, or the name of a built-in one: ``"fpfh"``: FPFH
     features + RANSAC on about ``global_points`` points per scan; ``"vrnet"``: a learned initial
@@ -64,6 +73,28 @@ def register(src: np.ndarray, tgt: np.ndarray, *, method: str | GlobalEstimator 
     """
     if not isinstance(icp_settings, IcpSettings):
         raise TypeError(f"icp_settings must be an IcpSettings, got {type(icp_settings).__name__}")
+    src, tgt = as_points(src, "src"), as_points(tgt, "tgt")
+    args = (method, model, global_points, network_points, icp_settings, seed, device, backend, max_memory)
+    if not _far_from_origin(src, tgt):
+        return _register_centred(src, tgt, *args)
+    centre = np.median(tgt, axis=0)
+    result = _register_centred(src - centre, tgt - centre, *args)
+    result.T_target_source = in_shifted_frames(result.T_target_source, centre)
+    result.initial = in_shifted_frames(result.initial, centre)
+    return result
+
+
+def _far_from_origin(src: np.ndarray, tgt: np.ndarray) -> bool:
+    """Whether float32 coordinates would be coarser than 1e-5 of the target's extent."""
+    largest = max(np.abs(src).max(), np.abs(tgt).max())
+    extent = float(np.max(tgt.max(axis=0) - tgt.min(axis=0)))
+    return float(np.spacing(np.float32(largest))) > 1e-5 * extent
+
+
+def _register_centred(src: np.ndarray, tgt: np.ndarray, method, model, global_points: int, network_points: int,
+                      icp_settings: IcpSettings, seed: int, device, backend: str,
+                      max_memory: int | None) -> RegistrationResult:
+    """:func:`register` on clouds near enough to the origin for float32."""
     _check_count("global_points", global_points, 3)
     _check_count("network_points", network_points, 1)
     icp_points, voxel_size = icp_settings.points, icp_settings.voxel_size
