@@ -55,6 +55,7 @@ OPEN3D_SCRIPT = textwrap.dedent("""
     from vrnet_ext.io import read_points
     src_path, tgt_path, estimator, out = sys.argv[1:5]
     voxel, icp_voxel = float(sys.argv[5]), float(sys.argv[6])
+    global_method = sys.argv[7] if len(sys.argv) > 7 else "ransac"
     src_points, tgt_points = read_points(src_path), read_points(tgt_path)
     begin = time.perf_counter()
     reg = o3d.pipelines.registration
@@ -67,11 +68,16 @@ OPEN3D_SCRIPT = textwrap.dedent("""
                                                                                         max_nn=100))
     src, tgt = cloud(src_points), cloud(tgt_points)
     (src_down, src_fpfh), (tgt_down, tgt_fpfh) = features(src), features(tgt)
-    ransac = reg.registration_ransac_based_on_feature_matching(
-        src_down, tgt_down, src_fpfh, tgt_fpfh, True, 1.5 * voxel,
-        reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
-        reg.RANSACConvergenceCriteria(100000, 0.999))
+    if global_method == "fgr":
+        ransac = reg.registration_fgr_based_on_feature_matching(
+            src_down, tgt_down, src_fpfh, tgt_fpfh,
+            reg.FastGlobalRegistrationOption(maximum_correspondence_distance=1.5 * voxel))
+    else:
+        ransac = reg.registration_ransac_based_on_feature_matching(
+            src_down, tgt_down, src_fpfh, tgt_fpfh, True, 1.5 * voxel,
+            reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
+            reg.RANSACConvergenceCriteria(100000, 0.999))
     src_icp, tgt_icp = src.voxel_down_sample(icp_voxel), tgt.voxel_down_sample(icp_voxel)
     criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=50)
     if estimator != "point_to_point":
@@ -96,10 +102,12 @@ def errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     return float(np.degrees(np.arccos(np.clip(cos, -1, 1)))), float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))
 
 
-def run_ours(pair: dict, method: str, estimator: str, out: Path) -> dict:
-    cmd = [sys.executable, "-m", "vrnet_ext.cli", "register", str(pair["source"]), str(pair["target"]),
-           "--method", method, "--estimator", estimator, "--global-points", str(GLOBAL_POINTS),
-           "--icp-points", str(ICP_POINTS), "--json", str(out)]
+def run_ours(pair: dict, method: str | None, estimator: str, out: Path, seed: int = 0) -> dict:
+    """`vrnet register` in a fresh process (method None: its default)."""
+    chosen = [] if method is None else ["--method", method]
+    cmd = [sys.executable, "-m", "vrnet_ext.cli", "register", str(pair["source"]), str(pair["target"]), *chosen,
+           "--estimator", estimator, "--global-points", str(GLOBAL_POINTS), "--icp-points", str(ICP_POINTS),
+           "--seed", str(seed), "--json", str(out)]
     start = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - start
@@ -107,14 +115,16 @@ def run_ours(pair: dict, method: str, estimator: str, out: Path) -> dict:
         return {"error": (proc.stderr.strip().splitlines() or ["?"])[-1], "process_s": wall}
     result = json.loads(out.read_text())
     return {"transform": result["T_target_source"], "register_s": sum(result["seconds"].values()),
-            "peak_rss_mb": result["peak_rss_mb"], "process_s": wall, "fitness": result["fitness"]}
+            "peak_rss_mb": result["peak_rss_mb"], "process_s": wall, "fitness": result["fitness"],
+            "start": result.get("start", "")}
 
 
-def run_open3d(pair: dict, estimator: str, out: Path) -> dict:
+def run_open3d(pair: dict, estimator: str, out: Path, global_method: str = "ransac") -> dict:
+    """Open3D's FPFH + RANSAC (or FGR) + ICP in a fresh process, on our voxel edges."""
     voxels = [str(voxel_size_for(read_points(pair["target"]), points)) for points in (GLOBAL_POINTS, ICP_POINTS)]
     start = time.perf_counter()
     proc = subprocess.run([sys.executable, "-c", OPEN3D_SCRIPT, str(pair["source"]), str(pair["target"]), estimator,
-                           str(out), *voxels], capture_output=True, text=True)
+                           str(out), *voxels, global_method], capture_output=True, text=True)
     wall = time.perf_counter() - start
     if proc.returncode != 0:
         return {"error": (proc.stderr.strip().splitlines() or ["?"])[-1], "process_s": wall}

@@ -49,3 +49,17 @@ def test_bench_large_scene_and_bench_register_run_on_the_lidar_pair(tmp_path):
     summary = json.loads((tmp_path / "register.json").read_text())["summary"]
     ours = [e for e in summary if e["implementation"].startswith("ours fpfh")]
     assert ours and ours[0]["success"], summary
+
+
+def test_bench_real_pairs_runs_turned_pairs(tmp_path):
+    from conftest import DATA_DIR
+
+    if not (DATA_DIR / "scenes" / "real_pairs" / "MANIFEST.tsv").exists():
+        pytest.skip(f"real pairs not found under {DATA_DIR / 'scenes'}")
+    run([str(ROOT / "benchmarks" / "bench_real_pairs.py"), "--pairs", "kitti00_0_4", "--seeds", "1", "--methods",
+         "default", "--extra-rotation", "180", "--out-dir", str(tmp_path)], tmp_path)
+    record = json.loads((tmp_path / "real_pairs.json").read_text())
+    (only,) = record["runs"]
+    assert only["method"] == "default" and only["subset"] == "KITTI" and "rotation_error_deg" in only, only
+    assert {row["subset"] for row in record["summary"]} >= {"KITTI", "unseen", "all"}
+    assert (tmp_path / "real_pairs.png").stat().st_size > 0 and (tmp_path / "real_pairs.md").exists()
