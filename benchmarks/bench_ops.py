@@ -238,6 +238,47 @@ def _voxel_downsample_case(voxel):
     return Case("voxel_downsample", f"scan N=300k voxel={voxel}", make, impls)
 
 
+def _spatial_consistency_case(K, outlier_ratio=0.9, quick=True, skip_torch=None):
+    """K putative correspondences, ``outlier_ratio`` of them random. Columns: our RANSAC on the same
+    correspondences (registration.ransac, 50k hypotheses at most, 0.999 confidence) and Open3D's
+    registration_ransac_based_on_correspondence (the best existing tool installed here)."""
+    tolerance = 0.03
+
+    def make():
+        g = torch.Generator().manual_seed(0)
+        p = torch.rand(K, 3, generator=g, dtype=torch.float64) * 2
+        angle = torch.tensor(1.2, dtype=torch.float64)
+        R = torch.tensor([[1.0, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64)
+        R[:2, :2] = torch.stack([torch.stack([angle.cos(), -angle.sin()]), torch.stack([angle.sin(), angle.cos()])])
+        q = p @ R.T + torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64)
+        outlier = torch.rand(K, generator=g) < outlier_ratio
+        q[outlier] = torch.rand(int(outlier.sum()), 3, generator=g, dtype=torch.float64) * 2
+        return p, q
+
+    impls = {b: (lambda p, q, b=b: ops.spatial_consistency(p, q, tolerance, tolerance, backend=b))
+             for b in ("ext", "torch")}
+
+    def ours_ransac(p, q):
+        from vrnet_ext.registration.ransac import ransac
+
+        pairs = torch.arange(p.shape[0]).unsqueeze(1).expand(-1, 2)
+        return ransac(p, q, pairs, tolerance)
+
+    impls["ransac (ours)"] = ours_ransac
+    if importlib.util.find_spec("open3d"):
+        import open3d as o3d
+
+        def open3d_ransac(p, q):
+            reg = o3d.pipelines.registration
+            pairs = o3d.utility.Vector2iVector(np.stack([np.arange(p.shape[0])] * 2, 1))
+            return reg.registration_ransac_based_on_correspondence(
+                _open3d_cloud(p), _open3d_cloud(q), pairs, tolerance, reg.TransformationEstimationPointToPoint(False),
+                3, [], reg.RANSACConvergenceCriteria(100000, 0.999))
+        impls["open3d ransac"] = open3d_ransac
+    skip = {"torch": skip_torch} if skip_torch else None
+    return Case("spatial_consistency", f"K={K} outliers={outlier_ratio:.0%}", make, impls, quick, skip)
+
+
 def _soft_match_case(B, N, c, D, backward=True, quick=True, skip_torch=None):
     """The best existing tool is torch's scaled_dot_product_attention (a flash-attention kernel on
     CPU and GPU): the same product, without the log-normaliser VRNet's matching statistics need."""
@@ -296,6 +337,8 @@ def all_cases(device: str = "cpu") -> list[Case]:
         _fpfh_case(),
         _voxel_downsample_case(0.02),
         _voxel_downsample_case(0.1),
+        _spatial_consistency_case(1000),
+        _spatial_consistency_case(5000, 0.95, quick=False, skip_torch="the dense reference takes ~20 s per call"),
         _soft_match_case(16, 768, 128, 131),
         _soft_match_case(1, 8192, 32, 35, backward=False),
         _soft_match_case(1, 50000, 32, 35, backward=False, quick=False,

@@ -1,7 +1,7 @@
 """Registration recall on the real scan pairs: every method of ours and Open3D's, in one run.
 
     python benchmarks/bench_real_pairs.py [--data ../shared/data/scenes] [--seeds 2]
-        [--methods default fpfh vrnet fgr open3d-ransac open3d-fgr] [--extra-rotation 180]
+        [--methods default fpfh sc2 vrnet fgr open3d-ransac open3d-fgr] [--extra-rotation 180]
         [--out-dir benchmarks/results/DATE]
 
 Pairs: the 45 of ``real_pairs/`` (3DMatch and 3DLoMatch pairs of 7-scenes-redkitchen, KITTI
@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_large_scene import DEFAULT_DATA, pairs as shared_pairs  # noqa: E402
 from bench_register import errors, run_open3d, run_ours  # noqa: E402
 
-METHODS = ("default", "fpfh", "vrnet", "fgr", "open3d-ransac", "open3d-fgr")
+METHODS = ("default", "fpfh", "sc2", "vrnet", "fgr", "open3d-ransac", "open3d-fgr")
 SCENE_MODEL_FRAGMENTS = {0, 4, 10}  # the kitchen fragments the shipped scene model was trained on
 THRESHOLDS = {"indoor": (15.0, 0.30), "outdoor": (5.0, 2.0)}
 

@@ -321,7 +321,7 @@ def run_readers(examples: int) -> None:
         except PointCloudError as error:
             assert str(target) in str(error)
             return
-        assert points.dtype == np.float32 and points.ndim == 2 and points.shape[1] == 3
+        assert points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3
         assert points.shape[0] >= 3 and np.isfinite(points).all()
 
     mutated()

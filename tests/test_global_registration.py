@@ -79,6 +79,17 @@ def closed_room(count=8000, seed=0):
     return np.concatenate(points)
 
 
+def test_spatial_consistency_finds_a_large_motion():
+    """--method sc2 on the closed room 75 degrees apart, through register and the CLI."""
+    src = closed_room()
+    truth = motion(75.0, [0.3, -0.2, 0.1])
+    tgt = apply(truth, closed_room(seed=1))
+    result = register(src, tgt, method="sc2", global_points=3000, icp_settings=IcpSettings(points=6000))
+    assert result.method == result.start == "sc2"
+    assert transform_errors(result.initial, truth)["rotation_error_deg"] < 3.0
+    assert transform_errors(result.T_target_source, truth)["rotation_error_deg"] < 1.0
+
+
 def test_fpfh_ransac_finds_a_large_motion_that_icp_from_the_identity_cannot():
     """Both scans see the room from inside (the sensor at each one's origin), 75 degrees apart."""
     src = closed_room()

@@ -250,15 +250,16 @@ def _register_parser(sub) -> None:
     p = sub.add_parser(
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
         description="Estimates the rigid transform taking SOURCE onto TARGET: a global estimate (--method fpfh: "
-                    "FPFH + RANSAC, the default; --method vrnet: the shipped scene model, FPFH descriptors under "
-                    "VRNet's head, or --checkpoint, with ICP also started from FPFH + RANSAC and the better fit "
-                    "kept; --method fgr: FPFH + Fast Global Registration; --method icp: none), refined by ICP "
-                    "(--estimator) on voxel-downsampled clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform and "
+                    "FPFH + RANSAC, the default; --method sc2: FPFH matches filtered by spatial consistency; "
+                    "--method vrnet: the shipped scene model, FPFH descriptors under VRNet's head, or --checkpoint, "
+                    "with ICP also started from FPFH + RANSAC and the better fit kept; --method fgr: FPFH + Fast "
+                    "Global Registration; --method icp: none), refined by ICP (--estimator) on voxel-downsampled "
+                    "clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform and "
                     "writes JSON.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("source", help="point-cloud file to move")
     p.add_argument("target", help="point-cloud file to align to (same unit)")
-    p.add_argument("--method", choices=GLOBAL_ESTIMATORS, default=None,
+    p.add_argument("--method", choices=GLOBAL_ESTIMATORS, default=argparse.SUPPRESS,
                    help=f"global estimate (default: {DEFAULT_METHOD}, the best recall on real scans the learned "
                         f"models never saw; vrnet when --checkpoint is given)")
     initial = p.add_mutually_exclusive_group()
@@ -294,7 +295,8 @@ def _register_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
 
 
-INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "fgr": "FPFH + FGR", "icp": "identity"}
+INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "sc2": "FPFH + spatial consistency", "fgr": "FPFH + FGR",
+                 "icp": "identity"}
 
 
 def _run_register(args) -> int:
@@ -310,7 +312,7 @@ def _run_register(args) -> int:
         from vrnet_ext.memory_plan import require_headroom
 
         require_headroom(args.max_memory)
-    method = args.method or ("vrnet" if args.checkpoint else DEFAULT_METHOD)
+    method = getattr(args, "method", None) or ("vrnet" if args.checkpoint else DEFAULT_METHOD)
     if args.fpfh and method != "fpfh" or args.checkpoint and method != "vrnet":
         raise ValueError(f"--method {method} does not take {'--fpfh' if args.fpfh else '--checkpoint'}")
     model = None

@@ -76,7 +76,7 @@ class RegistrationPlan:
     notes: list[str] = field(default_factory=list)
 
 
-PROFILES = ("icp", "fpfh", "fgr", "scene", "modelnet")  # GlobalEstimator.memory_profile values
+PROFILES = ("icp", "fpfh", "fgr", "sc2", "scene", "modelnet")  # GlobalEstimator.memory_profile values
 
 
 def _stage_mb(profile: str | None, largest_scan: int, global_points: int, network_points: int,
@@ -85,8 +85,10 @@ def _stage_mb(profile: str | None, largest_scan: int, global_points: int, networ
     estimator's (:data:`PROFILES`; None: unknown, only the voxel grid and ICP are predicted)."""
     stages = [VOXEL_BYTES_PER_INPUT_POINT * largest_scan / MB,
               ICP_MB + ICP_BYTES_PER_POINT * 2 * icp_points / MB]
-    if profile in ("fpfh", "fgr"):
+    if profile in ("fpfh", "fgr", "sc2"):
         stages.append(FPFH_MB + FPFH_BYTES_PER_POINT * global_points / MB)
+    if profile == "sc2":  # the compatibility graph: one bit per pair of correspondences (one per point)
+        stages.append(FPFH_MB + global_points * global_points / 8 / MB)
     elif profile == "scene":
         stages.append(SCENE_MB + SCENE_BYTES_PER_POINT * global_points / MB)
     elif profile == "modelnet":
@@ -110,7 +112,7 @@ def plan_registration(budget_bytes: int, profile: str | None, source_points: int
               "icp_points": MIN_ICP_POINTS}
     if profile is not None and profile not in PROFILES:
         raise ValueError(f"memory profile must be one of {PROFILES} or None, got {profile!r}")
-    used = {"icp_points"} | ({"global_points"} if profile in ("fpfh", "fgr", "scene") else set()) \
+    used = {"icp_points"} | ({"global_points"} if profile in ("fpfh", "fgr", "sc2", "scene") else set()) \
         | ({"network_points"} if profile == "modelnet" else set())
     notes = []
 

@@ -22,4 +22,5 @@
   X("soft_match_backward(Tensor grad_out, Tensor grad_lse, Tensor query, Tensor key, Tensor values, Tensor out, Tensor lse, float scale) -> (Tensor, Tensor, Tensor)") \
   X("normals(Tensor points, Tensor idx, float[] viewpoint) -> Tensor") \
   X("fpfh(Tensor points, Tensor normals, Tensor idx, Tensor dist2, float radius) -> Tensor") \
-  X("voxel_downsample(Tensor points, float voxel_size) -> Tensor")
+  X("voxel_downsample(Tensor points, float voxel_size) -> Tensor") \
+  X("spatial_consistency(Tensor src, Tensor tgt, float tolerance, float inlier_threshold, int seeds, int consensus) -> (Tensor, Tensor)")

@@ -1,7 +1,8 @@
 """Registration of real scans, as a package of small parts:
 
 - :mod:`~vrnet_ext.registration.global_estimators`: an initial estimate with no prior (FPFH +
-  RANSAC, FGR, the learned VRNet path, none) behind one interface, :class:`GlobalEstimator`;
+  RANSAC, FPFH + spatial consistency, FGR, the learned VRNet path, none) behind one interface,
+  :class:`GlobalEstimator`;
 - :mod:`~vrnet_ext.registration.ransac` and :mod:`~vrnet_ext.registration.fgr`: the feature
   matching and robust fits those use;
 - :mod:`~vrnet_ext.registration.estimators`: ICP's local steps (point-to-point, point-to-plane,
@@ -15,11 +16,12 @@ Conventions (frames, 4x4 transforms) are those of :mod:`vrnet_ext.transforms`.
 """
 from vrnet_ext.registration.estimators import ESTIMATORS, Estimator, make_estimator
 from vrnet_ext.registration.global_estimators import (GLOBAL_ESTIMATORS, Fgr, FpfhRansac, GlobalEstimator, NoMotion,
-                                                      ObjectNetwork, SceneNetwork, make_global_estimator)
+                                                      ObjectNetwork, SceneNetwork, SpatialConsistency,
+                                                      make_global_estimator)
 from vrnet_ext.registration.refinement import IcpFailure, IcpSettings, fitness, icp
 from vrnet_ext.registration.pipeline import register
 from vrnet_ext.registration.result import RegistrationResult, transform_errors
 
 __all__ = ["ESTIMATORS", "Estimator", "make_estimator", "GLOBAL_ESTIMATORS", "GlobalEstimator", "FpfhRansac", "Fgr",
-           "NoMotion", "ObjectNetwork", "SceneNetwork", "make_global_estimator", "IcpFailure", "IcpSettings",
-           "fitness", "icp", "register", "RegistrationResult", "transform_errors"]
+           "NoMotion", "ObjectNetwork", "SceneNetwork", "SpatialConsistency", "make_global_estimator", "IcpFailure",
+           "IcpSettings", "fitness", "icp", "register", "RegistrationResult", "transform_errors"]

@@ -8,7 +8,8 @@ Scans are (N, 3) float arrays in one unit (metres for the shared data); every es
 Built in (:data:`GLOBAL_ESTIMATORS`): ``"vrnet"`` (a learned estimate: :class:`SceneNetwork` for a
 :class:`~vrnet_ext.model.scene.SceneVRNet`, :class:`ObjectNetwork` for a ModelNet40
 :class:`~vrnet_ext.model.VRNet`), ``"fpfh"`` (:class:`FpfhRansac`), ``"fgr"`` (:class:`Fgr`) and
-``"icp"`` (:class:`NoMotion`: ICP alone, from the identity).
+``"sc2"`` (:class:`SpatialConsistency`) and ``"icp"`` (:class:`NoMotion`: ICP alone, from the
+identity).
 """
 from __future__ import annotations
 
@@ -22,7 +23,8 @@ from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.preprocessing import subsample, voxel_downsample, voxel_size_for
 from vrnet_ext.registration.fgr import fast_global_registration
-from vrnet_ext.registration.ransac import fpfh_ransac, ransac, voxel_fpfh
+from vrnet_ext import ops
+from vrnet_ext.registration.ransac import fpfh_ransac, nearest_both_ways, ransac, voxel_fpfh
 from vrnet_ext.transforms import to_homogeneous
 
 CPU = torch.device("cpu")
@@ -103,6 +105,31 @@ class Fgr(GlobalEstimator):
                                         seed=seed).cpu().numpy()
 
 
+@dataclass
+class SpatialConsistency(GlobalEstimator):
+    """FPFH matches filtered by spatial consistency (:func:`vrnet_ext.ops.spatial_consistency`, the
+    idea of SC^2-PCR): both scans voxel-downsampled to about ``points`` points, each source point
+    matched to its nearest target feature, correspondences compatible when the distances they span
+    agree within 2 voxels, inliers within 2 voxels; ``seeds`` fits of ``consensus`` neighbours."""
+
+    points: int = 5000
+    device: torch.device = CPU
+    seeds: int = 100
+    consensus: int = 30
+    name: ClassVar[str] = "sc2"
+    memory_profile: ClassVar[str | None] = "sc2"
+
+    def estimate(self, src, tgt, seed):
+        src_down, tgt_down, voxel = downsampled_pair(src, tgt, self.points, self.device)
+        forward, _ = nearest_both_ways(voxel_fpfh(src_down, voxel), voxel_fpfh(tgt_down, voxel))
+        transform, inliers = ops.spatial_consistency(src_down, tgt_down[forward], 2.0 * voxel, 2.0 * voxel,
+                                                     self.seeds, self.consensus)
+        if int(inliers.sum()) < 3:
+            raise ValueError("spatial consistency found no set of 3 or more consistent FPFH matches: the features "
+                             "do not match (try another point count for --global-points)")
+        return transform.numpy()
+
+
 SCENE_PAIRS = 1000  # most confident (source, RCP) pairs the scene model hands to RANSAC
 
 
@@ -170,7 +197,7 @@ class ObjectNetwork(GlobalEstimator):
         return to_homogeneous(R, scale * t_normalised + centre - R @ centre)
 
 
-GLOBAL_ESTIMATORS = ("fpfh", "vrnet", "fgr", "icp")
+GLOBAL_ESTIMATORS = ("fpfh", "sc2", "vrnet", "fgr", "icp")
 DEFAULT_METHOD = "fpfh"  # the best recall on real pairs the learned models never saw (docs/registration.md)
 
 
@@ -194,4 +221,6 @@ def make_global_estimator(method: str, model: VRNet | SceneVRNet | None = None, 
         return FpfhRansac(global_points, device)
     if method == "fgr":
         return Fgr(global_points, device)
+    if method == "sc2":
+        return SpatialConsistency(global_points, device)
     return NoMotion()

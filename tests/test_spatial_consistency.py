@@ -1,0 +1,108 @@
+"""ops.spatial_consistency: recovery under heavy outlier ratios, the compiled op against the dense
+reference (same inliers, same transform), degenerate inputs and named errors."""
+import math
+
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from conftest import requires_ext
+from vrnet_ext import ops
+from vrnet_ext.ops.spatial_consistency import spatial_consistency_reference
+
+
+def correspondences(K, outlier_ratio, seed=0, noise=0.005):
+    g = torch.Generator().manual_seed(seed)
+    p = torch.rand(K, 3, generator=g, dtype=torch.float64) * 2
+    R = torch.tensor(Rotation.from_rotvec([0.3, -1.2, 0.8]).as_matrix())
+    t = torch.tensor([0.5, -1.0, 0.3], dtype=torch.float64)
+    q = p @ R.T + t + torch.randn(K, 3, generator=g, dtype=torch.float64) * noise
+    outlier = torch.rand(K, generator=g) < outlier_ratio
+    q[outlier] = torch.rand(int(outlier.sum()), 3, generator=g, dtype=torch.float64) * 2
+    return p, q, R, t, ~outlier
+
+
+def rotation_error_deg(A, B):
+    return math.degrees(math.acos(max(-1.0, min(1.0, (float(torch.trace(A.T @ B)) - 1) / 2))))
+
+
+@pytest.mark.parametrize("backend", ["ext", pytest.param("torch")])
+@pytest.mark.parametrize("K,ratio", [(400, 0.5), (400, 0.9), (1500, 0.95)])
+def test_recovers_the_motion_under_outliers(backend, K, ratio):
+    if backend == "torch" and K > 500:
+        pytest.skip("the dense reference is slow at this size")
+    p, q, R, t, inlier = correspondences(K, ratio)
+    T, mask = ops.spatial_consistency(p, q, 0.03, 0.03, backend=backend)
+    assert rotation_error_deg(T[:3, :3], R) < 0.5 and float((T[:3, 3] - t).norm()) < 0.01
+    assert T.dtype == torch.float64 and T.shape == (4, 4) and torch.equal(T[3], torch.tensor([0.0, 0, 0, 1]).double())
+    precision = float((mask & inlier).sum()) / max(1, int(mask.sum()))
+    assert precision > 0.95 and int(mask.sum()) >= 0.9 * int(inlier.sum())
+
+
+@requires_ext
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("K,ratio,seeds,consensus", [(300, 0.8, 100, 30), (64, 0.5, 5, 2), (200, 0.97, 20, 10)])
+def test_compiled_op_matches_the_reference(seed, K, ratio, seeds, consensus):
+    p, q, *_ = correspondences(K, ratio, seed)
+    T, mask = ops.spatial_consistency(p, q, 0.03, 0.03, seeds, consensus)
+    T_ref, mask_ref = spatial_consistency_reference(p, q, 0.03, 0.03, seeds, consensus)
+    assert torch.equal(mask, mask_ref)
+    torch.testing.assert_close(T, T_ref, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_degenerate_inputs(backend):
+    p = torch.rand(50, 3, dtype=torch.float64)
+    # no consistent structure at all: some answer, a valid rotation, no crash
+    T, mask = ops.spatial_consistency(p, torch.rand(50, 3, dtype=torch.float64), 1e-9, 1e-9, backend=backend)
+    torch.testing.assert_close(T[:3, :3] @ T[:3, :3].T, torch.eye(3, dtype=torch.float64))
+    assert mask.dtype == torch.bool and mask.shape == (50,)
+    # identical points everywhere and collinear correspondences
+    same = torch.ones(10, 3, dtype=torch.float64)
+    T, mask = ops.spatial_consistency(same, same, 0.1, 0.1, backend=backend)
+    assert torch.isfinite(T).all()
+    line = torch.linspace(0, 1, 20, dtype=torch.float64)[:, None] * torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64)
+    T, mask = ops.spatial_consistency(line, line + 1.0, 0.01, 0.01, backend=backend)
+    assert bool(mask.all()) and torch.allclose(line @ T[:3, :3].T + T[:3, 3], line + 1.0, atol=1e-9)
+    # float32 input, three correspondences
+    tri = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    T, mask = ops.spatial_consistency(tri, tri + 2.0, 0.01, 0.01, backend=backend)
+    assert bool(mask.all()) and torch.allclose(T[:3, 3], torch.full((3,), 2.0, dtype=torch.float64), atol=1e-9)
+
+
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_errors_name_the_argument(backend):
+    p = torch.rand(10, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match="src must have shape"):
+        ops.spatial_consistency(p[:, :2], p[:, :2], 0.1, 0.1, backend=backend)
+    with pytest.raises(ValueError, match="tgt must have the shape of src"):
+        ops.spatial_consistency(p, p[:5], 0.1, 0.1, backend=backend)
+    with pytest.raises(ValueError, match="src must hold 3 to"):
+        ops.spatial_consistency(p[:2], p[:2], 0.1, 0.1, backend=backend)
+    for bad in (0.0, -1.0, math.nan, math.inf, True):
+        with pytest.raises(ValueError, match="tolerance must be a positive number"):
+            ops.spatial_consistency(p, p, bad, 0.1, backend=backend)
+        with pytest.raises(ValueError, match="inlier_threshold must be a positive number"):
+            ops.spatial_consistency(p, p, 0.1, bad, backend=backend)
+    with pytest.raises(ValueError, match="seeds must be an integer >= 1"):
+        ops.spatial_consistency(p, p, 0.1, 0.1, seeds=0, backend=backend)
+    with pytest.raises(ValueError, match="consensus must be an integer >= 2"):
+        ops.spatial_consistency(p, p, 0.1, 0.1, consensus=1, backend=backend)
+    bad = p.clone()
+    bad[3, 1] = math.nan
+    with pytest.raises(ValueError, match="src contains NaN or Inf"):
+        ops.spatial_consistency(bad, p, 0.1, 0.1, backend=backend)
+    with pytest.raises(TypeError, match="src must be a floating tensor"):
+        ops.spatial_consistency(p.long(), p, 0.1, 0.1, backend=backend)
+
+
+@requires_ext
+def test_raw_op_checks_its_arguments():
+    p = torch.rand(10, 3, dtype=torch.float64)
+    with pytest.raises(TypeError, match="src must be float64"):
+        torch.ops.vrnet_ext.spatial_consistency(p.float(), p, 0.1, 0.1, 10, 5)
+    with pytest.raises(ValueError, match="at most 32768"):
+        torch.ops.vrnet_ext.spatial_consistency(torch.zeros(40000, 3, dtype=torch.float64),
+                                                torch.zeros(40000, 3, dtype=torch.float64), 0.1, 0.1, 10, 5)
+    torch.library.opcheck(torch.ops.vrnet_ext.spatial_consistency.default, (p, p + 1.0, 0.1, 0.1, 10, 5),
+                          test_utils=("test_schema", "test_faketensor"))

@@ -1,0 +1,137 @@
+"""Robust rigid fit by spatial consistency: ``T, inliers = ops.spatial_consistency(src, tgt, tol, thr)``.
+
+Putative correspondences (p_i, q_i) (rows of ``src`` and ``tgt``, (K, 3)) are compatible when the
+distances they span agree: ``| |p_i - p_j| - |q_i - q_j| | < tolerance``. The inliers of the true
+motion are compatible with each other; outliers rarely are. Following SC^2-PCR (Chen et al.,
+CVPR 2022):
+
+1. the compatibility graph (K x K bits);
+2. ``seeds`` correspondences of highest degree, none within ``tolerance`` of another on the source
+   side;
+3. for each seed, the second-order score of each compatible j (how many correspondences are
+   compatible with both) picks its ``consensus`` best neighbours; a Kabsch fit on the seed and
+   those scores the correspondences it maps within ``inlier_threshold``;
+4. the best fit (most inliers; ties: the earlier seed, in order of degree) is refitted on its
+   inliers while they grow.
+
+Returns the (4, 4) float64 transform taking ``src`` onto ``tgt`` and the (K,) bool inlier mask
+(the identity and no inliers when no fit has 3). Deterministic; not differentiable. The compiled
+op keeps the graph as a bitset (K^2 / 8 bytes; at most 32,768 correspondences); the reference
+builds dense matrices (for tests).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from vrnet_ext._extension import has_extension, use_extension
+from vrnet_ext.ops._checks import check_finite
+
+MAX_CORRESPONDENCES = 1 << 15
+
+
+def _validate(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, inlier_threshold: float, seeds: int,
+              consensus: int) -> None:
+    for name, t in (("src", src), ("tgt", tgt)):
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+        if not t.is_floating_point():
+            raise TypeError(f"{name} must be a floating tensor, got {t.dtype}")
+    if src.dim() != 2 or src.shape[1] != 3:
+        raise ValueError(f"src must have shape (K, 3), got {tuple(src.shape)}")
+    if tgt.shape != src.shape:
+        raise ValueError(f"tgt must have the shape of src {tuple(src.shape)}, got {tuple(tgt.shape)}")
+    if not 3 <= src.shape[0] <= MAX_CORRESPONDENCES:
+        raise ValueError(f"src must hold 3 to {MAX_CORRESPONDENCES} correspondences, got {src.shape[0]}")
+    for name, value in (("tolerance", tolerance), ("inlier_threshold", inlier_threshold)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+            raise ValueError(f"{name} must be a positive number, got {value!r}")
+    for name, value, smallest in (("seeds", seeds, 1), ("consensus", consensus, 2)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < smallest:
+            raise ValueError(f"{name} must be an integer >= {smallest}, got {value!r}")
+
+
+def _kabsch(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Unweighted Procrustes in float64 -> (4, 4)."""
+    p_c, q_c = p.mean(0), q.mean(0)
+    H = (p - p_c).T @ (q - q_c) / p.shape[0]
+    U, _, Vh = torch.linalg.svd(H)
+    d = torch.sign(torch.det(Vh.T @ U.T))
+    R = Vh.T @ torch.diag(torch.tensor([1.0, 1.0, float(d) if d != 0 else 1.0], dtype=p.dtype)) @ U.T
+    T = torch.eye(4, dtype=p.dtype)
+    T[:3, :3], T[:3, 3] = R, q_c - R @ p_c
+    return T
+
+
+def _inliers(T: torch.Tensor, p: torch.Tensor, q: torch.Tensor, threshold: float) -> torch.Tensor:
+    return ((p @ T[:3, :3].T + T[:3, 3] - q).square().sum(1) < threshold * threshold)
+
+
+def spatial_consistency_reference(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, inlier_threshold: float,
+                                  seeds: int = 100, consensus: int = 30) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pure PyTorch, dense K x K matrices (the same steps and tie-breaking as the compiled op)."""
+    p, q = src.double().cpu(), tgt.double().cpu()
+    check_finite(p, "src")
+    check_finite(q, "tgt")
+    K = p.shape[0]
+    compatible = (torch.cdist(p, p) - torch.cdist(q, q)).abs() < tolerance
+    compatible.fill_diagonal_(False)
+    degree = compatible.sum(1)
+    order = torch.sort(-degree, stable=True).indices
+    chosen: list[int] = []
+    for i in order.tolist():
+        if len(chosen) >= seeds or int(degree[i]) < 2:
+            break
+        if all(float((p[i] - p[s]).norm()) >= tolerance for s in chosen):
+            chosen.append(i)
+    best_T, best_count = torch.eye(4, dtype=torch.float64), -1
+    for s in chosen:
+        neighbours = compatible[s].nonzero().flatten()
+        score = (compatible[neighbours] & compatible[s]).sum(1)
+        keep = neighbours[torch.sort(-score, stable=True).indices[:consensus]]
+        members = torch.cat([torch.tensor([s]), keep])
+        if members.numel() < 3:
+            continue
+        T = _kabsch(p[members], q[members])
+        count = int(_inliers(T, p, q, inlier_threshold).sum())
+        if count > best_count:
+            best_T, best_count = T, count
+    mask = _inliers(best_T, p, q, inlier_threshold) if best_count >= 3 else torch.zeros(K, dtype=torch.bool)
+    for _ in range(10):
+        if int(mask.sum()) < 3:
+            break
+        T = _kabsch(p[mask], q[mask])
+        grown = _inliers(T, p, q, inlier_threshold)
+        if int(grown.sum()) < int(mask.sum()):
+            break
+        same = bool(torch.equal(grown, mask))
+        best_T, mask = T, grown
+        if same:
+            break
+    return best_T, mask
+
+
+def spatial_consistency(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, inlier_threshold: float,
+                        seeds: int = 100, consensus: int = 30,
+                        backend: str = "ext") -> tuple[torch.Tensor, torch.Tensor]:
+    """src, tgt (K, 3): putative correspondences -> ((4, 4) float64 transform, (K,) bool inliers).
+
+    tolerance: how much the distances spanned by two correspondences may differ for them to be
+    compatible; inlier_threshold: the residual within which a correspondence counts as an inlier
+    (both in the points' unit); seeds: at most this many fits; consensus: neighbours per fit.
+    """
+    _validate(src, tgt, tolerance, inlier_threshold, seeds, consensus)
+    if use_extension(backend, torch.device("cpu")):  # a CPU op: once per registration
+        return torch.ops.vrnet_ext.spatial_consistency(src.detach().double().cpu().contiguous(),
+                                                       tgt.detach().double().cpu().contiguous(), float(tolerance),
+                                                       float(inlier_threshold), int(seeds), int(consensus))
+    return spatial_consistency_reference(src.detach(), tgt.detach(), float(tolerance), float(inlier_threshold),
+                                         int(seeds), int(consensus))
+
+
+if has_extension():
+
+    @torch.library.register_fake("vrnet_ext::spatial_consistency")
+    def _spatial_consistency_fake(src, tgt, tolerance, inlier_threshold, seeds, consensus):
+        return src.new_empty((4, 4)), src.new_empty((src.shape[0],), dtype=torch.bool)
