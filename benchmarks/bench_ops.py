@@ -152,13 +152,17 @@ def _scan_points(voxel: float) -> torch.Tensor:
     return torch.as_tensor(voxel_downsample(room_scan(300_000, 0), voxel))
 
 
-def _scan_knn_case(k=20):
-    """3-D kNN of every point of a 300k-point scan among the others: the ICP / normals workload.
-    Columns: pykdtree and small_gicp (both kd-trees, build included, this process's thread count)."""
+def _scan_knn_case(k=20, points=300_000, stray=False):
+    """3-D kNN of every point of a scan among the others: the ICP / normals workload (with
+    ``stray``: one more point 100 km away, which must not change the time much). Columns: pykdtree
+    and small_gicp (both kd-trees, build included, this process's thread count)."""
     def make():
         from vrnet_ext.data.procedural import room_scan
 
-        return (torch.as_tensor(room_scan(300_000, 0)),)
+        cloud = torch.as_tensor(room_scan(points, 0))
+        if stray:
+            cloud = torch.cat([cloud, torch.tensor([[1e5, 0.0, 0.0]], dtype=cloud.dtype)])
+        return (cloud,)
     impls = {"ext": lambda x: ops.knn(x[None], x[None], k)}
     if importlib.util.find_spec("pykdtree"):
         def pykdtree_knn(x):
@@ -175,9 +179,10 @@ def _scan_knn_case(k=20):
             threads = torch.get_num_threads()
             return small_gicp.KdTree(points, threads).batch_knn_search(points, k, threads)
         impls["small_gicp"] = small_gicp_knn
-    skip = {"torch": "the reference needs a 300k x 300k matrix (~700 GB)"}
+    skip = {"torch": f"the reference needs a {points // 1000}k x {points // 1000}k matrix"}
     impls["torch"] = lambda x: None
-    return Case("knn", f"scan C=3 N=M=300k k={k}", make, impls, True, skip)
+    far = " + 1 point 100 km away" if stray else ""
+    return Case("knn", f"scan C=3 N=M={points // 1000}k k={k}{far}", make, impls, True, skip)
 
 
 def _open3d_cloud(points: torch.Tensor):
@@ -333,6 +338,8 @@ def all_cases(device: str = "cpu") -> list[Case]:
         _pdl_case(4096),
         _pdl_case(16384, quick=False, skip_torch="the reference needs ~7 GB of N x N matrices"),
         _scan_knn_case(),
+        _scan_knn_case(1, 200_000),
+        _scan_knn_case(1, 200_000, stray=True),
         _normals_case(),
         _fpfh_case(),
         _voxel_downsample_case(0.02),

@@ -156,3 +156,19 @@ def test_backward_op_checks_its_arguments():
             op(*args)
     with pytest.raises(TypeError, match="arg must be int32"):
         op(grad, projections, idx, arg.long(), None, None, *stats, True, 1e-5, 0.2)
+
+
+def test_a_negative_slope_is_refused_everywhere():
+    """The max over neighbours is taken before the LeakyReLU: exact only for an increasing one."""
+    from vrnet_ext.nn import EdgeConv
+
+    projections, idx = torch.randn(1, 4, 10), torch.randint(0, 10, (1, 10, 3))
+    for backend in ("ext", "torch"):
+        with pytest.raises(ValueError, match="negative_slope must be a finite number >= 0"):
+            edge_norm_max(projections, idx, negative_slope=-0.2, backend=backend)
+        with pytest.raises(ValueError, match="negative_slope must be a finite number >= 0"):
+            edge_norm_max(projections, idx, negative_slope=float("nan"), backend=backend)
+    with pytest.raises(ValueError, match="negative_slope must be a finite number >= 0"):
+        torch.ops.vrnet_ext.edge_norm_max(projections, idx, None, None, None, None, 1e-5, -0.5)
+    with pytest.raises(ValueError, match="negative_slope must be a finite number >= 0"):
+        EdgeConv(3, 8, negative_slope=-0.1)

@@ -33,3 +33,21 @@ def test_fuzz(target):
         pytest.fail(f"fuzz {target}: no result within {timeout} s (a hang?)")
     assert result.returncode == 0, (f"fuzz {target} failed (exit status {result.returncode}; negative = killed "
                                     f"by that signal):\n{result.stdout[-3000:]}\n{result.stderr[-6000:]}")
+
+
+def test_accepted_invalid_values_are_refused():
+    """Booleans are not numbers, and a viewpoint must be finite."""
+    import math
+
+    import torch
+
+    from vrnet_ext import ops
+
+    q = torch.randn(1, 5, 3)
+    with pytest.raises(ValueError, match="scale must be a finite number"):
+        ops.soft_match(q, q, q, scale=True)
+    points = torch.randn(50, 3)
+    with pytest.raises(ValueError, match="radius must be a finite number > 0"):
+        ops.fpfh(points, ops.normals(points), radius=True)
+    with pytest.raises(ValueError, match="viewpoint must have 3 finite coordinates"):
+        ops.normals(points, viewpoint=(math.nan, 0.0, 0.0))

@@ -137,7 +137,7 @@ def test_an_estimator_that_does_not_transfer_is_never_worse_than_fpfh():
     right = register(src, tgt, method=Learned(truth), global_points=3000, icp_settings=settings)
     assert right.start == "learned" and not right.warnings, right.warnings
     default = register(src, tgt, global_points=3000, icp_settings=settings)
-    assert default.method == default.start == "fpfh"
+    assert default.method == default.start == "sc2"
 
 
 def test_one_initial_estimate_at_a_time(tmp_path, capsys):

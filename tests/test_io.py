@@ -211,3 +211,24 @@ def test_as_points_takes_arrays_tensors_point_clouds_and_paths(tmp_path):
         as_points(np.full((5, 3), np.nan), "source")
     with pytest.raises(ValueError, match="source must be an"):
         as_points(object(), "source")
+
+
+@pytest.mark.parametrize("kind", ["ply", "pcd"])
+def test_ascii_header_counts_do_not_size_allocations(tmp_path, kind):
+    """A 3-line ASCII file whose header claims 10^10 points: a truncation error naming the file, at once."""
+    if kind == "ply":
+        text = "ply\nformat ascii 1.0\nelement vertex 10000000000\nproperty float x\nproperty float y\n" \
+               "property float z\nend_header\n0 0 0\n1 1 1\n2 2 2\n"
+    else:
+        text = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 10000000000\nHEIGHT 1\n" \
+               "POINTS 10000000000\nDATA ascii\n0 0 0\n1 1 1\n2 2 2\n"
+    path = tmp_path / f"claims.{kind}"
+    path.write_text(text)
+    with pytest.raises(PointCloudError, match=f"{path.name}.*truncated|{path.name}.*promises"):
+        read_points(path)
+
+
+def test_a_transform_file_is_not_a_cloud(tmp_path):
+    np.savetxt(tmp_path / "T.txt", np.eye(4))
+    with pytest.raises(PointCloudError, match="T.txt.*4x4 transform, not a point cloud"):
+        read_points(tmp_path / "T.txt")

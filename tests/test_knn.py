@@ -183,3 +183,24 @@ def test_feature_knn_with_overflowing_norms_returns_valid_indices():
     assert int(idx.min()) >= 0 and int(idx.max()) < 300
     assert all(len(set(row.tolist())) == 5 for row in idx[0])
     assert torch.equal(idx[0, :, 0], torch.arange(300)) and not dist2.isnan().any()
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_far_strays_do_not_change_the_grid_search(dtype):
+    """One point 100 km away (and two close together far away, and a stray at another corner): the
+    results equal float64 brute force with exact differences, queries far out included."""
+    torch.manual_seed(3)
+    cloud = torch.rand(1, 3000, 3, dtype=dtype) * 10
+    strays = torch.tensor([[1e5, 0.0, 0.0], [1e5, 0.5, 0.0], [-3e4, 2e4, 7e3]], dtype=dtype)
+    cloud = torch.cat([cloud, strays.unsqueeze(0)], dim=1)
+    for query, ref, k, exclude in ((cloud, cloud, 4, True), (cloud[:, ::7].contiguous(), cloud, 3, False)):
+        dist, idx = ops.knn(query, ref, k, exclude_self=exclude)
+        exact = (query.double()[0, :, None] - ref.double()[0, None]).square().sum(-1)
+        if exclude:
+            exact.fill_diagonal_(float("inf"))
+        exact_dist, exact_idx = exact.topk(k, dim=1, largest=False)
+        torch.testing.assert_close(dist[0].double(), exact_dist, **tolerances(dtype))
+        assert (idx[0] == exact_idx).float().mean() > 0.999  # only exact ties may order differently
+    # the two far strays find each other
+    _, idx = ops.knn(cloud, cloud, 1, exclude_self=True)
+    assert idx[0, 3000, 0] == 3001 and idx[0, 3001, 0] == 3000

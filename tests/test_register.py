@@ -164,6 +164,10 @@ def test_cli_register(tmp_path, capsys):
     assert (tmp_path / "r.png").stat().st_size > 10_000
     assert main(["register", str(tmp_path / "src.ply"), str(tmp_path / "missing.ply")]) == 2
     assert "missing.ply: no such file" in capsys.readouterr().err
+    # the ground truth of the other direction: the errors are reported, with a warning saying so
+    np.savetxt(tmp_path / "inverse.txt", np.linalg.inv(truth))
+    assert main(args[:4] + [str(tmp_path / "inverse.txt"), "--icp-points", "3000"]) == 0
+    assert "matches the inverse of --gt" in capsys.readouterr().err
 
 
 def test_the_vrnet_executable_writes_everything_and_keeps_its_exit_status(tmp_path):
@@ -250,7 +254,7 @@ def test_python_register_gives_the_cli_result_from_numpy(tmp_path):
         assert main(["register", str(kitchen / source), str(kitchen / target), "--json", str(tmp_path / "r.json")]) == 0
         record = json.loads((tmp_path / "r.json").read_text())
         result = vrnet_ext.register(read_points(kitchen / source), read_points(kitchen / target))
-        assert result.method == record["method"] == "fpfh"
+        assert result.method == record["method"] == "sc2"
         difference = transform_errors(result.T_target_source, np.array(record["T_target_source"]))
         assert difference["rotation_error_deg"] < 0.01 and difference["translation_error"] < 1e-4, difference
 
@@ -372,3 +376,19 @@ def test_a_coarse_start_gives_the_fine_icp_a_head_start():
         assert errors["rotation_error_deg"] < 0.01 and errors["translation_error"] < 0.001, errors
     assert coarse.iterations < fine_only.iterations
     np.testing.assert_allclose(coarse.initial, np.eye(4))  # the start, not the coarse stage's result
+
+
+def test_outputs_are_complete_or_absent(tmp_path):
+    """A file-size limit (as a full disk) while writing --out: one line naming the file, a non-zero
+    exit, nothing at the final path and no temporary left behind."""
+    cloud = np.random.default_rng(0).normal(size=(3000, 3))
+    write_ply(tmp_path / "a.ply", cloud)
+    target = tmp_path / "moved.ply"
+    script = ("import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000)); "
+              "from vrnet_ext.cli import run; sys.argv = ['vrnet'] + sys.argv[1:]; run()")
+    done = subprocess.run([sys.executable, "-c", script, "register", str(tmp_path / "a.ply"), str(tmp_path / "a.ply"),
+                           "--method", "icp", "--out", str(target)], capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0, done.stdout
+    errors = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(errors) == 1 and str(target) in errors[0] and "File too large" in errors[0], done.stderr
+    assert not target.exists() and not list(tmp_path.glob(".moved*"))

@@ -249,10 +249,10 @@ def _register_parser(sub) -> None:
 
     p = sub.add_parser(
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
-        description="Estimates the rigid transform taking SOURCE onto TARGET: a global estimate (--method fpfh: "
-                    "FPFH + RANSAC, the default; --method sc2: FPFH matches filtered by spatial consistency; "
+        description="Estimates the rigid transform taking SOURCE onto TARGET: a global estimate (--method sc2: "
+                    "FPFH matches filtered by spatial consistency, the default; --method fpfh: FPFH + RANSAC; "
                     "--method vrnet: the shipped scene model, FPFH descriptors under VRNet's head, or --checkpoint, "
-                    "with ICP also started from FPFH + RANSAC and the better fit kept; --method fgr: FPFH + Fast "
+                    "with ICP also started from sc2's estimate and the better fit kept; --method fgr: FPFH + Fast "
                     "Global Registration; --method icp: none), refined by ICP (--estimator) on voxel-downsampled "
                     "clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform and "
                     "writes JSON.",
@@ -260,8 +260,8 @@ def _register_parser(sub) -> None:
     p.add_argument("source", help="point-cloud file to move")
     p.add_argument("target", help="point-cloud file to align to (same unit)")
     p.add_argument("--method", choices=GLOBAL_ESTIMATORS, default=argparse.SUPPRESS,
-                   help=f"global estimate (default: {DEFAULT_METHOD}, the best recall on real scans the learned "
-                        f"models never saw; vrnet when --checkpoint is given)")
+                   help=f"global estimate (default: {DEFAULT_METHOD}, the best recall on the real pairs of "
+                        f"benchmarks/bench_real_pairs.py; vrnet when --checkpoint is given, fpfh with --fpfh)")
     initial = p.add_mutually_exclusive_group()
     initial.add_argument("--checkpoint", default=None,
                          help="with --method vrnet: shipped model name or checkpoint (a scene model of `vrnet "
@@ -312,7 +312,7 @@ def _run_register(args) -> int:
         from vrnet_ext.memory_plan import require_headroom
 
         require_headroom(args.max_memory)
-    method = getattr(args, "method", None) or ("vrnet" if args.checkpoint else DEFAULT_METHOD)
+    method = getattr(args, "method", None) or ("fpfh" if args.fpfh else "vrnet" if args.checkpoint else DEFAULT_METHOD)
     if args.fpfh and method != "fpfh" or args.checkpoint and method != "vrnet":
         raise ValueError(f"--method {method} does not take {'--fpfh' if args.fpfh else '--checkpoint'}")
     model = None
@@ -350,6 +350,12 @@ def _run_register(args) -> int:
         for label in ("errors_initial", "errors"):
             e = record[label]
             print(f"{label}: rotation {e['rotation_error_deg']:.3f} deg, translation {e['translation_error']:.4g}")
+        swapped = transform_errors(result.T_target_source, np.linalg.inv(truth))
+        if swapped["rotation_error_deg"] < 0.2 * record["errors"]["rotation_error_deg"] and \
+                record["errors"]["rotation_error_deg"] > 2.0:
+            print(f"vrnet register: warning: the estimate matches the inverse of --gt {args.gt} far better "
+                  f"({swapped['rotation_error_deg']:.2f} deg): --gt must map SOURCE into TARGET's frame; this one "
+                  f"seems to map TARGET into SOURCE's", file=sys.stderr)
     if args.out:
         write_ply(args.out, apply(result.T_target_source, src))
         print(f"wrote {args.out}")
@@ -364,7 +370,10 @@ def _run_register(args) -> int:
 
 
 def _write_json(path: str | Path, record: dict) -> None:
-    Path(path).write_text(json.dumps(record, indent=1))
+    from vrnet_ext.atomic import atomic_output
+
+    with atomic_output(path) as temporary:
+        temporary.write_text(json.dumps(record, indent=1))
     print(f"wrote {path}")
 
 
@@ -488,7 +497,10 @@ def _run_train_scene(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from vrnet_ext import __version__
+
     parser = argparse.ArgumentParser(prog="vrnet", description="VRNet point-cloud registration (vrnet_ext).")
+    parser.add_argument("--version", action="version", version=f"vrnet_ext {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     _train_parser(sub)
     _eval_parser(sub)
@@ -509,6 +521,9 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as exc:
         print(f"vrnet {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # an output that could not be written (atomic_output names it)
+        print(f"vrnet {args.command}: error: {exc}", file=sys.stderr)
+        return 1
     except MemoryError:
         print(f"vrnet {args.command}: error: out of memory (use fewer points: --icp-points, --network-points, "
               f"--batch-size)", file=sys.stderr)

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from vrnet_ext.atomic import atomic_output
+
 MIN_POINTS = 3
 
 _PLY_TYPES = {
@@ -127,6 +129,8 @@ def _read_ply(path: Path, data: bytes) -> np.ndarray:
 def _text_rows(path: Path, body: bytes, count: int, skip: int, columns: list[int], what: str) -> np.ndarray:
     """``count`` rows (after ``skip`` lines) of whitespace-separated numbers -> (rows, len(columns))
     float64, parsed by numpy's streaming reader: memory of the result only, not of Python strings."""
+    # No allocation sized by the header alone: at most as many rows as the body has lines.
+    count = min(count, max(0, body.count(b"\n") + 1 - skip))
     if count == 0:
         return np.empty((0, len(columns)))
     try:
@@ -188,6 +192,8 @@ def _read_text(path: Path) -> np.ndarray:
         raise _fail(path, f"rows must be numbers (x y z ...): {exc}") from None
     if table.shape[1] < 3:
         raise _fail(path, f"rows need at least 3 columns (x y z), got {table.shape[1]}")
+    if table.shape == (4, 4) and np.allclose(table[3], [0, 0, 0, 1]):
+        raise _fail(path, "holds a 4x4 transform, not a point cloud (give it to --gt)")
     return table[:, :3]
 
 
@@ -281,7 +287,7 @@ def write_ply(path: str | os.PathLike, points: np.ndarray) -> None:
     kind = "double" if wide else "float"
     header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
               f"property {kind} x\nproperty {kind} y\nproperty {kind} z\nend_header\n")
-    with open(path, "wb") as f:
+    with atomic_output(path) as temporary, open(temporary, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(np.ascontiguousarray(points).tobytes())
 

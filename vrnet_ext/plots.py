@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after selecting the file backend)
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
+from vrnet_ext.atomic import atomic_output  # noqa: E402
 from vrnet_ext.transforms import apply  # noqa: E402
 
 PANELS = (
@@ -47,7 +48,8 @@ def plot_metrics(run_dir: str | Path) -> Path:
     fig.suptitle(f"VRNet training: {run_dir.name}")
     fig.tight_layout()
     out = run_dir / "curves.png"
-    fig.savefig(out, dpi=110)
+    with atomic_output(out) as temporary:
+        fig.savefig(temporary, dpi=110)
     plt.close(fig)
     return out
 
@@ -79,7 +81,8 @@ def plot_registration(src, tgt, transforms: dict, path: str | Path, max_points: 
             ax.legend(loc="upper right", markerscale=20)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    with atomic_output(path) as temporary:
+        fig.savefig(temporary, dpi=110)
     plt.close(fig)
     return path
 
@@ -118,6 +121,7 @@ def plot_pair(src, tgt, truth, vcp, rcp, estimate, path: str | Path, title: str 
     fig.suptitle(title)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=100)
+    with atomic_output(path) as temporary:
+        fig.savefig(temporary, dpi=100)
     plt.close(fig)
     return path

@@ -36,6 +36,13 @@ inline void check_projections_graph(const at::Tensor& projections, const at::Ten
   check_index_range(idx, projections.size(2), "idx");
 }
 
+// The max over neighbours is taken before the LeakyReLU, which is exact only for an increasing one.
+inline void check_negative_slope(double negative_slope) {
+  TORCH_CHECK_VALUE(std::isfinite(negative_slope) && negative_slope >= 0,
+                    "negative_slope must be a finite number >= 0 (the max is taken before the activation), got ",
+                    negative_slope);
+}
+
 inline void check_edge_norm_max_inputs(const at::Tensor& projections, const at::Tensor& idx,
                                        const c10::optional<at::Tensor>& weight, const c10::optional<at::Tensor>& bias,
                                        const c10::optional<at::Tensor>& running_mean,

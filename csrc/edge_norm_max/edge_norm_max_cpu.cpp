@@ -239,6 +239,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> edge_norm_max_cpu(
     const c10::optional<at::Tensor>& bias_in, const c10::optional<at::Tensor>& running_mean_in,
     const c10::optional<at::Tensor>& running_var_in, double eps, double negative_slope) {
   check_edge_norm_max_inputs(projections_in, idx_in, weight_in, bias_in, running_mean_in, running_var_in, eps);
+  check_negative_slope(negative_slope);
   const at::Tensor points = projections_in.transpose(1, 2).contiguous();  // (B, N, 2O); free if point-major
   const at::Tensor idx = idx_in.contiguous();
   const auto contiguous = [](const c10::optional<at::Tensor>& t) {
@@ -395,6 +396,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> edge_norm_max_backward_cpu(
     const at::Tensor& var_in, bool batch_stats, double eps, double negative_slope) {
   check_edge_norm_max_backward_inputs(grad_in, projections_in, idx_in, arg_in, weight_in, bias_in, mean_in, var_in,
                                       eps);
+  check_negative_slope(negative_slope);
   // point-major (B, N, .) copies of the (B, ., N) arguments; free for the forward's own layout
   const at::Tensor grad = grad_in.transpose(1, 2).contiguous(), points = projections_in.transpose(1, 2).contiguous();
   const at::Tensor arg = arg_in.transpose(1, 2).contiguous(), idx = idx_in.contiguous();

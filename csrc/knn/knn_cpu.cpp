@@ -42,8 +42,9 @@ struct Grid {
   double cell = 1.0;
   std::array<int64_t, 3> dims{1, 1, 1};
   std::vector<int64_t> start;      // (cells + 1) offsets into the sorted arrays
-  std::vector<int64_t> order;      // original index of each sorted point
+  std::vector<int64_t> order;      // original index of each sorted point (far strays last)
   std::vector<scalar_t> xyz;       // sorted coordinates, 3 per point
+  int64_t far_begin = 0;           // order[far_begin:] are the points outside the grid
 
   int64_t cell_coord(double v, int a) const {
     const int64_t c = static_cast<int64_t>(std::floor((v - lo[a]) / cell));
@@ -51,19 +52,50 @@ struct Grid {
   }
   int64_t cell_id(int64_t cx, int64_t cy, int64_t cz) const { return (cz * dims[1] + cy) * dims[0] + cx; }
 
-  // Chooses the finest grid (up to 1024 cells per axis) with at most ~2 cells per point.
+  // The box holding every point but far strays: per axis, the 0.1 % and 99.9 % quantiles widened by
+  // half their distance on both sides (the whole bounding box for clouds of under 1,000 points).
+  // One point 100 km away must not stretch the cells over 100 km (a quadratic search).
+  static std::array<std::array<double, 2>, 3> robust_box(const scalar_t* pts, int64_t m) {
+    std::array<std::array<double, 2>, 3> box;
+    std::vector<double> values(m);
+    for (int a = 0; a < 3; ++a) {
+      for (int64_t i = 0; i < m; ++i) values[i] = pts[3 * i + a];
+      const int64_t low = m < 1000 ? 0 : m / 1000, high = m < 1000 ? m - 1 : m - 1 - m / 1000;
+      std::nth_element(values.begin(), values.begin() + low, values.end());
+      const double q_low = values[low];
+      std::nth_element(values.begin(), values.begin() + high, values.end());
+      const double q_high = values[high];
+      const double margin = m < 1000 ? 0.0 : 0.5 * (q_high - q_low);
+      box[a] = {q_low - margin, q_high + margin};
+    }
+    return box;
+  }
+
+  // Chooses the finest grid (up to 1024 cells per axis) with at most ~2 cells per point, over the
+  // points inside robust_box; the others (far strays) are kept apart and scanned by every search.
   void build(const scalar_t* pts, int64_t m) {
+    const auto box = robust_box(pts, m);
+    std::vector<char> inside(m);
+    int64_t inliers = 0;
     std::array<double, 3> hi{};
-    for (int a = 0; a < 3; ++a) { lo[a] = pts[a]; hi[a] = pts[a]; }
-    for (int64_t i = 0; i < m; ++i)
+    for (int a = 0; a < 3; ++a) { lo[a] = box[a][1]; hi[a] = box[a][0]; }
+    for (int64_t i = 0; i < m; ++i) {
+      bool in = true;
+      for (int a = 0; a < 3; ++a) in &= pts[3 * i + a] >= box[a][0] && pts[3 * i + a] <= box[a][1];
+      inside[i] = in;
+      if (!in) continue;
+      ++inliers;
       for (int a = 0; a < 3; ++a) {
         lo[a] = std::min(lo[a], static_cast<double>(pts[3 * i + a]));
         hi[a] = std::max(hi[a], static_cast<double>(pts[3 * i + a]));
       }
+    }
+    if (inliers == 0)
+      for (int a = 0; a < 3; ++a) lo[a] = hi[a] = 0.0;
     double extent_max = 0.0;
     for (int a = 0; a < 3; ++a) extent_max = std::max(extent_max, hi[a] - lo[a]);
     if (!(extent_max > 0.0)) extent_max = 1.0;
-    const double budget = 2.0 * static_cast<double>(m) + 1.0;
+    const double budget = 2.0 * static_cast<double>(inliers) + 1.0;
     int64_t best = 1;
     for (int64_t lo_d = 1, hi_d = 1024; lo_d <= hi_d;) {  // largest divisions within budget
       const int64_t d = (lo_d + hi_d) / 2;
@@ -79,6 +111,7 @@ struct Grid {
     std::vector<int64_t> cid(m);
     start.assign(cells + 1, 0);
     for (int64_t i = 0; i < m; ++i) {
+      if (!inside[i]) continue;
       cid[i] = cell_id(cell_coord(pts[3 * i], 0), cell_coord(pts[3 * i + 1], 1), cell_coord(pts[3 * i + 2], 2));
       ++start[cid[i] + 1];
     }
@@ -86,11 +119,21 @@ struct Grid {
     std::vector<int64_t> fill(start.begin(), start.end() - 1);
     order.resize(m);
     xyz.resize(3 * m);
+    far_begin = inliers;
+    int64_t far = inliers;
     for (int64_t i = 0; i < m; ++i) {
-      const int64_t pos = fill[cid[i]]++;
+      const int64_t pos = inside[i] ? fill[cid[i]]++ : far++;
       order[pos] = i;
       for (int a = 0; a < 3; ++a) xyz[3 * pos + a] = pts[3 * i + a];
     }
+  }
+
+  // Offers sorted point p (unless it is the query itself) to the query's top-k.
+  void push(const scalar_t* q, int64_t p, int64_t self, TopK<scalar_t>& top) const {
+    const int64_t j = order[p];
+    if (j == self) return;
+    const scalar_t dx = q[0] - xyz[3 * p], dy = q[1] - xyz[3 * p + 1], dz = q[2] - xyz[3 * p + 2];
+    top.push(dx * dx + dy * dy + dz * dz, j);
   }
 
   // Squared distance from q to the box of cell (x, y, z) (0 inside it).
@@ -112,6 +155,7 @@ struct Grid {
   // and most later candidates are rejected in one compare. `shell` is scratch space (box distance,
   // cell id) reused across queries.
   void search(const scalar_t* q, int64_t self, TopK<scalar_t>& top, std::vector<std::pair<double, int64_t>>& shell) const {
+    for (int64_t p = far_begin; p < static_cast<int64_t>(order.size()); ++p) push(q, p, self, top);
     const int64_t c[3] = {cell_coord(q[0], 0), cell_coord(q[1], 1), cell_coord(q[2], 2)};
     double outside_sq[3], outside_sq_total = 0;  // squared distance from q to the grid's extent, per axis
     for (int a = 0; a < 3; ++a) {
@@ -147,12 +191,7 @@ struct Grid {
       }
       for (const auto& [box_sq, id] : shell) {
         if (box_sq * (1.0 - 1e-5) > static_cast<double>(top.worst())) continue;
-        for (int64_t p = start[id]; p < start[id + 1]; ++p) {
-          const int64_t j = order[p];
-          if (j == self) continue;
-          const scalar_t dx = q[0] - xyz[3 * p], dy = q[1] - xyz[3 * p + 1], dz = q[2] - xyz[3 * p + 2];
-          top.push(dx * dx + dy * dy + dz * dz, j);
-        }
+        for (int64_t p = start[id]; p < start[id + 1]; ++p) push(q, p, self, top);
       }
       // Lower bound on the squared distance from q to any cell outside the visited box: a cell
       // beyond face (a, side) is at least the face gap away along a and, along every other axis b,

@@ -42,17 +42,36 @@ double distance(const double* a, const double* b) {
   return std::sqrt(dx * dx + dy * dy + dz * dz);
 }
 
+// | |p_i - p_j| - |q_i - q_j| | < tolerance without square roots (so that the loop vectorises): with
+// a, b the squared distances and s = a + b - tolerance^2, it holds iff s < 0 or s^2 < 4 a b.
 Graph compatibility(const double* p, const double* q, int64_t K, double tolerance) {
   Graph g{K, (K + 63) / 64, {}};
   g.bits.assign(static_cast<size_t>(K * g.words), 0);
+  std::vector<double> coords(6 * K);  // px, py, pz, qx, qy, qz: one array each
+  for (int64_t k = 0; k < K; ++k)
+    for (int a = 0; a < 3; ++a) {
+      coords[a * K + k] = p[3 * k + a];
+      coords[(3 + a) * K + k] = q[3 * k + a];
+    }
+  const double *px = coords.data(), *py = px + K, *pz = py + K, *qx = pz + K, *qy = qx + K, *qz = qy + K;
+  const double t2 = tolerance * tolerance;
   parallel_ranges(K, 64, [&](int64_t begin, int64_t end) {
     for (int64_t i = begin; i < end; ++i) {
       uint64_t* row = g.bits.data() + i * g.words;
-      for (int64_t j = 0; j < K; ++j) {
-        if (j == i) continue;
-        const bool agree = std::fabs(distance(p + 3 * i, p + 3 * j) - distance(q + 3 * i, q + 3 * j)) < tolerance;
-        row[j >> 6] |= static_cast<uint64_t>(agree) << (j & 63);
+      for (int64_t w = 0; w < g.words; ++w) {
+        const int64_t j0 = 64 * w, count = std::min<int64_t>(64, K - j0);
+        uint64_t bits = 0;
+        for (int64_t l = 0; l < count; ++l) {
+          const int64_t j = j0 + l;
+          const double dpx = px[j] - px[i], dpy = py[j] - py[i], dpz = pz[j] - pz[i];
+          const double dqx = qx[j] - qx[i], dqy = qy[j] - qy[i], dqz = qz[j] - qz[i];
+          const double a = dpx * dpx + dpy * dpy + dpz * dpz, b = dqx * dqx + dqy * dqy + dqz * dqz;
+          const double s = a + b - t2;
+          bits |= static_cast<uint64_t>((s < 0) | (s * s < 4 * a * b)) << l;
+        }
+        row[w] = bits;
       }
+      row[i >> 6] &= ~(uint64_t{1} << (i & 63));
     }
   });
   return g;

@@ -24,6 +24,9 @@ class EdgeConv(nn.Module):
     def __init__(self, in_channels: int, out_channels: int, negative_slope: float = 0.2,
                  eps: float = 1e-5, momentum: float | None = 0.1) -> None:
         super().__init__()
+        if not 0 <= negative_slope < float("inf"):
+            raise ValueError(f"negative_slope must be a finite number >= 0 (EdgeConv takes the max over neighbours "
+                             f"before the LeakyReLU), got {negative_slope}")
         self.in_channels = in_channels
         self.out_channels = out_channels
         self.negative_slope = negative_slope

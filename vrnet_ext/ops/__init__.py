@@ -13,5 +13,5 @@ from vrnet_ext.ops.spatial_consistency import spatial_consistency
 from vrnet_ext.ops.svd3x3 import svd3x3
 from vrnet_ext.ops.voxel_downsample import voxel_downsample
 
-__all__ = ["knn", "edge_features", "gather_reduce", "edge_norm_max", "svd3x3", "kabsch", "pairwise_distance_loss", "soft_match",
-           "normals", "fpfh", "voxel_downsample", "spatial_consistency"]
+__all__ = ["knn", "edge_features", "gather_reduce", "edge_norm_max", "svd3x3", "kabsch", "pairwise_distance_loss",
+           "soft_match", "normals", "fpfh", "voxel_downsample", "spatial_consistency"]

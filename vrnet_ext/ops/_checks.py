@@ -74,3 +74,12 @@ def check_index_range(idx: torch.Tensor, upper: int, name: str) -> None:
         return
     if int(idx.min()) < 0 or int(idx.max()) >= upper:
         raise ValueError(f"{name} holds indices outside [0, {upper})")
+
+
+def first_order_only(op: str, *saved: torch.Tensor) -> None:
+    """Called by a compiled op's backward formula: its backward kernel has no derivative of its own,
+    so a second-order use (``create_graph=True`` through tensors that need gradients) raises here,
+    naming the op, instead of silently contributing nothing."""
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in saved):
+        raise NotImplementedError(f"vrnet_ext.ops.{op}: the compiled kernel is differentiable once; second-order "
+                                  f"gradients (create_graph=True) need backend='torch'")

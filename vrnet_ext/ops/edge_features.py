@@ -85,3 +85,14 @@ if has_extension():
     torch.library.register_autograd(
         "vrnet_ext::edge_features", _edge_features_backward, setup_context=_edge_features_setup_context
     )
+
+    # The backward is linear in grad_out: its own derivative is the forward (second-order gradients).
+    def _edge_features_backward_setup_context(ctx, inputs, output):
+        ctx.save_for_backward(inputs[1])
+
+    def _edge_features_double_backward(ctx, grad_grad_x):
+        (idx,) = ctx.saved_tensors
+        return torch.ops.vrnet_ext.edge_features(grad_grad_x.contiguous(), idx), None, None
+
+    torch.library.register_autograd("vrnet_ext::edge_features_backward", _edge_features_double_backward,
+                                    setup_context=_edge_features_backward_setup_context)

@@ -23,7 +23,7 @@ import torch
 from torch.nn import functional as F
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import check_float, float32_region, promote_low_precision
+from vrnet_ext.ops._checks import check_float, first_order_only, float32_region, promote_low_precision
 from vrnet_ext.ops.edge_features import gather_neighbours, validate_graph
 from vrnet_ext.ops.gather_reduce import gather_reduce
 
@@ -31,7 +31,7 @@ EdgeNormMaxResult = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
 
 def _validate(projections: torch.Tensor, idx: torch.Tensor, channel_tensors: dict[str, torch.Tensor | None],
-              eps: float) -> None:
+              eps: float, negative_slope: float) -> None:
     validate_graph(projections, idx, "projections")
     if projections.shape[1] % 2 or projections.shape[1] == 0:
         raise ValueError("projections must have shape (B, 2O, N) (neighbour terms, then centre terms), "
@@ -42,6 +42,9 @@ def _validate(projections: torch.Tensor, idx: torch.Tensor, channel_tensors: dic
         raise ValueError("running_mean and running_var must be given together")
     if not (eps > 0 and eps < float("inf")):
         raise ValueError(f"eps must be a finite number > 0, got {eps}")
+    if not (0 <= negative_slope < float("inf")):
+        raise ValueError(f"negative_slope must be a finite number >= 0 (the max is taken before the activation), "
+                         f"got {negative_slope}")
     for name, t in channel_tensors.items():
         if t is not None:
             check_float(t, name)
@@ -142,7 +145,7 @@ def edge_norm_max(projections: torch.Tensor, idx: torch.Tensor, weight: torch.Te
     """
     projections = promote_low_precision(projections)
     channel_tensors = {"weight": weight, "bias": bias, "running_mean": running_mean, "running_var": running_var}
-    _validate(projections, idx, channel_tensors, eps)
+    _validate(projections, idx, channel_tensors, eps, negative_slope)
     weight, bias, running_mean, running_var = (
         None if t is None else t.to(projections.dtype) for t in channel_tensors.values())
     args = (projections, idx, weight, bias, running_mean, running_var, float(eps), float(negative_slope))
@@ -181,6 +184,7 @@ if has_extension():
 
     def _edge_norm_max_backward(ctx, grad_out, _grad_mean, _grad_var, _grad_arg):
         projections, idx, arg, weight, bias, mean, var = ctx.saved_tensors
+        first_order_only("edge_norm_max", grad_out, projections, weight, bias)
         grad_projections, grad_weight, grad_bias = torch.ops.vrnet_ext.edge_norm_max_backward(
             grad_out, projections, idx, arg, weight, bias, mean, var, ctx.batch_stats, ctx.eps, ctx.negative_slope)
         return (grad_projections, None, grad_weight if weight is not None else None,

@@ -80,7 +80,7 @@ def fpfh(points: torch.Tensor, normals: torch.Tensor, radius: float, max_neighbo
     check_same({"points": points, "normals": normals})
     if normals.shape != points.shape:
         raise ValueError(f"normals must have the shape of points {tuple(points.shape)}, got {tuple(normals.shape)}")
-    if not (isinstance(radius, (int, float)) and math.isfinite(radius) and radius > 0):
+    if isinstance(radius, bool) or not (isinstance(radius, (int, float)) and math.isfinite(radius) and radius > 0):
         raise ValueError(f"radius must be a finite number > 0, got {radius!r}")
     if isinstance(max_neighbours, bool) or not isinstance(max_neighbours, int) or max_neighbours < 2:
         raise ValueError(f"max_neighbours must be an integer >= 2, got {max_neighbours!r}")

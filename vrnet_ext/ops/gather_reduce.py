@@ -76,3 +76,22 @@ if has_extension():
     torch.library.register_autograd(
         "vrnet_ext::gather_reduce", _gather_reduce_backward, setup_context=_gather_reduce_setup_context
     )
+
+    # The backward is linear in grad_out: its derivative gathers the values' gradient at each output's
+    # neighbours (all of them, or the winning slot for max / min) - second-order gradients.
+    def _gather_reduce_backward_setup_context(ctx, inputs, output):
+        _grad_out, idx, arg, reduce, _num_values = inputs
+        ctx.save_for_backward(idx, arg)
+        ctx.reduce = reduce
+
+    def _gather_reduce_double_backward(ctx, grad_grad_values):
+        idx, arg = ctx.saved_tensors
+        if ctx.reduce in ("max", "min"):
+            winners = idx.unsqueeze(1).expand(-1, arg.shape[1], -1, -1).gather(3, arg.unsqueeze(3)).squeeze(3)
+            grad = grad_grad_values.gather(2, winners)
+        else:
+            grad = torch.ops.vrnet_ext.gather_reduce(grad_grad_values.contiguous(), idx, ctx.reduce)[0]
+        return grad, None, None, None, None
+
+    torch.library.register_autograd("vrnet_ext::gather_reduce_backward", _gather_reduce_double_backward,
+                                    setup_context=_gather_reduce_backward_setup_context)

@@ -11,7 +11,8 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape, float32_region, promote_low_precision
+from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
+                                   float32_region, promote_low_precision)
 
 
 def _validate(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None) -> None:
@@ -99,6 +100,7 @@ if has_extension():
 
     def _kabsch_backward(ctx, grad_R, grad_t):
         src, tgt, weights = ctx.saved_tensors
+        first_order_only("kabsch", grad_R, grad_t, src, tgt, weights)
         return torch.ops.vrnet_ext.kabsch_backward(grad_R, grad_t, src, tgt, weights)
 
     torch.library.register_autograd("vrnet_ext::kabsch", _kabsch_backward, setup_context=_kabsch_setup_context)

@@ -10,7 +10,8 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape, float32_region, promote_low_precision
+from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
+                                   float32_region, promote_low_precision)
 
 
 def _validate(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool) -> None:
@@ -100,6 +101,7 @@ if has_extension():
 
     def _knn_backward(ctx, grad_dist2, _grad_idx):
         query, ref, idx = ctx.saved_tensors
+        first_order_only("knn", grad_dist2, query, ref)
         grad_query, grad_ref = torch.ops.vrnet_ext.knn_backward(grad_dist2, query, ref, idx)
         return grad_query, grad_ref, None, None
 

@@ -6,6 +6,8 @@ points (the eigenvector of the smallest eigenvalue of their covariance), signed 
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
@@ -46,6 +48,8 @@ def normals(points: torch.Tensor, neighbours: int = 30, viewpoint: tuple[float, 
     check_finite(points, "points")
     _, idx = neighbourhood(points, neighbours)
     viewpoint = tuple(float(v) for v in viewpoint)
+    if not all(math.isfinite(v) for v in viewpoint):
+        raise ValueError(f"viewpoint must have 3 finite coordinates, got {viewpoint!r}")
     if use_extension(backend, points.device) and points.device.type == "cpu":  # no CUDA kernel yet
         return torch.ops.vrnet_ext.normals(points, idx, list(viewpoint))
     with float32_region(points):

@@ -10,7 +10,8 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape, float32_region, promote_low_precision
+from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
+                                   float32_region, promote_low_precision)
 
 
 def pairwise_distance_loss_reference(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -65,6 +66,7 @@ if has_extension():
 
     def _pdl_backward(ctx, grad_loss):
         x, y, loss = ctx.saved_tensors
+        first_order_only("pairwise_distance_loss", grad_loss, x, y)
         return torch.ops.vrnet_ext.pairwise_distance_loss_backward(grad_loss, x, y, loss)
 
     torch.library.register_autograd(

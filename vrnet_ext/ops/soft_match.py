@@ -13,8 +13,8 @@ from typing import NamedTuple
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, float32_region,
-                                   promote_low_precision)
+from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
+                                   float32_region, promote_low_precision)
 
 
 class SoftMatch(NamedTuple):
@@ -45,7 +45,8 @@ def validate_soft_match(query: torch.Tensor, key: torch.Tensor, values: torch.Te
         raise ValueError(f"key must hold at least one point (a softmax over nothing), got {tuple(key.shape)}")
     if values.shape[1] != key.shape[1]:
         raise ValueError(f"values must have one row per key point (M = {key.shape[1]}), got {tuple(values.shape)}")
-    if scale is not None and not (isinstance(scale, (int, float)) and math.isfinite(scale)):
+    finite_number = isinstance(scale, (int, float)) and not isinstance(scale, bool) and math.isfinite(scale)
+    if scale is not None and not finite_number:
         raise ValueError(f"scale must be a finite number, got {scale!r}")
 
 
@@ -109,6 +110,7 @@ if has_extension():
 
     def _soft_match_backward(ctx, grad_out, grad_lse, _grad_argmax):
         query, key, values, out, lse = ctx.saved_tensors
+        first_order_only("soft_match", grad_out, grad_lse, query, key, values)
         grad_out = torch.zeros_like(out) if grad_out is None else grad_out
         grad_lse = torch.zeros_like(lse) if grad_lse is None else grad_lse
         grads = torch.ops.vrnet_ext.soft_match_backward(grad_out, grad_lse, query, key, values, out, lse, ctx.scale)

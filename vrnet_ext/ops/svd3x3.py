@@ -9,7 +9,8 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import check_finite, check_float, check_shape, float32_region, promote_low_precision
+from vrnet_ext.ops._checks import (check_finite, check_float, check_shape, first_order_only, float32_region,
+                                   promote_low_precision)
 
 
 def svd3x3_reference(A: torch.Tensor):
@@ -60,6 +61,7 @@ if has_extension():
 
     def _svd3x3_backward(ctx, grad_U, grad_S, grad_V):
         U, S, V = ctx.saved_tensors
+        first_order_only("svd3x3", grad_U, grad_S, grad_V, U, S, V)
         return torch.ops.vrnet_ext.svd3x3_backward(grad_U, grad_S, grad_V, U, S, V)
 
     torch.library.register_autograd("vrnet_ext::svd3x3", _svd3x3_backward, setup_context=_svd3x3_setup_context)

@@ -138,13 +138,14 @@ class SceneNetwork(GlobalEstimator):
     """The scene model (:mod:`vrnet_ext.model.scene`): both scans voxel-downsampled to about
     ``points`` points, FPFH, VRNet's head, then RANSAC (inliers within 1.5 voxels) over the
     ``SCENE_PAIRS`` (source point, RCP) pairs of highest confidence. It was trained on a few scans,
-    so ICP also starts from FPFH + RANSAC's estimate and the better fit wins."""
+    so ICP also starts from the default estimator's estimate (spatial consistency) and the better
+    fit wins."""
 
     model: SceneVRNet
     points: int = 5000
     backend: str = "ext"
     name: ClassVar[str] = "vrnet"
-    also_start_from: ClassVar[tuple[str, ...]] = ("fpfh",)
+    also_start_from: ClassVar[tuple[str, ...]] = ("sc2",)
     memory_profile: ClassVar[str | None] = "scene"
 
     def estimate(self, src, tgt, seed):
@@ -197,8 +198,10 @@ class ObjectNetwork(GlobalEstimator):
         return to_homogeneous(R, scale * t_normalised + centre - R @ centre)
 
 
-GLOBAL_ESTIMATORS = ("fpfh", "sc2", "vrnet", "fgr", "icp")
-DEFAULT_METHOD = "fpfh"  # the best recall on real pairs the learned models never saw (docs/registration.md)
+GLOBAL_ESTIMATORS = ("sc2", "fpfh", "vrnet", "fgr", "icp")
+# The best recall on the real pairs (benchmarks/bench_real_pairs.py; docs/user_guide.md), and on those
+# the scene model never saw.
+DEFAULT_METHOD = "sc2"
 
 
 def make_global_estimator(method: str, model: VRNet | SceneVRNet | None = None, global_points: int = 5000,

@@ -55,14 +55,15 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     computation (an estimator object then sees the shifted clouds), and the result is expressed
     in the original frames.
 
-    method: a :class:`GlobalEstimator` object, or the name of a built-in one: ``"fpfh"``: FPFH
-    features + RANSAC on about ``global_points`` points per scan; ``"vrnet"``: a learned initial
+    method: a :class:`GlobalEstimator` object, or the name of a built-in one: ``"sc2"``: FPFH
+    matches filtered by spatial consistency on about ``global_points`` points per scan;
+    ``"fpfh"``: the same features + RANSAC; ``"vrnet"``: a learned initial
     estimate from ``model`` (a :class:`SceneVRNet` on about ``global_points`` points per scan, or a
     ModelNet40 :class:`VRNet` on ``network_points`` subsampled points; default: the shipped scene
     model); ``"fgr"``: FPFH + Fast Global Registration; ``"icp"``: ICP from no motion. None:
-    ``"vrnet"`` when a model is given, else ``"fpfh"`` (the default of ``vrnet register`` too).
+    ``"vrnet"`` when a model is given, else ``"sc2"`` (the default of ``vrnet register`` too).
     icp_settings: the refinement (:class:`IcpSettings`). When the estimator asks for it
-    (``also_start_from``: the scene network also starts from FPFH + RANSAC, a ModelNet40 network
+    (``also_start_from``: the scene network also starts from ``"sc2"``'s estimate, a ModelNet40 network
     from no motion), ICP runs from each start and the refinement with the higher fitness wins
     (``initial`` is the start it came from, ``start`` names it; a warning says when that was not the
     estimator's own). If ICP finds no pairs within reach, the result

@@ -1,0 +1,38 @@
+"""The README's results table, rendered from a bench_real_pairs.py JSON (never copied by hand).
+
+    python benchmarks/results_table.py benchmarks/results/2026-12-02/real_pairs.json
+
+tests/test_docs.py checks that the README holds exactly this rendering of the JSON it links.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+SUBSETS = ("3DMatch", "3DLoMatch", "KITTI", "kitchen/LiDAR", "all")
+# "default" repeats whichever method was the default when the JSON was measured: the table names the
+# methods themselves, the current default marked.
+LABELS = {"fpfh": "`--method fpfh`", "sc2": "`--method sc2` (the default)",
+          "vrnet": "`--method vrnet`", "fgr": "`--method fgr`", "open3d-ransac": "Open3D RANSAC + ICP",
+          "open3d-fgr": "Open3D FGR + ICP"}
+
+
+def render(record: dict) -> str:
+    rows = {(r["method"], r["subset"]): r for r in record["summary"]}
+    methods = [m for m in dict.fromkeys(r["method"] for r in record["summary"]) if m != "default"]
+    lines = ["| method | " + " | ".join(f"{s} recall" for s in SUBSETS) + " | RE median (°) | s / pair |",
+             "|---|" + "---:|" * (len(SUBSETS) + 2)]
+    for method in methods:
+        cells = []
+        for subset in SUBSETS:
+            r = rows.get((method, subset))
+            cells.append(f"{100 * r['recall']:.0f} % ({r['successes']}/{r['runs']})" if r else "–")
+        everything = rows[(method, "all")]
+        lines.append(f"| {LABELS.get(method, method)} | " + " | ".join(cells) +
+                     f" | {everything['median_re_deg']:.2f} | {everything['median_process_s']:.2f} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print(render(json.loads(Path(sys.argv[1]).read_text())))

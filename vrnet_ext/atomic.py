@@ -1,0 +1,38 @@
+"""Output files that are either complete or absent: :func:`atomic_output`."""
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+
+class OutputError(OSError):
+    """An output file could not be written; the message names the file and the reason."""
+
+
+@contextmanager
+def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
+    """Yields a temporary path beside ``path`` (same folder and suffix) to write to. When the block
+    ends without error the file is flushed to disk and renamed over ``path``; otherwise it is
+    removed, so ``path`` holds either the new complete file or what it held before. An ``OSError``
+    (full disk, file size limit, unwritable folder) becomes :class:`OutputError` naming ``path``."""
+    path = Path(path)
+    try:
+        fd, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+        os.close(fd)
+    except OSError as error:
+        raise OutputError(f"{path}: cannot write there ({error.strerror or error})") from None
+    temporary = Path(temporary)
+    try:
+        yield temporary
+        with open(temporary, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(temporary, path)
+    except OSError as error:
+        temporary.unlink(missing_ok=True)
+        raise OutputError(f"{path}: could not write it ({error.strerror or error}); nothing was written") from None
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
