@@ -232,3 +232,10 @@ def test_a_transform_file_is_not_a_cloud(tmp_path):
     np.savetxt(tmp_path / "T.txt", np.eye(4))
     with pytest.raises(PointCloudError, match="T.txt.*4x4 transform, not a point cloud"):
         read_points(tmp_path / "T.txt")
+
+
+def test_an_npz_archive_named_npy_is_named_in_the_error(tmp_path):
+    np.savez(tmp_path / "a.npz", points=np.zeros((5, 3)))
+    (tmp_path / "a.npz").rename(tmp_path / "a.npy")
+    with pytest.raises(PointCloudError, match="a.npy.*npz archive"):
+        read_points(tmp_path / "a.npy")

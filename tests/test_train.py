@@ -195,3 +195,15 @@ def test_freeze_confidence_trains_the_offsets_only():
         TrainConfig.from_preset("tiny", freeze_confidence=True)
     with pytest.raises(ValueError, match="loss_motion must be >= 0"):
         TrainConfig.from_preset("tiny", loss_motion=-1.0)
+
+
+def test_resuming_or_warm_starting_from_the_wrong_kind_of_file_is_a_named_error(tmp_path):
+    """Shipped weights and scene models hold no training state: a ValueError naming the file, no KeyError."""
+    from vrnet_ext.pretrained import DEFAULT_SCENE_MODEL, weights_path
+
+    shipped, scene = weights_path("vrnet-pv-upc-rcp"), weights_path(DEFAULT_SCENE_MODEL)
+    for path in (shipped, scene):
+        with pytest.raises(ValueError, match=f"resume: {path}.*not a checkpoint of `vrnet train`"):
+            train(tiny(tmp_path, "resume", resume=str(path)))
+    with pytest.raises(ValueError, match=f"features_from: {scene} is not a VRNet checkpoint"):
+        train(tiny(tmp_path, "warm", features_from=str(scene)))

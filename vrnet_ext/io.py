@@ -204,6 +204,9 @@ def _read_npy(path: Path) -> np.ndarray:
         array = np.load(path, mmap_mode="r", allow_pickle=False)
     except Exception as exc:  # numpy's header parser raises many types (ValueError, SyntaxError, TokenError, ...)
         raise _fail(path, f"not a readable .npy array ({type(exc).__name__}: {exc})") from None
+    if not isinstance(array, np.ndarray):  # np.load opens a .npz archive whatever the name says
+        array.close()
+        raise _fail(path, "is a .npz archive, not a .npy array (save one array with numpy.save)")
     real = np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)
     if array.ndim != 2 or array.shape[1] < 3 or not real:
         raise _fail(path, f"expected a real-valued (N, >=3) integer or float array, got {array.dtype} {array.shape}")

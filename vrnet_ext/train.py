@@ -130,7 +130,11 @@ def _save(checkpoint: dict, path: Path) -> None:
 
 
 def _check_resumable(state: dict, model_cfg: VRNetConfig, path: str) -> None:
-    """A run resumes only the model it was training (the file's config, not silently this run's)."""
+    """A run resumes only the model it was training (the file's config, not silently this run's),
+    from a training checkpoint (not shipped weights or a scene model)."""
+    if "step" not in state or "optimizer" not in state or not isinstance(state["config"].get("model"), dict):
+        raise ValueError(f"resume: {path} is not a checkpoint of `vrnet train` (shipped weights and scene models "
+                         f"hold no training state; start a run from one with --features-from / --walk-from)")
     saved = validate_model_config(state["config"]["model"], path).to_dict()
     wanted = model_cfg.to_dict()
     saved["backend"] = wanted["backend"]  # the kernels used do not change the model

@@ -20,6 +20,9 @@ WALK_FIELDS = ("emb_dims", "walk_channels", "walk_coordinates", "walk_gate", "wa
 
 def _saved_config(path: str, argument: str, fields: tuple[str, ...], model: VRNet) -> tuple[dict, VRNetConfig]:
     state = read_checkpoint(path)
+    if not isinstance(state["config"].get("model"), dict):
+        raise ValueError(f"{argument}: {path} is not a VRNet checkpoint (a scene model of `vrnet train-scene` has "
+                         f"other layers)")
     saved = validate_model_config(state["config"]["model"], path)
     differing = [k for k in fields if getattr(saved, k) != getattr(model.config, k)]
     if differing:
