@@ -65,3 +65,18 @@ def test_vrnet_demo_runs_without_data(tmp_path, capsys):
     assert out.stat().st_size > 20_000
     result = json.loads((tmp_path / "demo.json").read_text())
     assert len(result["pairs"]) == 2 and "rotation error" in capsys.readouterr().out
+
+
+def test_eval_picks_the_shipped_model_of_the_setting_and_split(tmp_path, capsys):
+    from vrnet_ext.cli import main
+    from vrnet_ext.pretrained import model_for
+
+    assert model_for("PV", "UPC") == "vrnet-pv-upc-rcp" and model_for("PV", "ND") == "vrnet-pv-nd-rcp"
+    assert model_for("RS", "UPC") is None
+    assert main(["eval", "--setting", "RS", "--split", "UPC"]) == 2
+    assert "no shipped model is trained for setting RS / split UPC" in capsys.readouterr().err
+    if not (MODELNET_DIR / "modelnet40_1024_test.h5").exists():
+        pytest.skip("ModelNet40 not found")
+    out = tmp_path / "e.json"
+    assert main(["eval", "--split", "ND", "--max-items", "4", "--data-dir", str(MODELNET_DIR), "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["checkpoint"] == "vrnet-pv-nd-rcp"

@@ -189,10 +189,11 @@ def _eval_parser(sub) -> None:
     p = sub.add_parser("eval", help="evaluate a checkpoint on the ModelNet40 test pairs",
                        description="Prints the paper's table (RMSE/MAE of Euler angles and translation) "
                                    "plus isotropic errors, recall, Chamfer distances and match ratios; writes JSON.")
-    p.add_argument("--checkpoint", required=True,
-                   help="a shipped model name (e.g. vrnet-pv-upc-rcp) or best.pt / last.pt written by `vrnet train`")
-    p.add_argument("--setting", choices=SETTINGS, default=None, help="default: the checkpoint's")
-    p.add_argument("--split", choices=("UPC", "UC", "ND"), default=None, help="default: the checkpoint's")
+    p.add_argument("--checkpoint", default=None,
+                   help="a shipped model name (e.g. vrnet-pv-upc-rcp) or best.pt / last.pt written by `vrnet train` "
+                        "(default: the shipped model trained for --setting / --split)")
+    p.add_argument("--setting", choices=SETTINGS, default=None, help="default: the checkpoint's, else PV")
+    p.add_argument("--split", choices=("UPC", "UC", "ND"), default=None, help="default: the checkpoint's, else UPC")
     p.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--max-items", type=_positive_int, default=None,
@@ -201,9 +202,12 @@ def _eval_parser(sub) -> None:
     p.add_argument("--far-points", choices=FAR_POINTS, default="prnet",
                    help="partial views: prnet = the paper's far points near the diagonal; sphere = in a random "
                         "direction for each cloud; mixed = one of the two per pair")
-    p.add_argument("--backend", choices=("ext", "torch"), default="ext")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--json", default=None, help="output JSON path (default: next to the checkpoint)")
+    p.add_argument("--backend", choices=("ext", "torch"), default="ext",
+                   help="ext: the compiled kernels; torch: the pure-PyTorch references")
+    p.add_argument("--device", default="cpu", help="torch device to run on, e.g. cpu or cuda")
+    p.add_argument("--json", default=None,
+                   help="output JSON path (default: eval_SETTING_SPLIT.json beside a checkpoint file, or in the "
+                        "working folder for a shipped model)")
 
 
 def _run_eval(args) -> int:
@@ -211,6 +215,14 @@ def _run_eval(args) -> int:
     from vrnet_ext.evaluate import evaluate, format_table, time_inference
     from vrnet_ext.checkpoints import load_vrnet
 
+    if args.checkpoint is None:
+        from vrnet_ext.pretrained import model_for
+
+        wanted = (args.setting or "PV", args.split or "UPC")
+        args.checkpoint = model_for(*wanted)
+        if args.checkpoint is None:
+            raise ValueError(f"no shipped model is trained for setting {wanted[0]} / split {wanted[1]}; "
+                             f"give --checkpoint")
     model, state = load_vrnet(args.checkpoint, args.device)
     cfg = state["config"]
     if args.iterations:
@@ -290,9 +302,10 @@ def _register_parser(sub) -> None:
     p.add_argument("--json", type=_writable_path, default=None, help="write the result here")
     p.add_argument("--out", type=_writable_path, default=None, help="write the moved source as a PLY here")
     p.add_argument("--plot", type=_writable_path, default=None, help="write top/side views (PNG) here")
-    p.add_argument("--backend", choices=("ext", "torch"), default="ext")
-    p.add_argument("--device", type=_device, default="cpu")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--backend", choices=("ext", "torch"), default="ext",
+                   help="ext: the compiled kernels; torch: the pure-PyTorch references")
+    p.add_argument("--device", type=_device, default="cpu", help="torch device to run on, e.g. cpu or cuda")
+    p.add_argument("--seed", type=int, default=0, help="seed of the global estimate's sampling")
 
 
 INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "sc2": "FPFH + spatial consistency", "fgr": "FPFH + FGR",

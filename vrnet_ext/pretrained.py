@@ -42,6 +42,17 @@ def available(kind: str | None = None) -> list[str]:
     return [name for name in names if is_scene(name) == (kind == "scene")]
 
 
+def model_for(setting: str, split: str) -> str | None:
+    """The shipped ModelNet40 VRNet trained for (setting, split) (``"PV"``, ``"UPC"``), or None."""
+    from vrnet_ext.checkpoints import read_checkpoint
+
+    for name in available("vrnet"):
+        config = read_checkpoint(WEIGHTS_DIR / f"{name}.pt")["config"]
+        if (config.get("setting"), config.get("split")) == (setting, split):
+            return name
+    return None
+
+
 def weights_path(name: str) -> Path:
     """The file of a shipped model; ValueError listing the names when ``name`` is not one."""
     if name not in available():
