@@ -159,3 +159,14 @@ def test_scene_models_are_listed_apart_and_refused_where_a_modelnet_vrnet_is_nee
     assert DEFAULT_MODEL in available("vrnet") and set(available()) == set(available("vrnet") + available("scene"))
     assert main(["eval", "--checkpoint", DEFAULT_SCENE_MODEL]) == 2
     assert "a scene model (for `vrnet register`)" in capsys.readouterr().err
+
+
+def test_train_scene_refuses_a_folder_as_out_and_unbounded_points(tmp_path, capsys):
+    from vrnet_ext.cli import main
+
+    for options in (["--out", str(tmp_path)], ["--out", str(tmp_path / "s.pt"), "--points", "1000000000"]):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["train-scene", str(tmp_path / "scan.ply"), *options])
+        assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "is a folder; give a file name" in err and "more than 200000 points per view" in err

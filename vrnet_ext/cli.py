@@ -84,11 +84,27 @@ def _device(text: str) -> str:
 
 
 def _writable_path(text: str) -> str:
-    """An output file whose folder exists (checked before the work, not after it)."""
-    folder = Path(text).expanduser().resolve().parent
-    if not folder.is_dir():
-        raise argparse.ArgumentTypeError(f"{text!r}: the folder {folder} does not exist")
+    """An output file whose folder exists and is writable, and that is not a folder itself (checked
+    before the work, not after it)."""
+    path = Path(text).expanduser().resolve()
+    if not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r}: the folder {path.parent} does not exist")
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a folder; give a file name")
+    if not os.access(path.parent, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text!r}: the folder {path.parent} is not writable")
     return text
+
+
+MAX_VIEW_POINTS = 200_000  # train-scene: the InfoNCE matrix grows as the square of the view's points
+
+
+def _view_points(text: str) -> int:
+    value = _positive_int(text)
+    if value > MAX_VIEW_POINTS:
+        raise argparse.ArgumentTypeError(f"{value} is more than {MAX_VIEW_POINTS} points per view (memory grows "
+                                         f"as its square)")
+    return value
 
 
 DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNET_DATA/modelnet40, "
@@ -490,9 +506,10 @@ def _train_scene_parser(sub) -> None:
     p.add_argument("scans", nargs="+", help="point-cloud files (sensor at the origin), e.g. 3DMatch fragments")
     p.add_argument("--out", required=True, type=_writable_path, help="checkpoint to write (and resume)")
     p.add_argument("--steps", type=_positive_int, default=600, help="training pairs")
-    p.add_argument("--points", type=_positive_int, default=3000, help="about this many points per training view")
+    p.add_argument("--points", type=_view_points, default=3000,
+                   help=f"about this many points per training view (at most {MAX_VIEW_POINTS})")
     p.add_argument("--lr", type=_positive_float, default=2e-3, help="Adam learning rate")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the views and rotations")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
