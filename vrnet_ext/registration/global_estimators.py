@@ -24,7 +24,7 @@ from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.preprocessing import subsample, voxel_downsample, voxel_size_for
 from vrnet_ext.registration.fgr import fast_global_registration
 from vrnet_ext import ops
-from vrnet_ext.registration.ransac import fpfh_ransac, nearest_both_ways, ransac, voxel_fpfh
+from vrnet_ext.registration.ransac import fpfh_ransac, ransac, voxel_fpfh
 from vrnet_ext.transforms import to_homogeneous
 
 CPU = torch.device("cpu")
@@ -121,8 +121,8 @@ class SpatialConsistency(GlobalEstimator):
 
     def estimate(self, src, tgt, seed):
         src_down, tgt_down, voxel = downsampled_pair(src, tgt, self.points, self.device)
-        forward, _ = nearest_both_ways(voxel_fpfh(src_down, voxel), voxel_fpfh(tgt_down, voxel))
-        transform, inliers = ops.spatial_consistency(src_down, tgt_down[forward], 2.0 * voxel, 2.0 * voxel,
+        _, nearest = ops.knn(voxel_fpfh(src_down, voxel)[None], voxel_fpfh(tgt_down, voxel)[None], 1)
+        transform, inliers = ops.spatial_consistency(src_down, tgt_down[nearest[0, :, 0]], 2.0 * voxel, 2.0 * voxel,
                                                      self.seeds, self.consensus)
         if int(inliers.sum()) < 3:
             raise ValueError("spatial consistency found no set of 3 or more consistent FPFH matches: the features "
