@@ -170,3 +170,19 @@ def test_train_scene_refuses_a_folder_as_out_and_unbounded_points(tmp_path, caps
         assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert "is a folder; give a file name" in err and "more than 200000 points per view" in err
+
+
+def test_a_larger_scene_model_is_planned_for_its_size():
+    """A scene-model file inside the config limits (hidden = emb = walk = 1024, 64 neighbours) costs
+    ~60x the shipped model per point: the planner sees it and lowers the points, or refuses."""
+    from vrnet_ext.model.scene import SceneConfig, SceneVRNet
+    from vrnet_ext.registration.global_estimators import SceneNetwork
+
+    big = SceneNetwork(SceneVRNet(SceneConfig(hidden=1024, emb_dims=1024, neighbours=64, walk_hidden=1024)))
+    assert SceneNetwork(SceneVRNet()).memory_scale == 1.0 and big.memory_scale > 50
+    shipped = plan_registration(4 * 2 ** 30, "scene", 300_000, 300_000, 5000, 1024, 50_000)
+    assert shipped.global_points == 5000
+    planned = plan_registration(4 * 2 ** 30, "scene", 300_000, 300_000, 5000, 1024, 50_000, big.memory_scale)
+    assert planned.global_points < 5000 and planned.predicted_peak_mb <= planned.budget_mb
+    with pytest.raises(MemoryBudgetError, match="cannot be met"):
+        plan_registration(600 * 2 ** 20, "scene", 300_000, 300_000, 5000, 1024, 50_000, 400.0)

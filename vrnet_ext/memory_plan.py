@@ -80,9 +80,10 @@ PROFILES = ("icp", "fpfh", "fgr", "sc2", "scene", "modelnet")  # GlobalEstimator
 
 
 def _stage_mb(profile: str | None, largest_scan: int, global_points: int, network_points: int,
-              icp_points: int) -> float:
+              icp_points: int, scale: float = 1.0) -> float:
     """Largest transient of the run's stages (MB), safety factor included; ``profile``: the global
-    estimator's (:data:`PROFILES`; None: unknown, only the voxel grid and ICP are predicted)."""
+    estimator's (:data:`PROFILES`; None: unknown, only the voxel grid and ICP are predicted);
+    ``scale``: its per-point cost against the shipped model's (a larger scene model costs more)."""
     stages = [VOXEL_BYTES_PER_INPUT_POINT * largest_scan / MB,
               ICP_MB + ICP_BYTES_PER_POINT * 2 * icp_points / MB]
     if profile in ("fpfh", "fgr", "sc2"):
@@ -90,17 +91,19 @@ def _stage_mb(profile: str | None, largest_scan: int, global_points: int, networ
     if profile == "sc2":  # the compatibility graph: one bit per pair of correspondences (one per point)
         stages.append(FPFH_MB + global_points * global_points / 8 / MB)
     elif profile == "scene":
-        stages.append(SCENE_MB + SCENE_BYTES_PER_POINT * global_points / MB)
+        stages.append(SCENE_MB + scale * SCENE_BYTES_PER_POINT * global_points / MB)
     elif profile == "modelnet":
         stages.append(NETWORK_MB + NETWORK_BYTES_PER_POINT * network_points / MB)
     return SAFETY * max(stages)
 
 
 def plan_registration(budget_bytes: int, profile: str | None, source_points: int, target_points: int,
-                      global_points: int, network_points: int, icp_points: int) -> RegistrationPlan:
+                      global_points: int, network_points: int, icp_points: int,
+                      scale: float = 1.0) -> RegistrationPlan:
     """Point counts that keep the process's peak within ``budget_bytes``.
 
-    profile: the global estimator's memory profile (:data:`PROFILES`, or None when unknown).
+    profile: the global estimator's memory profile (:data:`PROFILES`, or None when unknown);
+    scale: its per-point cost relative to the profile's (``GlobalEstimator.memory_scale``).
     Raises :class:`MemoryBudgetError` when what the process holds now plus even the smallest
     counts' transients would not fit.
     """
@@ -117,7 +120,7 @@ def plan_registration(budget_bytes: int, profile: str | None, source_points: int
     notes = []
 
     def predicted() -> float:
-        return now_mb + MARGIN_MB + _stage_mb(profile, largest, **counts)
+        return now_mb + MARGIN_MB + _stage_mb(profile, largest, **counts, scale=scale)
 
     while predicted() > budget_mb:
         shrinkable = [name for name in sorted(used) if counts[name] > floors[name]]
@@ -125,7 +128,7 @@ def plan_registration(budget_bytes: int, profile: str | None, source_points: int
             raise MemoryBudgetError(
                 f"max_memory {budget_mb:.0f} MB cannot be met: the smallest run (global estimate on "
                 f"{MIN_GLOBAL_POINTS} points, ICP on {MIN_ICP_POINTS}) needs about "
-                f"{_smallest_mb(now_mb, profile, source_points, target_points):.0f} MB, "
+                f"{_smallest_mb(now_mb, profile, source_points, target_points, scale):.0f} MB, "
                 f"{now_mb:.0f} MB of it held already (Python, torch and the scans)")
         for name in shrinkable:
             counts[name] = max(floors[name], int(counts[name] * 0.8))
@@ -137,6 +140,7 @@ def plan_registration(budget_bytes: int, profile: str | None, source_points: int
                             budget_mb, notes)
 
 
-def _smallest_mb(now_mb: float, profile: str | None, source_points: int, target_points: int) -> float:
+def _smallest_mb(now_mb: float, profile: str | None, source_points: int, target_points: int,
+                 scale: float = 1.0) -> float:
     return now_mb + MARGIN_MB + _stage_mb(profile, max(source_points, target_points), MIN_GLOBAL_POINTS,
-                                          MIN_NETWORK_POINTS, MIN_ICP_POINTS)
+                                          MIN_NETWORK_POINTS, MIN_ICP_POINTS, scale)

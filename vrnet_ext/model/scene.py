@@ -49,6 +49,11 @@ class SceneConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    def values_per_point(self) -> int:
+        """Floats the forward pass holds per point at its peak, about: the context graph's edge
+        tensors (neighbours x hidden, several of them) dominate."""
+        return 5 * self.neighbours * self.hidden + 4 * self.hidden + 2 * self.emb_dims + 2 * self.walk_hidden
+
     @classmethod
     def from_dict(cls, values: dict) -> "SceneConfig":
         """A config from untrusted ``values``: ValueError naming the field outside SCENE_LIMITS."""

@@ -45,6 +45,7 @@ class GlobalEstimator:
     name: ClassVar[str] = "custom"
     also_start_from: ClassVar[tuple[str, ...]] = ()
     memory_profile: ClassVar[str | None] = None
+    memory_scale: ClassVar[float] = 1.0  # per-point cost against the profile's (a larger model costs more)
 
     def estimate(self, src: np.ndarray, tgt: np.ndarray, seed: int) -> np.ndarray:
         """src (N, 3), tgt (M, 3) -> (4, 4) ``T_target_source``; ``seed`` fixes any sampling."""
@@ -147,6 +148,13 @@ class SceneNetwork(GlobalEstimator):
     name: ClassVar[str] = "vrnet"
     also_start_from: ClassVar[tuple[str, ...]] = ("sc2",)
     memory_profile: ClassVar[str | None] = "scene"
+
+    @property
+    def memory_scale(self) -> float:
+        """This model's per-point cost against the shipped scene model's (the planner's profile)."""
+        from vrnet_ext.model.scene import SceneConfig
+
+        return max(1.0, self.model.config.values_per_point() / SceneConfig().values_per_point())
 
     def estimate(self, src, tgt, seed):
         from vrnet_ext.data.scans import describe

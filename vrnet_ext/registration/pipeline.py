@@ -116,8 +116,11 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, method, model, global_po
             model = load_pretrained(DEFAULT_SCENE_MODEL, device)
     plan_notes = []
     if max_memory is not None:
-        profile = None if given is not None else make_global_estimator(method, model).memory_profile
-        plan = plan_registration(max_memory, profile, len(src), len(tgt), global_points, network_points, icp_points)
+        planned = None if given is not None else make_global_estimator(method, model)
+        profile = None if planned is None else planned.memory_profile
+        scale = 1.0 if planned is None else planned.memory_scale
+        plan = plan_registration(max_memory, profile, len(src), len(tgt), global_points, network_points, icp_points,
+                                 scale)
         global_points, network_points, icp_points = plan.global_points, plan.network_points, plan.icp_points
         plan_notes = plan.notes
     estimator = given or make_global_estimator(method, model, global_points, network_points, device, backend)
