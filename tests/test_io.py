@@ -239,3 +239,10 @@ def test_an_npz_archive_named_npy_is_named_in_the_error(tmp_path):
     (tmp_path / "a.npz").rename(tmp_path / "a.npy")
     with pytest.raises(PointCloudError, match="a.npy.*npz archive"):
         read_points(tmp_path / "a.npy")
+
+
+def test_a_csv_header_row_is_skipped(tmp_path, points):
+    np.savetxt(tmp_path / "h.csv", points, delimiter=",", header="x,y,z", comments="")
+    np.testing.assert_allclose(read_points(tmp_path / "h.csv"), points, rtol=1e-6)
+    np.savetxt(tmp_path / "e.xyz", np.array([[1e-3, 2.5e2, -3e1]] * 4))  # exponents are numbers, not a header
+    assert read_points(tmp_path / "e.xyz").shape == (4, 3)

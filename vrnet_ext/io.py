@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import os
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -186,10 +187,18 @@ def _read_pcd(path: Path, data: bytes) -> np.ndarray:
 
 
 def _read_text(path: Path) -> np.ndarray:
+    delimiter = "," if path.suffix.lower() == ".csv" else None
+    with path.open("rb") as f:
+        first = f.readline().decode("latin-1")
+    header = 1 if re.search(r"[A-Za-df-z_]", first.split("#")[0]) else 0  # a header row of names (x, y, z, ...)
     try:
-        table = np.loadtxt(path, comments="#", delimiter=None if path.suffix.lower() != ".csv" else ",", ndmin=2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data": reported below
+            table = np.loadtxt(path, comments="#", delimiter=delimiter, ndmin=2, skiprows=header)
     except ValueError as exc:
         raise _fail(path, f"rows must be numbers (x y z ...): {exc}") from None
+    if table.size == 0:
+        raise _fail(path, "rows must be numbers (x y z ...): no rows of numbers found")
     if table.shape[1] < 3:
         raise _fail(path, f"rows need at least 3 columns (x y z), got {table.shape[1]}")
     if table.shape == (4, 4) and np.allclose(table[3], [0, 0, 0, 1]):
