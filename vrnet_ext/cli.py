@@ -282,8 +282,8 @@ def _register_parser(sub) -> None:
                     "--method vrnet: the shipped scene model, FPFH descriptors under VRNet's head, or --checkpoint, "
                     "with ICP also started from sc2's estimate and the better fit kept; --method fgr: FPFH + Fast "
                     "Global Registration; --method icp: none), refined by ICP (--estimator) on voxel-downsampled "
-                    "clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform and "
-                    "writes JSON.",
+                    "clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform (source -> "
+                    "target); --json, --out and --plot write the result, the moved source and a picture.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("source", help="point-cloud file to move")
     p.add_argument("target", help="point-cloud file to align to (same unit)")
