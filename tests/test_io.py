@@ -246,3 +246,16 @@ def test_a_csv_header_row_is_skipped(tmp_path, points):
     np.testing.assert_allclose(read_points(tmp_path / "h.csv"), points, rtol=1e-6)
     np.savetxt(tmp_path / "e.xyz", np.array([[1e-3, 2.5e2, -3e1]] * 4))  # exponents are numbers, not a header
     assert read_points(tmp_path / "e.xyz").shape == (4, 3)
+
+
+def test_outputs_get_ordinary_file_permissions(tmp_path):
+    import os
+    import stat
+
+    write_ply(tmp_path / "new.ply", np.zeros((4, 3)))
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE((tmp_path / "new.ply").stat().st_mode) == 0o666 & ~umask
+    os.chmod(tmp_path / "new.ply", 0o640)
+    write_ply(tmp_path / "new.ply", np.ones((4, 3)))  # replacing keeps the file's mode
+    assert stat.S_IMODE((tmp_path / "new.ply").stat().st_mode) == 0o640

@@ -12,6 +12,15 @@ class OutputError(OSError):
     """An output file could not be written; the message names the file and the reason."""
 
 
+def _file_mode(path: Path) -> int:
+    """The mode the file at ``path`` has, or a new file gets (0666 less the umask)."""
+    if path.exists():
+        return path.stat().st_mode & 0o777
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
 @contextmanager
 def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
     """Yields a temporary path beside ``path`` (same folder and suffix) to write to. When the block
@@ -29,6 +38,7 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
         yield temporary
         with open(temporary, "rb+") as f:
             os.fsync(f.fileno())
+        os.chmod(temporary, _file_mode(path))  # mkstemp's files are private (0600); an output is not
         os.replace(temporary, path)
     except OSError as error:
         temporary.unlink(missing_ok=True)
