@@ -208,3 +208,12 @@ def test_resuming_or_warm_starting_from_the_wrong_kind_of_file_is_a_named_error(
             train(tiny(tmp_path, "resume", resume=str(path)))
     with pytest.raises(ValueError, match=f"features_from: {scene} is not a VRNet checkpoint"):
         train(tiny(tmp_path, "warm", features_from=str(scene)))
+
+
+def test_invalid_options_are_refused_naming_the_flag():
+    for overrides, flag in ((dict(stage1_epochs=-1), "--stage1-epochs"), (dict(seed=-1), "--seed"),
+                            (dict(num_points=5000), "--num-points"), (dict(lr_milestones=[-5]), "--lr-milestones"),
+                            (dict(loss_l4=float("nan")), "--loss-l4"), (dict(lr_stage2=0.0), "--lr-stage2"),
+                            (dict(num_subsampled=2000, num_points=1024), "--num-subsampled")):
+        with pytest.raises(ValueError, match=flag):
+            TrainConfig.from_preset("tiny", **overrides)

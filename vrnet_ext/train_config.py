@@ -4,6 +4,7 @@ Free of torch, so that ``vrnet train --help`` answers at once; :mod:`vrnet_ext.t
 """
 from __future__ import annotations
 
+import math
 from dataclasses import MISSING, dataclass, field, fields
 
 from vrnet_ext.model.config import VRNetConfig
@@ -23,6 +24,7 @@ PRESETS = {
 
 
 PRECISIONS = ("bf16", "fp32")
+MODELNET_POINTS = 1024  # points per shape in the ModelNet40 HDF5 files
 L4_FORMS = ("rmse", "log")
 
 # What each training option means (``vrnet train --help`` adds every preset's value).
@@ -131,6 +133,30 @@ class TrainConfig:
         return cls(**values)
 
     def __post_init__(self) -> None:
+        def option(name: str) -> str:
+            return "--" + name.replace("_", "-")
+
+        for name in ("lr_stage1", "lr_stage2", "lr_gamma"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{option(name)} must be a finite number > 0, got {value!r}")
+        for name in ("weight_decay", "loss_l4", "val_fraction"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{option(name)} must be a finite number >= 0, got {value!r}")
+        for name, smallest in (("stage1_epochs", 0), ("stage2_epochs", 0), ("batch_size", 1), ("num_points", 1),
+                               ("num_subsampled", 1), ("seed", 0), ("num_workers", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < smallest:
+                raise ValueError(f"{option(name)} must be an integer >= {smallest}, got {value!r}")
+        if self.num_points > MODELNET_POINTS:
+            raise ValueError(f"--num-points must be at most {MODELNET_POINTS} (the ModelNet40 files hold "
+                             f"{MODELNET_POINTS} points per shape), got {self.num_points}")
+        if self.num_subsampled > self.num_points:
+            raise ValueError(f"--num-subsampled ({self.num_subsampled}) must be at most --num-points "
+                             f"({self.num_points})")
+        if any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in self.lr_milestones):
+            raise ValueError(f"--lr-milestones must be epochs >= 1, got {self.lr_milestones}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.loss_l4_form not in L4_FORMS:
