@@ -187,8 +187,8 @@ def _run_train(args) -> int:
     cfg = build_train_config(args)
     record = train(cfg)
     out_dir = Path(cfg.out_dir)
-    if record.get("stopped"):
-        return 0
+    if record.get("stopped"):  # saved and resumable, but not finished: the shell's status of that signal
+        return 128 + record.get("signal", 0) if record.get("signal") else 1
     if record:
         summary = ", ".join(f"{k} {record[k]:.4g}" for k in ("val_RMSE(R)", "val_MAE(R)", "val_RMSE(t)") if k in record)
         print(f"last epoch (stage {record['stage']}, epoch {record['epoch']}): {summary}")

@@ -153,6 +153,7 @@ class _StopRequest:
 
     def __init__(self, enabled: bool) -> None:
         self.requested = False
+        self.signal = 0
         self._previous = {}
         if enabled and threading.current_thread() is threading.main_thread():
             for number in (signal.SIGINT, signal.SIGTERM):
@@ -160,6 +161,7 @@ class _StopRequest:
 
     def _request(self, number, frame) -> None:
         self.requested = True
+        self.signal = number
 
     def restore(self) -> None:
         for number, handler in self._previous.items():
@@ -296,7 +298,8 @@ def _train_stages(cfg, run, model, train_set, val_set, sampler, state, loss_weig
                     bar.close()
                     print(f"vrnet train: stopped at stage {stage}, epoch {epoch + 1}, batch {batches}; "
                           f"continue with --resume {out_dir / 'last.pt'}", flush=True)
-                    return {"stage": stage, "epoch": epoch + 1, "step": step, "stopped": True}
+                    return {"stage": stage, "epoch": epoch + 1, "step": step, "stopped": True,
+                            "signal": stop.signal}
             scheduler.step()
             record = {"stage": stage, "epoch": epoch + 1, "step": step, "lr": optimizer.param_groups[0]["lr"],
                       "epoch_seconds": round(time.time() - epoch_started, 2), "world_size": run.world}
