@@ -27,6 +27,7 @@ import torch
 
 from vrnet_ext._extension import has_extension, use_extension
 from vrnet_ext.ops._checks import check_finite
+from vrnet_ext.ops.kabsch import kabsch_reference
 
 MAX_CORRESPONDENCES = 1 << 15
 
@@ -53,14 +54,10 @@ def _validate(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, inlier_thr
 
 
 def _kabsch(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-    """Unweighted Procrustes in float64 -> (4, 4)."""
-    p_c, q_c = p.mean(0), q.mean(0)
-    H = (p - p_c).T @ (q - q_c) / p.shape[0]
-    U, _, Vh = torch.linalg.svd(H)
-    d = torch.sign(torch.det(Vh.T @ U.T))
-    R = Vh.T @ torch.diag(torch.tensor([1.0, 1.0, float(d) if d != 0 else 1.0], dtype=p.dtype)) @ U.T
+    """Unweighted Procrustes (the kabsch op's reference) -> (4, 4) float64."""
+    R, t = kabsch_reference(p[None], q[None])
     T = torch.eye(4, dtype=p.dtype)
-    T[:3, :3], T[:3, 3] = R, q_c - R @ p_c
+    T[:3, :3], T[:3, 3] = R[0], t[0]
     return T
 
 
