@@ -36,6 +36,27 @@ def test_settings_counts_and_ground_truth(setting, count):
     assert np.abs(pair["translation"]).max() <= 0.5
 
 
+def test_mixed_setting_draws_every_setting_at_one_size():
+    base = np.random.default_rng(0).standard_normal((1024, 3))
+    base.setflags(write=False)
+    kinds = set()
+    for seed in range(40):
+        pair = make_pair(base, PairSpec(setting="mixed"), np.random.default_rng(seed))
+        assert pair["src"].shape == (768, 3) and pair["tgt"].shape == (768, 3)
+        inliers = pair["gt_idx"] >= 0
+        moved = pair["src"] @ pair["rotation"].T + pair["translation"]
+        np.testing.assert_allclose(moved[inliers], pair["tgt"][pair["gt_idx"][inliers]], atol=1e-5)
+        if inliers.all():
+            kinds.add("CO")
+            continue
+        # a partial view keeps a compact cap of the shape: its points lie on one side of the centroid
+        src_centroid = pair["src"].mean(axis=0)
+        kinds.add("PV" if np.linalg.norm(src_centroid) > 0.3 else "RS")
+    assert kinds == {"CO", "PV", "RS"}
+    with pytest.raises(ValueError, match="setting must be one of"):
+        PairSpec(setting="all")
+
+
 def view_direction(cloud, view):
     """Unit vector from the centre of ``cloud`` (N, 3) away from the centroid of the points a partial
     ``view`` (V, 3) of it dropped: towards the far point that cut the view."""

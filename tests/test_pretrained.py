@@ -82,3 +82,15 @@ def test_eval_picks_the_shipped_model_of_the_setting_and_split(tmp_path, capsys)
     out = tmp_path / "e.json"
     assert main(["eval", "--split", "ND", "--max-items", "4", "--data-dir", str(MODELNET_DIR), "--json", str(out)]) == 0
     assert json.loads(out.read_text())["checkpoint"] == "vrnet-pv-nd-rcp"
+
+
+def test_model_for_prefers_the_model_of_the_setting_then_one_trained_on_every_setting(tmp_path, monkeypatch):
+    import vrnet_ext.pretrained as pretrained
+
+    for name, setting, split in (("pv-upc", "PV", "UPC"), ("all-upc", "mixed", "UPC"), ("pv-nd", "PV", "ND")):
+        torch.save({"model": {}, "config": {"model": {}, "setting": setting, "split": split}},
+                   tmp_path / f"{name}.pt")
+    monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path)
+    assert pretrained.model_for("PV", "UPC") == "pv-upc"
+    assert pretrained.model_for("RS", "UPC") == pretrained.model_for("CO", "UPC") == "all-upc"
+    assert pretrained.model_for("PV", "ND") == "pv-nd" and pretrained.model_for("RS", "ND") is None

@@ -17,7 +17,7 @@ import typing
 from dataclasses import fields
 from pathlib import Path
 
-from vrnet_ext.data.protocol import FAR_POINTS, SETTINGS
+from vrnet_ext.data.protocol import FAR_POINTS, MIXED, SETTINGS
 
 
 def _parse_bool(text: str) -> bool:
@@ -133,7 +133,7 @@ def _train_parser(sub) -> None:
         if f.name in ("classes", "lr_milestones"):
             p.add_argument(flag, type=int, nargs="+", default=None, help=description)
         elif f.name == "setting":
-            p.add_argument(flag, choices=SETTINGS, default=None, help=description)
+            p.add_argument(flag, choices=SETTINGS + (MIXED,), default=None, help=description)
         elif f.name == "split":
             p.add_argument(flag, choices=("UPC", "UC", "ND"), default=None, help=description)
         elif f.name == "data_dir":

@@ -43,14 +43,16 @@ def available(kind: str | None = None) -> list[str]:
 
 
 def model_for(setting: str, split: str) -> str | None:
-    """The shipped ModelNet40 VRNet trained for (setting, split) (``"PV"``, ``"UPC"``), or None."""
+    """The shipped ModelNet40 VRNet for (setting, split) (``"PV"``, ``"UPC"``): the one trained for
+    exactly that setting, else one trained on every setting (``"mixed"``) for that split, else None."""
     from vrnet_ext.checkpoints import read_checkpoint
+    from vrnet_ext.data.protocol import MIXED
 
+    trained_for = {}
     for name in available("vrnet"):
         config = read_checkpoint(WEIGHTS_DIR / f"{name}.pt")["config"]
-        if (config.get("setting"), config.get("split")) == (setting, split):
-            return name
-    return None
+        trained_for.setdefault((config.get("setting"), config.get("split")), name)
+    return trained_for.get((setting, split)) or trained_for.get((MIXED, split))
 
 
 def weights_path(name: str) -> Path:

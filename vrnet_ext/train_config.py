@@ -31,7 +31,7 @@ L4_FORMS = ("rmse", "log")
 FIELD_HELP = {
     "data_dir": "folder holding modelnet40_1024_{train,test}.h5",
     "out_dir": "where checkpoints, metrics.jsonl/csv and curves.png go",
-    "setting": "CO | PV | RS | PV+RS",
+    "setting": "CO | PV | RS | PV+RS | mixed (one of the four per pair: one model for every setting)",
     "split": "UPC | UC | ND",
     "batch_size": "pairs per step (per process under DDP)",
     "stage1_epochs": "epochs of stage 1 (features, L0)",

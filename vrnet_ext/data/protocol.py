@@ -9,7 +9,9 @@
   {1,-1,2,-2} for the target, so every view looks along the diagonal; ``"sphere"``: 500 times a
   uniformly random direction, drawn for each cloud; ``"mixed"``: one of the two per pair, at random);
   RS ``num_subsampled`` random points per cloud; PV+RS first ``pvrs_presample`` random points,
-  then the PV crop of those.
+  then the PV crop of those. ``"mixed"`` (for training one model for every setting) draws one of
+  the four per pair; its CO pairs keep a random ``num_subsampled`` of the shape's points (the same
+  in both clouds), so every pair of a batch has the same size.
 * Both clouds are shuffled; ``gt_idx[i]`` is the row of the target holding source point i's
   counterpart, or -1 when the target crop dropped it.
 * ND: Gaussian noise sigma 0.01 clipped to +-0.05 on every coordinate of both clouds, added to
@@ -21,7 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SETTINGS = ("CO", "PV", "RS", "PV+RS")
+SETTINGS = ("CO", "PV", "RS", "PV+RS")  # the paper's
+MIXED = "mixed"  # one of SETTINGS per pair
 FAR_POINTS = ("prnet", "sphere", "mixed")
 
 
@@ -41,9 +44,9 @@ class PairSpec:
             raise ValueError(f"far_points must be one of {FAR_POINTS}, got {self.far_points!r}")
         if self.pvrs_presample is None:
             self.pvrs_presample = max(self.num_subsampled, round(self.num_points * 896 / 1024))
-        if self.setting not in SETTINGS:
-            raise ValueError(f"setting must be one of {SETTINGS}, got {self.setting!r}")
-        if self.setting == "PV+RS" and not self.num_subsampled <= self.pvrs_presample <= self.num_points:
+        if self.setting not in SETTINGS + (MIXED,):
+            raise ValueError(f"setting must be one of {SETTINGS + (MIXED,)}, got {self.setting!r}")
+        if self.setting in ("PV+RS", MIXED) and not self.num_subsampled <= self.pvrs_presample <= self.num_points:
             raise ValueError("PV+RS needs num_subsampled <= pvrs_presample <= num_points")
         if self.setting != "CO" and self.num_subsampled > self.num_points:
             raise ValueError(f"num_subsampled ({self.num_subsampled}) exceeds num_points ({self.num_points})")
@@ -74,14 +77,16 @@ def nearest_to_far_point(points: np.ndarray, count: int, far: np.ndarray) -> np.
     return np.sort(np.argpartition(d2, count - 1)[:count])
 
 
-def select(points: np.ndarray, spec: PairSpec, rng: np.random.Generator, scales, scheme: str) -> np.ndarray:
-    """Indices kept by the setting's crop, in ascending order (``scheme``: "prnet" or "sphere")."""
+def select(points: np.ndarray, spec: PairSpec, setting: str, rng: np.random.Generator, scales,
+           scheme: str) -> np.ndarray:
+    """Indices kept by ``setting``'s crop (one of SETTINGS), in ascending order (``scheme``: "prnet" or
+    "sphere")."""
     n = points.shape[0]
-    if spec.setting == "CO":
+    if setting == "CO":
         return np.arange(n)
-    if spec.setting == "RS":
+    if setting == "RS":
         return np.sort(rng.choice(n, spec.num_subsampled, replace=False))
-    if spec.setting == "PV":
+    if setting == "PV":
         return nearest_to_far_point(points, spec.num_subsampled, far_point(rng, scheme, scales))
     pre = np.sort(rng.choice(n, spec.pvrs_presample, replace=False))
     return pre[nearest_to_far_point(points[pre], spec.num_subsampled, far_point(rng, scheme, scales))]
@@ -95,11 +100,16 @@ def make_pair(base: np.ndarray, spec: PairSpec, rng: np.random.Generator) -> dic
     """One registration pair from a (num_points, 3) cloud (read-only: nothing is modified)."""
     if base.shape[0] > spec.num_points:
         base = base[np.sort(rng.choice(base.shape[0], spec.num_points, replace=False))]
+    setting = spec.setting
+    if setting == MIXED:
+        setting = SETTINGS[int(rng.integers(len(SETTINGS)))]
+        if setting == "CO":
+            base = base[np.sort(rng.choice(base.shape[0], spec.num_subsampled, replace=False))]
     rotation, translation, euler = random_motion(rng, spec.max_angle_deg, spec.max_translation)
     moved = base @ rotation.T + translation
     scheme = spec.far_points if spec.far_points != "mixed" else ("prnet", "sphere")[int(rng.integers(2))]
-    src_keep = select(base, spec, rng, (1, -1), scheme)
-    tgt_keep = select(moved, spec, rng, (1, -1, 2, -2), scheme)
+    src_keep = select(base, spec, setting, rng, (1, -1), scheme)
+    tgt_keep = select(moved, spec, setting, rng, (1, -1, 2, -2), scheme)
     src_keep = src_keep[rng.permutation(src_keep.size)]
     tgt_keep = tgt_keep[rng.permutation(tgt_keep.size)]
     row_in_tgt = np.full(base.shape[0], -1, dtype=np.int64)
