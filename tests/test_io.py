@@ -122,6 +122,11 @@ def test_hostile_headers_and_arrays_raise_clear_errors(tmp_path, points):
     cases["negative.pcd"] = ("# .PCD v0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH -2\nHEIGHT 1\n"
                              "POINTS -2\nDATA ascii\n1 2 3\n")
     cases["short_property.ply"] = "ply\nformat ascii 1.0\nelement vertex 3\nproperty\nend_header\n1 2 3\n"
+    cases["x_twice.ply"] = ("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float x\n"
+                            "property float y\nproperty float z\nend_header\n1 2 3 4\n")
+    pcd_count_2 = "# .PCD v0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 2 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\n"
+    cases["count2.pcd"] = pcd_count_2 + "DATA ascii\n1 1 2 3\n"
+    cases["count2_binary.pcd"] = pcd_count_2 + "DATA binary\n" + "\0" * 16
     for name, text in cases.items():
         (tmp_path / name).write_text(text)
     huge = tmp_path / "huge.npy"
@@ -131,6 +136,8 @@ def test_hostile_headers_and_arrays_raise_clear_errors(tmp_path, points):
     np.save(tmp_path / "complex.npy", points.astype(np.complex64) + 1j)
     np.save(tmp_path / "bool.npy", points > 0)
     for name, message in [("negative.ply", "negative"), ("negative.pcd", "negative"), ("short_property.ply", "property"),
+                          ("x_twice.ply", "name x more than once"), ("count2.pcd", "COUNT of x must be 1"),
+                          ("count2_binary.pcd", "COUNT of x must be 1"),
                           ("huge.npy", "not a readable"), ("complex.npy", "real-valued"), ("bool.npy", "real-valued")]:
         with pytest.raises(PointCloudError, match=message) as info:
             read_points(tmp_path / name)

@@ -106,12 +106,20 @@ def _parse_ply_vertex(path: Path, header: list[str]) -> tuple[str, int, list[tup
     raise _fail(path, "no 'element vertex' in the PLY header")
 
 
+def _check_field_names(path: Path, names: list[str], what: str) -> None:
+    """x, y and z each present exactly once among ``names``."""
+    if not {"x", "y", "z"} <= set(names):
+        raise _fail(path, f"{what} need x, y and z, have {names}")
+    repeated = sorted({a for a in "xyz" if names.count(a) > 1})
+    if repeated:
+        raise _fail(path, f"{what} name {', '.join(repeated)} more than once: {names}")
+
+
 def _read_ply(path: Path, data: bytes) -> np.ndarray:
     header, body = _read_header(path, data, "end_header")
     fmt, count, props, skip = _parse_ply_vertex(path, header)
     names = [name for name, _ in props]
-    if not {"x", "y", "z"} <= set(names):
-        raise _fail(path, f"the vertex element needs x, y and z properties, has {names}")
+    _check_field_names(path, names, "the vertex element's properties")
     if fmt == "ascii":
         columns = [names.index(a) for a in "xyz"]
         table = _text_rows(path, data[body:], count, skip, columns, f"vertex lines with {len(props)} numbers")
@@ -161,10 +169,13 @@ def _read_pcd(path: Path, data: bytes) -> np.ndarray:
             points = _count(path, fields["WIDTH"][0], "WIDTH") * _count(path, fields["HEIGHT"][0], "HEIGHT")
     except (KeyError, IndexError, ValueError) as exc:
         raise _fail(path, f"PCD header misses or mangles {exc}: needs FIELDS, SIZE, TYPE, POINTS and DATA") from None
-    if not {"x", "y", "z"} <= set(names):
-        raise _fail(path, f"PCD FIELDS must include x y z, has {names}")
+    _check_field_names(path, names, "PCD FIELDS")
     if not len(names) == len(sizes) == len(types) == len(counts):
         raise _fail(path, "PCD FIELDS, SIZE, TYPE and COUNT must have one entry per field")
+    vector_axes = [a for a in "xyz" if counts[names.index(a)] != 1]
+    if vector_axes:
+        raise _fail(path, f"PCD COUNT of {', '.join(vector_axes)} must be 1 (one coordinate per point), got "
+                          f"{[counts[names.index(a)] for a in vector_axes]}")
     if mode == "ascii":
         offsets = np.cumsum([0] + counts)
         columns = [int(offsets[names.index(a)]) for a in "xyz"]
