@@ -1,5 +1,7 @@
 """Checkpoints are untrusted files: bounded, validated, clear errors naming the file."""
 import pickle
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -125,3 +127,16 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert "A smoke-test model." in card and "RMSE(R)" in card
     model, _ = load_model(tmp_path / "weights" / "tiny-model.pt")
     assert not model.training
+    assert main(["export", str(run / "best.pt"), "x", "--out-dir", str(tmp_path), "--test-json",
+                 str(tmp_path / "missing.json")]) == 2
+    # a file-size limit (as a full disk): one line naming the file, non-zero exit, nothing left behind
+    script = ("import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000)); "
+              "from vrnet_ext.cli import run; sys.argv = ['vrnet'] + sys.argv[1:]; run()")
+    full = tmp_path / "full"
+    full.mkdir()
+    done = subprocess.run([sys.executable, "-c", script, "export", str(run / "best.pt"), "big", "--out-dir", str(full)],
+                          capture_output=True, text=True, timeout=300)
+    errors = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 1 and len(errors) == 1, done.stderr
+    assert str(full / "big.pt") in errors[0] and "File too large" in errors[0]
+    assert not list(full.iterdir())

@@ -46,3 +46,23 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
+
+
+def save_atomically(obj: object, path: str | os.PathLike) -> None:
+    """``torch.save(obj, path)`` through :func:`atomic_output`. The object is serialised in memory
+    first, so a full disk surfaces as the OS's reason ("No space left on device"), not as a
+    serialiser error."""
+    import io
+
+    import torch
+
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    with atomic_output(path) as temporary:
+        temporary.write_bytes(buffer.getbuffer())
+
+
+def write_text_atomically(path: str | os.PathLike, text: str) -> None:
+    """``Path(path).write_text(text)`` through :func:`atomic_output`."""
+    with atomic_output(path) as temporary:
+        temporary.write_text(text)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from vrnet_ext.atomic import save_atomically, write_text_atomically
 from vrnet_ext.model import VRNet
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -124,8 +125,8 @@ def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike
     card = json.loads(json.dumps(card))
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"format": FORMAT, "model": weights, "config": config, "card": card}, out_path)
-    out_path.with_suffix(".md").write_text(model_card_markdown(out_path.stem, config, card))
+    save_atomically({"format": FORMAT, "model": weights, "config": config, "card": card}, out_path)
+    write_text_atomically(out_path.with_suffix(".md"), model_card_markdown(out_path.stem, config, card))
     return out_path
 
 
@@ -146,7 +147,7 @@ def export_scene_model(run: str | os.PathLike, out_path: str | os.PathLike, card
     weights = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"format": SCENE_FORMAT, "model": weights, "config": state["config"], "card": card}, out_path)
+    save_atomically({"format": SCENE_FORMAT, "model": weights, "config": state["config"], "card": card}, out_path)
     lines = [f"# Model card: `{out_path.stem}`", "", card.get("summary", ""), "", "```bash",
              f"vrnet register SOURCE TARGET --method vrnet --checkpoint {out_path.stem}", "```", "", "## Model", ""]
     lines += [f"- {key}: `{value}`" for key, value in state["config"].items()]
@@ -154,7 +155,7 @@ def export_scene_model(run: str | os.PathLike, out_path: str | os.PathLike, card
     if "results" in card:
         lines += ["", "## Results", "", card.get("results_note", ""), ""] + card["results"]
     lines += ["", "## Notes", ""] + [f"- {note}" for note in card.get("notes", [])]
-    out_path.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    write_text_atomically(out_path.with_suffix(".md"), "\n".join(lines) + "\n")
     return out_path
 
 

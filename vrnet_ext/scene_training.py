@@ -23,6 +23,8 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from vrnet_ext import ops
+from vrnet_ext.atomic import save_atomically
+from vrnet_ext.checkpoints import read_checkpoint
 from vrnet_ext.data.scans import ScanPair, synthetic_pair
 from vrnet_ext.model.scene import SCENE_FORMAT, SceneConfig, SceneOutput, SceneVRNet
 from vrnet_ext.preprocessing import voxel_size_for
@@ -78,7 +80,7 @@ def train_scene_model(scans: dict[str, np.ndarray], out_path: str | Path, cfg: S
     rng = np.random.default_rng(cfg.seed)
     step, seconds, history = 0, 0.0, []
     if out_path.exists():
-        state = torch.load(out_path, map_location="cpu", weights_only=True)
+        state = read_checkpoint(out_path)
         if state.get("format") != SCENE_FORMAT or state.get("scans") != names:
             raise ValueError(f"{out_path}: not a scene-model run on the scans {names}; choose another out_path")
         model.load_state_dict(state["model"])
@@ -87,12 +89,10 @@ def train_scene_model(scans: dict[str, np.ndarray], out_path: str | Path, cfg: S
         rng.bit_generator.state = state["rng"]
 
     def save() -> None:
-        tmp = out_path.with_suffix(".tmp")
-        torch.save({"format": SCENE_FORMAT, "config": model.config.to_dict(), "model": model.state_dict(),
-                    "optimizer": optimizer.state_dict(), "step": step, "train_seconds": seconds,
-                    "history": history, "rng": rng.bit_generator.state, "scans": names,
-                    "train_config": cfg.__dict__}, tmp)
-        tmp.replace(out_path)
+        save_atomically({"format": SCENE_FORMAT, "config": model.config.to_dict(), "model": model.state_dict(),
+                         "optimizer": optimizer.state_dict(), "step": step, "train_seconds": seconds,
+                         "history": history, "rng": rng.bit_generator.state, "scans": names,
+                         "train_config": cfg.__dict__}, out_path)
 
     model.train()
     bar = tqdm(total=cfg.steps, initial=step, desc="scene model", disable=not progress)

@@ -46,6 +46,7 @@ from vrnet_ext.losses import HybridLossWeights, correspondence_loss, hybrid_loss
 from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.plots import plot_metrics
 from vrnet_ext.runtime import set_flush_denormal
+from vrnet_ext.atomic import save_atomically
 from vrnet_ext.warm_start import init_features_from, init_walk_from
 from vrnet_ext.train_config import FIELD_HELP, PRECISIONS, PRESETS, TrainConfig, preset_values  # noqa: F401
 
@@ -124,9 +125,7 @@ def _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best
 
 def _save(checkpoint: dict, path: Path) -> None:
     """Writes ``path`` atomically (a run stopped mid-write leaves the previous file intact)."""
-    partial_path = path.with_name(path.name + ".partial")
-    torch.save(checkpoint, partial_path)
-    os.replace(partial_path, path)
+    save_atomically(checkpoint, path)
 
 
 def _check_resumable(state: dict, model_cfg: VRNetConfig, path: str) -> None:
