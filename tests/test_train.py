@@ -1,5 +1,6 @@
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -218,3 +219,19 @@ def test_invalid_options_are_refused_naming_the_flag():
                             (dict(num_subsampled=2000, num_points=1024), "--num-subsampled")):
         with pytest.raises(ValueError, match=flag):
             TrainConfig.from_preset("tiny", **overrides)
+
+
+def test_cli_refuses_an_output_file_and_a_missing_gpu_naming_the_flag(tmp_path, capsys):
+    from vrnet_ext.cli import main
+
+    existing = tmp_path / "a_file"
+    existing.write_text("")
+    cases = [(["--out-dir", str(existing)], "--out-dir.*is a file"),
+             (["--out-dir", str(existing / "sub")], "--out-dir.*not a writable folder")]
+    if not torch.cuda.is_available():
+        cases.append((["--device", "cuda"], "--device.*no CUDA device"))
+    for flags, message in cases:
+        with pytest.raises(SystemExit) as info:
+            main(["train", "--preset", "tiny", *flags])
+        assert info.value.code == 2
+        assert re.search(message, capsys.readouterr().err)

@@ -83,6 +83,22 @@ def _device(text: str) -> str:
     return text
 
 
+def _train_device(text: str) -> str:
+    """``auto`` (CUDA when there is one) or a device of :func:`_device`."""
+    return text if text == "auto" else _device(text)
+
+
+def _output_folder(text: str) -> str:
+    """A folder to create or fill: not an existing file, and under a writable existing ancestor."""
+    path = Path(text).expanduser().resolve()
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a file; give a folder")
+    ancestor = next(p for p in (path, *path.parents) if p.exists())
+    if not ancestor.is_dir() or not os.access(ancestor, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text!r}: {ancestor} is not a writable folder")
+    return text
+
+
 def _writable_path(text: str) -> str:
     """An output file whose folder exists and is writable, and that is not a folder itself (checked
     before the work, not after it)."""
@@ -138,6 +154,10 @@ def _train_parser(sub) -> None:
             p.add_argument(flag, choices=("UPC", "UC", "ND"), default=None, help=description)
         elif f.name == "data_dir":
             p.add_argument(flag, default=None, help=DATA_DIR_HELP)
+        elif f.name == "out_dir":
+            p.add_argument(flag, type=_output_folder, default=None, help=description)
+        elif f.name == "device":
+            p.add_argument(flag, type=_train_device, default=None, help=description)
         elif f.name == "precision":
             p.add_argument(flag, choices=PRECISIONS, default=None, help=description)
         elif f.name == "backend":
@@ -452,7 +472,8 @@ def _export_parser(sub) -> None:
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("checkpoint", help="best.pt / last.pt of `vrnet train` (metrics.jsonl beside it is read too)")
     p.add_argument("name", help="model name, e.g. vrnet-pv-upc-rcp")
-    p.add_argument("--out-dir", default=None, help="folder to write to (default: the package's weights folder)")
+    p.add_argument("--out-dir", type=_output_folder, default=None,
+                   help="folder to write to (default: the package's weights folder)")
     p.add_argument("--test-json", default=None, help="`vrnet eval --json` output on the test split (a VRNet), or a Markdown results table (a scene model), for the card")
     p.add_argument("--summary", default="", help="one paragraph: what the model is for")
     p.add_argument("--machine", default=None, help="where it was trained (for the card)")
@@ -462,6 +483,13 @@ def _export_parser(sub) -> None:
                    help="set the exported model's final Procrustes points (an inference-time choice; default: as trained)")
     p.add_argument("--irls-iterations", type=_nonnegative_int, default=None,
                    help="set the exported model's Cauchy reweighting steps (default: as trained)")
+
+
+def _read_test_results(path: str) -> str:
+    try:
+        return Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"--test-json {path}: cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
 
 
 def _run_export(args) -> int:
@@ -474,7 +502,7 @@ def _run_export(args) -> int:
         card = {"summary": args.summary, "notes": args.note,
                 "training": {k: v for k, v in (("machine", args.machine), ("sessions", args.sessions)) if v}}
         if args.test_json:
-            card["results"] = Path(args.test_json).read_text().splitlines()
+            card["results"] = _read_test_results(args.test_json).splitlines()
             card["results_note"] = f"From {Path(args.test_json).name}."
         path = export_scene_model(args.checkpoint, out / f"{args.name}.pt", card)
         print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")
@@ -486,7 +514,12 @@ def _run_export(args) -> int:
         training["sessions"] = args.sessions
     card = {"summary": args.summary, "training": training, "notes": args.note}
     if args.test_json:
-        test = json.loads(Path(args.test_json).read_text())
+        try:
+            test = json.loads(_read_test_results(args.test_json))
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--test-json {args.test_json}: not the JSON of `vrnet eval` ({exc})") from None
+        if not isinstance(test, dict):
+            raise ValueError(f"--test-json {args.test_json}: not the JSON of `vrnet eval` (no object of metrics)")
         card["test"] = {k: v for k, v in test.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
         card["test_note"] = (f"`vrnet eval` on {test.get('pairs')} ModelNet40 test pairs ({test.get('setting')} / "
                              f"{test.get('split')}, the whole official test split unless fewer are stated).")
