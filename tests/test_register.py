@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from conftest import DATA_DIR, MODELNET_DIR, requires_modelnet
 from vrnet_ext import ops
 from vrnet_ext.cli import main
+from vrnet_ext import load_pretrained
 from vrnet_ext.io import read_points, read_transform, write_ply
 from vrnet_ext.preprocessing import voxel_downsample
 from vrnet_ext.registration import IcpFailure, IcpSettings, ObjectNetwork, icp, register, transform_errors
@@ -392,3 +393,16 @@ def test_outputs_are_complete_or_absent(tmp_path):
     errors = [line for line in done.stderr.splitlines() if line.strip()]
     assert len(errors) == 1 and str(target) in errors[0] and "File too large" in errors[0], done.stderr
     assert not target.exists() and not list(tmp_path.glob(".moved*"))
+
+
+def test_coincident_points_are_refused_and_a_line_is_warned_about():
+    line = np.outer(np.linspace(0.0, 1.0, 200), [1.0, 2.0, 3.0])
+    result = register(line, line + 0.1, method="icp")
+    assert any("src lies on a line" in w for w in result.warnings)
+    assert any("tgt lies on a line" in w for w in result.warnings)
+    solid = np.random.default_rng(0).normal(size=(500, 3))
+    assert not any("line" in w for w in register(solid, solid, method="icp").warnings)
+    with pytest.raises(ValueError, match="src: all 100 points coincide"):
+        register(np.ones((100, 3)), solid, method="icp")
+    with pytest.raises(ValueError, match="tgt: all 100 points coincide"):
+        register(solid, np.full((100, 3), 5e6), model=load_pretrained("vrnet-pv-upc-rcp"))

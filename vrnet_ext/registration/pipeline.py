@@ -75,14 +75,34 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     if not isinstance(icp_settings, IcpSettings):
         raise TypeError(f"icp_settings must be an IcpSettings, got {type(icp_settings).__name__}")
     src, tgt = as_points(src, "src"), as_points(tgt, "tgt")
+    shape_notes = _shape_notes(src, "src") + _shape_notes(tgt, "tgt")
     args = (method, model, global_points, network_points, icp_settings, seed, device, backend, max_memory)
     if not _far_from_origin(src, tgt):
-        return _register_centred(src, tgt, *args)
-    centre = np.median(tgt, axis=0)
-    result = _register_centred(src - centre, tgt - centre, *args)
-    result.T_target_source = in_shifted_frames(result.T_target_source, centre)
-    result.initial = in_shifted_frames(result.initial, centre)
+        result = _register_centred(src, tgt, *args)
+    else:
+        centre = np.median(tgt, axis=0)
+        result = _register_centred(src - centre, tgt - centre, *args)
+        result.T_target_source = in_shifted_frames(result.T_target_source, centre)
+        result.initial = in_shifted_frames(result.initial, centre)
+    result.warnings = shape_notes + result.warnings
     return result
+
+
+COLLINEAR = 1e-3  # a cloud whose second principal extent is below this share of its first is a line
+SHAPE_SAMPLE = 20_000  # points whose spread judges the shape (evenly strided)
+
+
+def _shape_notes(points: np.ndarray, name: str) -> list[str]:
+    """ValueError when every point of ``points`` (N, 3) coincides; a warning when they lie on a line
+    (the rotation about it is then undetermined)."""
+    sample = points[:: max(1, len(points) // SHAPE_SAMPLE)]
+    spread = np.linalg.svd(sample - sample.mean(axis=0), compute_uv=False)
+    if spread[0] <= 1e-12 * max(1.0, float(np.abs(sample).max())):
+        raise ValueError(f"{name}: all {len(points)} points coincide; a rigid transform between such clouds "
+                         f"is undefined")
+    if spread[1] < COLLINEAR * spread[0]:
+        return [f"{name} lies on a line: the rotation about that line is undetermined, whatever the fitness says"]
+    return []
 
 
 def _far_from_origin(src: np.ndarray, tgt: np.ndarray) -> bool:
