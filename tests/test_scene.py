@@ -186,3 +186,17 @@ def test_a_larger_scene_model_is_planned_for_its_size():
     assert planned.global_points < 5000 and planned.predicted_peak_mb <= planned.budget_mb
     with pytest.raises(MemoryBudgetError, match="cannot be met"):
         plan_registration(600 * 2 ** 20, "scene", 300_000, 300_000, 5000, 1024, 50_000, 400.0)
+
+
+def test_a_model_trained_on_mirrored_fpfh_reads_open3d_layout_descriptors():
+    from vrnet_ext.model.scene import SceneConfig, SceneVRNet
+
+    with pytest.raises(ValueError, match="fpfh_layout"):
+        SceneConfig.from_dict({"fpfh_layout": "pcl"})
+    plain = SceneVRNet(SceneConfig()).eval()
+    mirrored = SceneVRNet(SceneConfig.from_dict({"fpfh_layout": "mirrored-100"})).eval()
+    mirrored.load_state_dict(plain.state_dict())
+    points = torch.randn(1, 50, 3) * 10
+    descriptors = torch.rand(1, 50, 3, 11) * 40
+    old_layout = torch.cat([descriptors[:, :, :2].flip(-1), descriptors[:, :, 2:]], 2).flatten(-2) / 2
+    torch.testing.assert_close(mirrored.embed(points, descriptors.flatten(-2)), plain.embed(points, old_layout))

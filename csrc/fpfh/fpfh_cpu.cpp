@@ -1,8 +1,8 @@
 // Fast Point Feature Histograms (Rusu et al. 2009), the definition of vrnet_ext/ops/fpfh.py:
 // pass 1, per point, the SPFH: three 11-bin histograms of the Darboux-frame angles (theta, alpha,
-// phi) to each neighbour within the radius, each scaled to sum 100; pass 2, per point,
-// FPFH = SPFH + the 1/distance-weighted mean of the neighbours' SPFH, scaled again. Each pass is
-// one parallel region over points; memory O(N * 33).
+// phi) to each other point within the radius, each scaled to sum 100; pass 2, per point,
+// FPFH = SPFH + the 1/distance^2-weighted neighbours' SPFH scaled to sum 100 per block (blocks sum
+// 200). Each pass is one parallel region over points; memory O(N * 33).
 #include <ATen/ops/empty.h>
 #include <torch/library.h>
 
@@ -39,17 +39,17 @@ inline void scale_blocks(T* h) {
   for (int part = 0; part < 3; ++part) {
     T sum = 0;
     for (int b = 0; b < kBins; ++b) sum += h[part * kBins + b];
-    const T denominator = std::max<T>(sum, static_cast<T>(1e-12));
-    for (int b = 0; b < kBins; ++b) h[part * kBins + b] = h[part * kBins + b] * static_cast<T>(100) / denominator;
+    if (!(sum > 0)) continue;
+    for (int b = 0; b < kBins; ++b) h[part * kBins + b] = h[part * kBins + b] * static_cast<T>(100) / sum;
   }
 }
 
-// The Darboux-frame angles of source point (ps, ns) and target (pt, nt), PCL's convention: the frame
-// sits on the point whose normal is closer to the joining line (near-ties keep the order).
+// The Darboux-frame angles of source point (ps, ns) and target (pt, nt) at distance length > 0, in
+// PCL's and Open3D's convention: the frame sits on the point whose normal is closer to the joining
+// line d (near-ties keep the order), v = d x u, w = u x v; a normal along d gives (0, 0, 0).
 template <typename T>
-inline void pair_angles(const T* ps, const T* ns, const T* pt, const T* nt, T* theta, T* alpha, T* phi) {
+inline void pair_angles(const T* ps, const T* ns, const T* pt, const T* nt, T length, T* theta, T* alpha, T* phi) {
   T d[3] = {pt[0] - ps[0], pt[1] - ps[1], pt[2] - ps[2]};
-  const T length = std::max<T>(std::sqrt(dot3(d, d)), static_cast<T>(1e-12));
   for (int r = 0; r < 3; ++r) d[r] /= length;
   const bool swap = std::fabs(dot3(ns, d)) < std::fabs(dot3(nt, d)) - static_cast<T>(1e-9);
   const T* u = swap ? nt : ns;
@@ -57,8 +57,12 @@ inline void pair_angles(const T* ps, const T* ns, const T* pt, const T* nt, T* t
   if (swap)
     for (int r = 0; r < 3; ++r) d[r] = -d[r];
   T v[3], w[3];
-  cross(u, d, v);
-  const T v_length = std::max<T>(std::sqrt(dot3(v, v)), static_cast<T>(1e-12));
+  cross(d, u, v);
+  const T v_length = std::sqrt(dot3(v, v));
+  if (!(v_length > 0)) {
+    *theta = *alpha = *phi = 0;
+    return;
+  }
   for (int r = 0; r < 3; ++r) v[r] /= v_length;
   cross(u, v, w);
   *theta = std::atan2(dot3(w, other), dot3(u, other));
@@ -100,10 +104,10 @@ at::Tensor fpfh_cpu(const at::Tensor& points_in, const at::Tensor& normals_in, c
       for (int64_t i = begin; i < end; ++i) {
         T* h = spfh.data() + i * kFeatures;
         for (int64_t j = 0; j < k; ++j) {
-          if (!(d2[i * k + j] <= r2)) continue;
+          if (!(d2[i * k + j] <= r2 && d2[i * k + j] > 0)) continue;  // itself and duplicates have no frame
           const int64_t q = nb[i * k + j];
           T theta, alpha, phi;
-          pair_angles(p + 3 * i, n + 3 * i, p + 3 * q, n + 3 * q, &theta, &alpha, &phi);
+          pair_angles(p + 3 * i, n + 3 * i, p + 3 * q, n + 3 * q, std::sqrt(d2[i * k + j]), &theta, &alpha, &phi);
           h[bin<T>(theta, -pi, 2 * pi)] += 1;
           h[kBins + bin<T>(alpha, -1, 2)] += 1;
           h[2 * kBins + bin<T>(phi, -1, 2)] += 1;
@@ -114,19 +118,22 @@ at::Tensor fpfh_cpu(const at::Tensor& points_in, const at::Tensor& normals_in, c
     T* o = out.mutable_data_ptr<T>();
     parallel_ranges(N, 64, [&](int64_t begin, int64_t end) {
       for (int64_t i = begin; i < end; ++i) {
-        T mixed[kFeatures] = {0};
-        T weight_sum = 0;
+        // weights 1 / d^2 relative to the nearest other neighbour's (no overflow at any scale)
+        T nearest = 0;
         for (int64_t j = 0; j < k; ++j) {
-          if (!(d2[i * k + j] <= r2)) continue;
-          const T w = 1 / std::max<T>(std::sqrt(d2[i * k + j]), static_cast<T>(1e-12));
+          const T d = d2[i * k + j];
+          if (d <= r2 && d > 0 && (nearest == 0 || d < nearest)) nearest = d;
+        }
+        T mixed[kFeatures] = {0};
+        for (int64_t j = 0; j < k; ++j) {
+          if (!(d2[i * k + j] <= r2 && d2[i * k + j] > 0)) continue;
+          const T w = nearest / d2[i * k + j];
           const T* hq = spfh.data() + nb[i * k + j] * kFeatures;
           for (int f = 0; f < kFeatures; ++f) mixed[f] += w * hq[f];
-          weight_sum += w;
         }
-        const T denominator = std::max<T>(weight_sum, static_cast<T>(1e-12));
+        scale_blocks(mixed);
         T* h = o + i * kFeatures;
-        for (int f = 0; f < kFeatures; ++f) h[f] = spfh[i * kFeatures + f] + mixed[f] / denominator;
-        scale_blocks(h);
+        for (int f = 0; f < kFeatures; ++f) h[f] = spfh[i * kFeatures + f] + mixed[f];
       }
     });
   });

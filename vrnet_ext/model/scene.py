@@ -34,6 +34,10 @@ SCENE_FORMAT = "vrnet_ext.scene/1"  # the "format" key of scene-model files (run
 # Inclusive bounds on what a file may ask for (sizes are read from untrusted checkpoints).
 SCENE_LIMITS = {"descriptor_dims": (33, 33), "hidden": (1, 1024), "emb_dims": (1, 1024), "neighbours": (0, 64),
                 "walk_hidden": (1, 1024)}
+# How a model reads ``ops.fpfh``'s descriptors: "open3d" as they are; "mirrored-100" with the theta
+# and alpha bins in reverse order and every block halved to sum 100 (the layout some weights were
+# trained on).
+FPFH_LAYOUTS = ("open3d", "mirrored-100")
 
 
 @dataclass
@@ -45,6 +49,7 @@ class SceneConfig:
     emb_dims: int = 32
     neighbours: int = 16        # context graph on the 3-D points
     walk_hidden: int = 64
+    fpfh_layout: str = "open3d"  # one of FPFH_LAYOUTS
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -57,10 +62,14 @@ class SceneConfig:
     @classmethod
     def from_dict(cls, values: dict) -> "SceneConfig":
         """A config from untrusted ``values``: ValueError naming the field outside SCENE_LIMITS."""
-        unknown = set(values) - set(SCENE_LIMITS)
+        unknown = set(values) - set(SCENE_LIMITS) - {"fpfh_layout"}
         if unknown:
             raise ValueError(f"unknown scene-model fields {sorted(unknown)}")
+        if values.get("fpfh_layout", "open3d") not in FPFH_LAYOUTS:
+            raise ValueError(f"scene model fpfh_layout = {values['fpfh_layout']!r} is not one of {FPFH_LAYOUTS}")
         for name, value in values.items():
+            if name == "fpfh_layout":
+                continue
             low, high = SCENE_LIMITS[name]
             if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
                 raise ValueError(f"scene model {name} = {value!r} is outside [{low}, {high}]")
@@ -103,6 +112,9 @@ class SceneVRNet(nn.Module):
 
     def embed(self, points: torch.Tensor, descriptors: torch.Tensor, backend: str = "ext") -> torch.Tensor:
         """points (B, N, 3) in voxel units, descriptors (B, N, 33) FPFH -> unit embeddings (B, N, c)."""
+        if self.config.fpfh_layout == "mirrored-100":
+            blocks = descriptors.unflatten(-1, (3, 11))
+            descriptors = torch.cat([blocks[..., :2, :].flip(-1), blocks[..., 2:, :]], -2).flatten(-2) / 2
         h = self.point_mlp(torch.log1p(descriptors))
         k = min(self.config.neighbours, points.shape[1] - 1)
         if k >= 1:
