@@ -6,8 +6,8 @@ call per round of hypotheses.
 
 Choices (documented, not tuned per dataset): normals from the 30 nearest neighbours, turned towards
 ``viewpoint`` (the sensor: the origin of a 3DMatch fragment or a LiDAR scan); neighbourhoods of at
-most ``max_neighbours`` points within the radius; FPFH as in Rusu et al. 2009 (three 11-bin
-histograms of the Darboux-frame angles, each scaled to sum 100); mutual nearest-neighbour matches;
+most ``max_neighbours`` points within the radius; FPFH as in Rusu et al. 2009, in Open3D's layout
+(:func:`vrnet_ext.ops.fpfh`); mutual nearest-neighbour matches;
 hypotheses from 3 matches whose pairwise distances agree within 10 % (Open3D's edge-length check),
 scored by the number of matches within ``inlier_distance``; the best one refined by Kabsch on its
 inliers.
