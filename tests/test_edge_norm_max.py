@@ -88,6 +88,25 @@ def test_statistics_accurate_far_from_the_origin(device):
     torch.testing.assert_close(out.double(), ref_out, rtol=1e-3, atol=1e-3)
 
 
+@pytest.mark.parametrize("value", [0.0, 0.1, 3.7, 1e4])
+def test_zero_variance_channels_backward_like_float64(device, value):
+    """A constant channel has zero variance; its exact gradient is (g - mean g) / sqrt(eps) scaled, not
+    0: float32 must give the float64 reference's, for values float32 cannot hold exactly too."""
+    torch.manual_seed(0)
+    projections = torch.randn(2, 8, 30)
+    projections[:, 0], projections[:, 4] = value, -value / 3  # channel 0: every edge the same
+    idx = torch.randint(0, 30, (2, 30, 6))
+    upstream = torch.randn(2, 4, 30)
+    weight, bias = torch.rand(4) + 0.5, torch.randn(4)
+    grads = []
+    for dtype, op in ((torch.float32, edge_norm_max), (torch.float64, edge_norm_max_reference)):
+        inputs = [t.to(device, dtype).requires_grad_() for t in (projections, weight, bias)]
+        out = op(inputs[0], idx.to(device), inputs[1], inputs[2])[0]
+        grads.append(torch.autograd.grad((out * upstream.to(device, dtype)).sum(), inputs))
+    for got, want in zip(*grads):
+        torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-3)
+
+
 @requires_ext
 def test_degenerate_inputs(device):
     # constant values: zero variance, the output is the bias through the LeakyReLU
@@ -143,7 +162,7 @@ def test_bad_input(device, backend):
 def test_backward_op_checks_its_arguments():
     projections, idx = torch.randn(2, 8, 10), torch.randint(0, 10, (2, 10, 3))
     grad, arg = torch.randn(2, 4, 10), torch.zeros(2, 4, 10, dtype=torch.int32)
-    stats = (torch.zeros(4), torch.ones(4))
+    stats = (torch.zeros(4, dtype=torch.float64), torch.ones(4, dtype=torch.float64))
     op = torch.ops.vrnet_ext.edge_norm_max_backward
     cases = [
         ((grad[:, :3], projections, idx, arg, None, None, *stats, True, 1e-5, 0.2), "grad_out"),
@@ -156,6 +175,8 @@ def test_backward_op_checks_its_arguments():
             op(*args)
     with pytest.raises(TypeError, match="arg must be int32"):
         op(grad, projections, idx, arg.long(), None, None, *stats, True, 1e-5, 0.2)
+    with pytest.raises(TypeError, match="mean must be float64"):
+        op(grad, projections, idx, arg, None, None, stats[0].float(), stats[1], True, 1e-5, 0.2)
 
 
 def test_a_negative_slope_is_refused_everywhere():

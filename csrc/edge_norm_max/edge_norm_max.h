@@ -61,7 +61,8 @@ inline void check_edge_norm_max_inputs(const at::Tensor& projections, const at::
 
 // edge_norm_max_backward(grad_out, projections, idx, arg, weight, bias, mean, var, batch_stats, eps,
 // negative_slope): grad_out and arg (B, O, N) (arg: int32, the winning slot in [0, k)), mean and var
-// (O,) as the forward returned them. A CPU check: the only kernel is the CPU one.
+// (O,) float64 as the forward returned them (the mean of a constant channel is exact, so its
+// deviations are exactly 0). A CPU check: the only kernel is the CPU one.
 inline void check_edge_norm_max_backward_inputs(const at::Tensor& grad, const at::Tensor& projections,
                                                 const at::Tensor& idx, const at::Tensor& arg,
                                                 const c10::optional<at::Tensor>& weight,
@@ -71,8 +72,14 @@ inline void check_edge_norm_max_backward_inputs(const at::Tensor& grad, const at
   const int64_t B = projections.size(0), O = projections.size(1) / 2, N = projections.size(2);
   check_channel_vector(weight, "weight", projections, O);
   check_channel_vector(bias, "bias", projections, O);
-  check_like(mean, "mean", {O}, projections, "projections");
-  check_like(var, "var", {O}, projections, "projections");
+  const auto check_statistic = [&](const at::Tensor& stat, const char* name) {
+    TORCH_CHECK_VALUE(stat.dim() == 1 && stat.size(0) == O, name, " must have shape (", O, ",), got ", stat.sizes());
+    TORCH_CHECK_TYPE(stat.scalar_type() == at::kDouble, name, " must be float64 (as the forward returns it), got ",
+                     stat.scalar_type());
+    check_same_device(projections, "projections", stat, name);
+  };
+  check_statistic(mean, "mean");
+  check_statistic(var, "var");
   check_like(grad, "grad_out", {B, O, N}, projections, "projections");
   TORCH_CHECK_TYPE(arg.scalar_type() == at::kInt, "arg must be int32, got ", arg.scalar_type());
   check_same_device(projections, "projections", arg, "arg");

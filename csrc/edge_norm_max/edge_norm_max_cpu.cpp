@@ -259,7 +259,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> edge_norm_max_cpu(
                              out.mutable_data_ptr<scalar_t>(), arg.mutable_data_ptr<int32_t>(),
                              mean.mutable_data_ptr<double>(), var.mutable_data_ptr<double>());
   });
-  return {out.transpose(1, 2), mean.to(points.scalar_type()), var.to(points.scalar_type()), arg.transpose(1, 2)};
+  return {out.transpose(1, 2), mean, var, arg.transpose(1, 2)};
 }
 
 // The incoming edges of every point, per batch: edges[offsets[m] .. offsets[m + 1]) hold n * k + j for
@@ -311,7 +311,7 @@ inline void accumulate_incoming_edge(scalar_t* grad_a, const scalar_t* centre, c
 
 template <typename scalar_t>
 void backward_kernel(const scalar_t* G, const scalar_t* P, const int64_t* I, const int32_t* arg,
-                     const scalar_t* weight, const scalar_t* bias, const scalar_t* mean_in, const scalar_t* var_in,
+                     const scalar_t* weight, const scalar_t* bias, const double* mean_in, const double* var_in,
                      bool batch_stats, double eps, double slope, const Layout& L, scalar_t* grad_p,
                      scalar_t* grad_weight, scalar_t* grad_bias) {
   const int64_t N = L.N, k = L.k, O = L.O, tasks = L.tasks();
@@ -411,7 +411,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> edge_norm_max_backward_cpu(
     const auto ptr = [](const at::Tensor& t) { return t.defined() ? t.const_data_ptr<scalar_t>() : nullptr; };
     backward_kernel<scalar_t>(grad.const_data_ptr<scalar_t>(), points.const_data_ptr<scalar_t>(),
                               idx.const_data_ptr<int64_t>(), arg.const_data_ptr<int32_t>(), ptr(weight), ptr(bias),
-                              mean.const_data_ptr<scalar_t>(), var.const_data_ptr<scalar_t>(), batch_stats, eps,
+                              mean.const_data_ptr<double>(), var.const_data_ptr<double>(), batch_stats, eps,
                               negative_slope, L, grad_points.mutable_data_ptr<scalar_t>(),
                               grad_weight.mutable_data_ptr<scalar_t>(), grad_bias.mutable_data_ptr<scalar_t>());
   });

@@ -150,8 +150,8 @@ def edge_norm_max(projections: torch.Tensor, idx: torch.Tensor, weight: torch.Te
         None if t is None else t.to(projections.dtype) for t in channel_tensors.values())
     args = (projections, idx, weight, bias, running_mean, running_var, float(eps), float(negative_slope))
     if use_extension(backend, projections.device) and projections.device.type == "cpu":  # no CUDA kernel yet
-        out, mean, var, _ = torch.ops.vrnet_ext.edge_norm_max(*args)
-        return out, mean, var
+        out, mean, var, _ = torch.ops.vrnet_ext.edge_norm_max(*args)  # float64 statistics (for the backward)
+        return out, mean.to(projections.dtype), var.to(projections.dtype)
     with float32_region(projections):
         if use_extension(backend, projections.device):
             return _edge_norm_max_composite(*args)
@@ -164,8 +164,8 @@ if has_extension():
     def _edge_norm_max_fake(projections, idx, weight, bias, running_mean, running_var, eps, negative_slope):
         B, O, N = projections.shape[0], projections.shape[1] // 2, projections.shape[2]
         # point-major like the kernel's: (B, N, O) storage seen as (B, O, N)
-        return (projections.new_empty((B, N, O)).mT, projections.new_empty((O,)), projections.new_empty((O,)),
-                projections.new_empty((B, N, O), dtype=torch.int32).mT)
+        return (projections.new_empty((B, N, O)).mT, projections.new_empty((O,), dtype=torch.float64),
+                projections.new_empty((O,), dtype=torch.float64), projections.new_empty((B, N, O), dtype=torch.int32).mT)
 
     @torch.library.register_fake("vrnet_ext::edge_norm_max_backward")
     def _edge_norm_max_backward_fake(grad_out, projections, idx, arg, weight, bias, mean, var, batch_stats, eps,
