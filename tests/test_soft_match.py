@@ -91,6 +91,27 @@ def test_degenerate_inputs(device, backend):
 
 
 @requires_ext
+def test_scores_that_overflow_to_minus_infinity_weigh_nothing(device):
+    """Keys whose scores overflow to -inf fill the first tiles (more than one tile of 512); the later,
+    finite scores decide the row, as in the dense reference."""
+    far = torch.tensor([-1e20, 0.0, 0.0]).expand(1100, 3)
+    near = torch.stack([torch.arange(1.0, 51.0) * 1e-20, torch.zeros(50), torch.zeros(50)], -1)
+    key = torch.cat([far, near]).unsqueeze(0).to(device)
+    query = torch.tensor([[[1.0, 0.0, 0.0], [0.5, 0.0, 0.0]]], device=device)
+    values = torch.randn(1, 1150, 2, device=device)
+    results = []
+    for backend in ("ext", "torch"):
+        inputs = [t.clone().requires_grad_() for t in (query, key, values)]
+        result = ops.soft_match(*inputs, scale=1e20, backend=backend, return_stats=True)
+        grads = torch.autograd.grad(result.out.sum(), inputs[2])
+        results.append((result.out, result.lse, result.argmax, grads[0]))
+    for got, want in zip(*results):
+        assert torch.isfinite(got.float()).all()
+        torch.testing.assert_close(got, want)
+    assert results[0][2].eq(1149).all()
+
+
+@requires_ext
 def test_unused_outputs_get_no_gradient_work(device):
     query = torch.randn(1, 20, 8, requires_grad=True)
     key, values = torch.randn(1, 30, 8), torch.randn(1, 30, 3)

@@ -68,9 +68,12 @@ void soft_match_forward(const at::Tensor& query, const at::Tensor& key, const at
         }
         if (k0 == 0 || tile_max > row_max[i]) arg[i] = k0 + tile_arg;  // the first maximum wins ties
         const scalar_t new_max = std::max(row_max[i], tile_max);
-        rescale[i] = k0 == 0 ? scalar_t(0) : std::exp(row_max[i] - new_max);
+        // scores of -inf (overflowed) weigh 0; while every score so far is -inf nothing has accumulated
+        const bool none_yet = row_max[i] == -std::numeric_limits<scalar_t>::infinity();
+        rescale[i] = k0 == 0 || none_yet ? scalar_t(0) : std::exp(row_max[i] - new_max);
         row_max[i] = new_max;
-        for (int64_t j = 0; j < width; ++j) row[j] -= new_max;
+        const scalar_t shift = new_max == -std::numeric_limits<scalar_t>::infinity() ? scalar_t(0) : new_max;
+        for (int64_t j = 0; j < width; ++j) row[j] -= shift;
       }
       scores.exp_();
       for (int64_t i = 0; i < rows; ++i) {

@@ -79,7 +79,7 @@ __global__ void soft_match_forward_kernel(const scalar_t* __restrict__ query, co
                               best = s;
                               best_j = j;
                             } else {
-                              const double p = exp(s - best);
+                              const double p = s == -INFINITY ? 0.0 : exp(s - best);  // an overflowed score weighs 0
                               total += p;
                               for (int64_t d = 0; d < D; ++d) o[d] = static_cast<scalar_t>(double(o[d]) + p * double(v[d]));
                             }
