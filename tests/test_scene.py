@@ -200,3 +200,25 @@ def test_a_model_trained_on_mirrored_fpfh_reads_open3d_layout_descriptors():
     descriptors = torch.rand(1, 50, 3, 11) * 40
     old_layout = torch.cat([descriptors[:, :, :2].flip(-1), descriptors[:, :, 2:]], 2).flatten(-2) / 2
     torch.testing.assert_close(mirrored.embed(points, descriptors.flatten(-2)), plain.embed(points, old_layout))
+
+
+def test_train_scene_on_georeferenced_scans_recentres_them_with_a_warning(tmp_path, capsys):
+    from vrnet_ext.cli import main
+    from vrnet_ext.io import write_ply
+
+    scan = box_scan(6000)
+    scan = scan - np.median(scan, axis=0)
+    write_ply(tmp_path / "near.ply", scan)
+    write_ply(tmp_path / "utm.ply", scan + [5e5, 5e6, 100.0])
+    histories = []
+    for name in ("near", "utm"):
+        out = tmp_path / name / "scan.pt"
+        out.parent.mkdir()
+        (tmp_path / name / "scan.ply").write_bytes((tmp_path / f"{name}.ply").read_bytes())  # the same scan name
+        assert main(["train-scene", str(tmp_path / name / "scan.ply"), "--out", str(out), "--steps", "2",
+                     "--points", "400", "--no-progress"]) == 0
+        histories.append(torch.load(out, weights_only=True)["history"])
+    err = capsys.readouterr().err
+    assert err.count("warning: scan.ply: coordinates up to 5e+06 lose precision in float32") == 1, err
+    for near, utm in zip(*histories):
+        assert near["nce"] == pytest.approx(utm["nce"], rel=0.02)  # voxel ties may fall either way

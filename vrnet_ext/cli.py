@@ -575,8 +575,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _print_warning(command: str):
+    """A ``warnings.showwarning`` that prints one line ``vrnet COMMAND: warning: ...`` (no source line)."""
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        print(f"vrnet {command}: warning: {message}", file=sys.stderr)
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    import warnings
+
+    previous, warnings.showwarning = warnings.showwarning, _print_warning(args.command)
+    try:
+        return _dispatch(args)
+    finally:
+        warnings.showwarning = previous
+
+
+def _dispatch(args) -> int:
     try:
         commands = {"train": _run_train, "eval": _run_eval, "plot": _run_plot, "register": _run_register,
                     "demo": _run_demo, "export": _run_export, "train-scene": _run_train_scene}

@@ -10,6 +10,16 @@ import torch
 from vrnet_ext import ops
 
 
+FLOAT32_RELATIVE_SPACING = 1e-5  # re-centre when float32 would round coordinates coarser than this x the extent
+
+
+def coarse_in_float32(largest_coordinate: float, extent: float) -> bool:
+    """Whether float32 spacing at ``largest_coordinate`` (e.g. a UTM northing, 5e6 m: 0.5 m) exceeds
+    FLOAT32_RELATIVE_SPACING of the cloud's ``extent``: then the cloud must be re-centred before any
+    float32 cast."""
+    return float(np.spacing(np.float32(largest_coordinate))) > FLOAT32_RELATIVE_SPACING * extent
+
+
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Mean of the points in each occupied voxel of edge ``voxel_size`` -> (V, 3), same dtype
     (:func:`vrnet_ext.ops.voxel_downsample`, the compiled op; rows in (x, y, z) voxel order)."""

@@ -14,6 +14,7 @@ and at the end, so a run resumes where it stopped.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,7 +28,7 @@ from vrnet_ext.atomic import save_atomically
 from vrnet_ext.checkpoints import read_checkpoint
 from vrnet_ext.data.scans import ScanPair, synthetic_pair
 from vrnet_ext.model.scene import SCENE_FORMAT, SceneConfig, SceneOutput, SceneVRNet
-from vrnet_ext.preprocessing import voxel_size_for
+from vrnet_ext.preprocessing import coarse_in_float32, voxel_size_for
 
 PARTNER_VOXELS = 1.0
 CORRECT_VOXELS = 2.0
@@ -68,11 +69,25 @@ def scene_loss(model: SceneVRNet, out: SceneOutput, batch: dict[str, torch.Tenso
     return nce + rectify + confidence, stats
 
 
+def _near_origin(name: str, points: np.ndarray) -> np.ndarray:
+    """``points`` (N, 3), re-centred on their median when float32 would round them too coarsely."""
+    extent = float(np.max(points.max(axis=0) - points.min(axis=0))) if len(points) else 0.0
+    if not len(points) or not coarse_in_float32(float(np.abs(points).max()), extent):
+        return points
+    centre = np.median(points, axis=0)
+    warnings.warn(f"{name}: coordinates up to {np.abs(points).max():.3g} lose precision in float32; training on "
+                  f"the scan re-centred on its median {np.round(centre, 3).tolist()}", stacklevel=3)
+    return points - centre
+
+
 def train_scene_model(scans: dict[str, np.ndarray], out_path: str | Path, cfg: SceneTrainConfig,
                       model_config: SceneConfig | None = None, progress: bool = True) -> Path:
     """Trains on synthetic pairs of ``scans`` (name -> (N, 3) points, sensor at the origin) and
-    writes ``out_path`` (resuming from it when it exists with the same scans)."""
+    writes ``out_path`` (resuming from it when it exists with the same scans). A scan whose
+    coordinates float32 would round too coarsely (georeferenced: :func:`coarse_in_float32`) is
+    re-centred on its median first (its views are cut and turned anyway), with a warning."""
     out_path = Path(out_path)
+    scans = {name: _near_origin(name, np.asarray(points, dtype=np.float64)) for name, points in scans.items()}
     model = SceneVRNet(model_config)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     names = sorted(scans)

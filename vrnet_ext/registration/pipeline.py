@@ -11,7 +11,7 @@ from vrnet_ext.io import as_points
 from vrnet_ext.memory_plan import plan_registration
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
-from vrnet_ext.preprocessing import voxel_downsample, voxel_size_for
+from vrnet_ext.preprocessing import coarse_in_float32, voxel_downsample, voxel_size_for
 from vrnet_ext.registration.global_estimators import DEFAULT_METHOD, GlobalEstimator, make_global_estimator
 from vrnet_ext.registration.refinement import COARSE_FACTOR, IcpFailure, IcpSettings, icp
 from vrnet_ext.registration.result import RegistrationResult
@@ -106,10 +106,9 @@ def _shape_notes(points: np.ndarray, name: str) -> list[str]:
 
 
 def _far_from_origin(src: np.ndarray, tgt: np.ndarray) -> bool:
-    """Whether float32 coordinates would be coarser than 1e-5 of the target's extent."""
+    """Whether float32 coordinates would be too coarse for the target's extent."""
     largest = max(np.abs(src).max(), np.abs(tgt).max())
-    extent = float(np.max(tgt.max(axis=0) - tgt.min(axis=0)))
-    return float(np.spacing(np.float32(largest))) > 1e-5 * extent
+    return coarse_in_float32(largest, float(np.max(tgt.max(axis=0) - tgt.min(axis=0))))
 
 
 def _register_centred(src: np.ndarray, tgt: np.ndarray, method, model, global_points: int, network_points: int,
