@@ -137,20 +137,31 @@ def edge_norm_max_case(draw):
     running = None
     if draw(st.booleans()) or B * N * k == 1:
         running = (values[:, :O].mean(dim=(0, 2)) + values[:, O:].mean(dim=(0, 2)), torch.rand(O, generator=g, dtype=torch.float64).to(values.dtype) + 0.1)
-    return values, idx, weight, bias, running
+    slope = draw(st.sampled_from([0.2, 0.0, 1.0, 3.0, -0.2, -1e-9]))
+    return values, idx, weight, bias, running, slope
 
 
-def check_edge_norm_max(projections, idx, weight, bias, running):
+def check_edge_norm_max(projections, idx, weight, bias, running, slope):
     from vrnet_ext.ops.edge_norm_max import edge_norm_max_reference
 
     stats = running or (None, None)
-    out, mean, var = ops.edge_norm_max(projections, idx, weight, bias, *stats)
+    if slope < 0:  # the max is taken before the activation: refused on every path, naming the argument
+        for backend in ("ext", "torch"):
+            try:
+                ops.edge_norm_max(projections, idx, weight, bias, *stats, negative_slope=slope, backend=backend)
+            except ValueError as error:
+                assert "negative_slope" in str(error)
+            else:
+                raise AssertionError(f"negative_slope {slope} accepted by backend {backend}")
+        return
+    out, mean, var = ops.edge_norm_max(projections, idx, weight, bias, *stats, negative_slope=slope)
     wide = [t.double() if t is not None else None for t in (projections, weight, bias, *stats)]
-    expected, expected_mean, expected_var = edge_norm_max_reference(wide[0], idx, *wide[1:])
+    expected, expected_mean, expected_var = edge_norm_max_reference(wide[0], idx, *wide[1:], negative_slope=slope)
     # float32 storage of a value of size |v| is off by |v| eps; normalised, that is |v| eps |w| / sqrt(var + eps)
     spread = float(projections.double().abs().amax()) + float(expected_mean.abs().amax())
     gain = float(weight.double().abs().amax() / (expected_var.amin() + 1e-5).sqrt())
-    tolerance = 64 * idx.shape[2] * EPS[projections.dtype] * (spread * gain + float(bias.double().abs().amax()) + 1)
+    tolerance = 64 * idx.shape[2] * EPS[projections.dtype] * (spread * gain + float(bias.double().abs().amax()) + 1) \
+        * max(1.0, slope)
     assert float((out.double() - expected).abs().max()) <= tolerance
     assert float((mean.double() - expected_mean).abs().max()) <= 64 * EPS[projections.dtype] * spread
     assert float((var.double() - expected_var).abs().max()) <= 64 * EPS[projections.dtype] * (
@@ -358,6 +369,130 @@ def run_checkpoints(examples: int) -> None:
     mutated()
 
 
+SECOND_ORDER_OPS = {
+    "knn": lambda p: ops.knn(p, p.detach() + 0.1, 2)[0],
+    "kabsch": lambda p: ops.kabsch(p, p.detach().flip(1))[0],
+    "svd3x3": lambda p: ops.svd3x3(p[:, :3])[1],
+    "pairwise_distance_loss": lambda p: ops.pairwise_distance_loss(p, p.detach() * 1.1),
+    "soft_match": lambda p: ops.soft_match(p, p.detach(), p.detach()),
+    "edge_features": lambda p: ops.edge_features(p.transpose(1, 2), torch.zeros(p.shape[0], p.shape[1], 2,
+                                                                                   dtype=torch.long)),
+    "gather_reduce": lambda p: ops.gather_reduce(p.transpose(1, 2), torch.zeros(p.shape[0], p.shape[1], 2,
+                                                                                  dtype=torch.long), "max"),
+}
+
+
+def run_second_order(examples: int) -> None:
+    """Every op under create_graph: the second derivative exists (and gradgradcheck holds) or a
+    NotImplementedError names the op; never a silent None."""
+
+    @_settings(examples)
+    @given(st.sampled_from(sorted(SECOND_ORDER_OPS)), st.integers(4, 12), st.integers(0, 2**31 - 1))
+    def second_order(name, points, seed):
+        p = torch.randn(1, points, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(seed),
+                        requires_grad=True)
+        fn = SECOND_ORDER_OPS[name]
+        try:
+            (grad,) = torch.autograd.grad(fn(p).sin().sum(), p, create_graph=True)
+        except NotImplementedError as error:
+            assert f"vrnet_ext.ops.{name}" in str(error)
+            return
+        (second,) = torch.autograd.grad(grad.square().sum(), p, allow_unused=True)
+        assert second is not None and torch.isfinite(second).all(), name
+        assert torch.autograd.gradgradcheck(lambda t: fn(t).sin(), (p,))
+
+    second_order()
+
+
+def run_memory_plan(examples: int) -> None:
+    """Scene models of any size a file may hold, any budget and scan size: the plan stays within the
+    budget or is refused at once (MemoryBudgetError), never a plan predicted above the budget."""
+    from vrnet_ext.memory_plan import MB, MemoryBudgetError, plan_registration
+    from vrnet_ext.model.scene import SCENE_LIMITS, SceneConfig
+
+    sizes = {name: st.integers(max(low, 1) if name != "neighbours" else low, high)
+             for name, (low, high) in SCENE_LIMITS.items() if name != "descriptor_dims"}
+
+    @_settings(examples)
+    @given(st.fixed_dictionaries(sizes), st.integers(50, 20_000), st.integers(1_000, 5_000_000),
+           st.integers(3, 200_000))
+    def plan_fits(config, budget_mb, scan_points, global_points):
+        scale = max(1.0, SceneConfig(**config).values_per_point() / SceneConfig().values_per_point())
+        try:
+            plan = plan_registration(budget_mb * MB, "scene", scan_points, scan_points, global_points, 1024, 50_000,
+                                     scale)
+        except MemoryBudgetError as error:
+            assert "cannot be met" in str(error)
+            return
+        assert plan.predicted_peak_mb <= budget_mb and plan.global_points <= global_points
+
+    plan_fits()
+
+
+def run_georeferenced(examples: int) -> None:
+    """A pair shifted by a georeferenced offset (up to 1e7 per axis) registers like the unshifted pair,
+    and the transform comes back in the shifted clouds' own frame."""
+    from vrnet_ext.data.procedural import room_scan
+    from vrnet_ext.registration import IcpSettings, register, transform_errors
+
+    scan = room_scan(4000, 0)
+    angle = np.deg2rad(4.0)
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    truth = np.eye(4)
+    truth[:3, :3], truth[:3, 3] = R, [0.05, -0.03, 0.02]
+    target = scan @ R.T + truth[:3, 3]
+    settings_ = IcpSettings(voxel_size=0.05)
+    clean = register(scan, target, method="icp", icp_settings=settings_).T_target_source
+
+    @_settings(examples)
+    @given(st.lists(st.floats(-1e7, 1e7, allow_nan=False), min_size=3, max_size=3))
+    def shifted_alike(offset):
+        offset = np.asarray(offset)
+        moved = np.eye(4)
+        moved[:3, 3] = offset  # both clouds in a frame shifted by offset: T' = M T M^-1
+        result = register(scan + offset, target + offset, method="icp", icp_settings=settings_).T_target_source
+        expected = moved @ clean @ np.linalg.inv(moved)
+        errors = transform_errors(result, expected)
+        assert errors["rotation_error_deg"] < 0.05 and errors["translation_error"] < 0.01, (offset, errors)
+
+    shifted_alike()
+
+
+def run_full_disk(examples: int) -> None:
+    """`vrnet register --out --json` under a random file-size limit (a full disk): success with complete
+    files, or one error line naming the file, a non-zero exit and nothing at the final paths."""
+    import json
+    import subprocess
+
+    from vrnet_ext.io import read_points, write_ply
+
+    folder = Path(tempfile.mkdtemp())
+    write_ply(folder / "a.ply", np.random.default_rng(0).normal(size=(2000, 3)))
+    script = ("import resource, sys; limit = int(sys.argv[1]); resource.setrlimit(resource.RLIMIT_FSIZE, "
+              "(limit, limit)); from vrnet_ext.cli import run; sys.argv = ['vrnet'] + sys.argv[2:]; run()")
+
+    @_settings(min(examples, 6))
+    @given(st.integers(0, 200_000))
+    def complete_or_absent(limit):
+        out, report = folder / "moved.ply", folder / "result.json"
+        out.unlink(missing_ok=True), report.unlink(missing_ok=True)
+        done = subprocess.run([sys.executable, "-c", script, str(limit), "register", str(folder / "a.ply"),
+                               str(folder / "a.ply"), "--method", "icp", "--out", str(out), "--json", str(report)],
+                              capture_output=True, text=True, timeout=300)
+        if done.returncode == 0:
+            assert len(read_points(out)) == 2000 and "T_target_source" in json.loads(report.read_text())
+            return
+        errors = [line for line in done.stderr.splitlines() if line.strip()]
+        assert done.returncode == 1 and len(errors) == 1 and "File too large" in errors[0], done.stderr
+        assert not (out.exists() and report.exists()) and not list(folder.glob(".*"))
+        for path in (out, report):
+            if path.exists():  # written before the limit bit: complete
+                assert (len(read_points(path)) == 2000 if path.suffix == ".ply"
+                        else "T_target_source" in json.loads(path.read_text()))
+
+    complete_or_absent()
+
+
 OPS = {
     "knn": (knn_case(), check_knn),
     "gather_reduce": (graph_case(), check_gather_reduce),
@@ -366,7 +501,10 @@ OPS = {
     "kabsch": (kabsch_case(), check_kabsch),
     "pairwise_distance_loss": (pdl_case(), check_pairwise_distance_loss),
 }
-TARGETS = sorted(OPS) + ["malformed", "readers", "checkpoints"]
+RUNNERS = {"malformed": run_malformed, "readers": run_readers, "checkpoints": run_checkpoints,
+           "second_order": run_second_order, "memory_plan": run_memory_plan, "georeferenced": run_georeferenced,
+           "full_disk": run_full_disk}
+TARGETS = sorted(OPS) + sorted(RUNNERS)
 
 
 def run(target: str, examples: int) -> None:
@@ -381,7 +519,7 @@ def run(target: str, examples: int) -> None:
 
         property_holds()
     else:
-        {"malformed": run_malformed, "readers": run_readers, "checkpoints": run_checkpoints}[target](examples)
+        RUNNERS[target](examples)
     print(f"fuzz {target}: {examples} examples passed")
 
 
