@@ -63,3 +63,13 @@ def test_bench_real_pairs_runs_turned_pairs(tmp_path):
     assert only["method"] == "default" and only["subset"] == "KITTI" and "rotation_error_deg" in only, only
     assert {row["subset"] for row in record["summary"]} >= {"KITTI", "unseen", "all"}
     assert (tmp_path / "real_pairs.png").stat().st_size > 0 and (tmp_path / "real_pairs.md").exists()
+
+
+@pytest.mark.skipif(not (LIDAR / "source.ply").exists(), reason=f"LiDAR pair not found under {LIDAR}")
+def test_bench_memory_plan_predicts_at_least_the_measured_peak(tmp_path):
+    run([str(ROOT / "benchmarks" / "bench_memory_plan.py"), "--pairs", "LiDAR", "--methods", "icp",
+         "--json", "plan.json", "--markdown", "plan.md"], tmp_path)
+    rows = json.loads((tmp_path / "plan.json").read_text())["rows"]
+    assert [r["counts"] for r in rows] == ["default", "smallest", "large"]
+    for row in rows:  # a budget the plan accepts must hold: no prediction below the measured peak
+        assert row["predicted_mb"] >= row["peak_mb"], row

@@ -2,10 +2,12 @@
 
 The budget bounds the peak resident memory of the whole process: what it already holds (Python,
 torch, the scans just read) plus the largest transient of the stages that follow. Those transients
-grow linearly with the point counts; the coefficients below were measured on this project's CPU
-machine (peak-RSS growth of each stage alone, in a fresh process, on room-like synthetic scans of
-0.1-1M points and on the 3DMatch kitchen fragments; ``benchmarks/bench_large_scene.py`` checks the
-resulting peaks) and carry a 25 % safety factor. The plan keeps the requested point counts when
+grow linearly with the point counts (never beyond the larger scan's); the coefficients below were
+fitted on this project's CPU machine to whole-process peaks of each method on the 3DMatch kitchen
+and LiDAR pairs at 1,000-20,000 global and 5,000-200,000 ICP points
+(``benchmarks/bench_memory_plan.py``: the prediction lies within 0-25 % above the measured peak
+there; ``benchmarks/bench_large_scene.py`` checks whole runs under budgets) and carry a 25 % safety
+factor on each stage. The plan keeps the requested point counts when
 they fit, else lowers them (never below the ``MIN_*`` counts), and raises :class:`MemoryBudgetError`
 before any heavy work when even the smallest run would not fit, saying what would.
 """
@@ -17,12 +19,14 @@ from dataclasses import dataclass, field
 
 MB = 2 ** 20
 SAFETY = 1.25
-MARGIN_MB = 40.0     # allocator slack, small tensors, the result
-# Peak growth of each stage, in MB: intercept + bytes per point / MB.
+MARGIN_MB = 20.0     # allocator slack, small tensors, the result
+# Peak growth of each stage, in MB: intercept + bytes per point / MB (benchmarks/bench_memory_plan.py
+# compares the predicted peaks with measured ones).
 VOXEL_BYTES_PER_INPUT_POINT = 110.0          # voxel_downsample of the larger scan
-ICP_MB, ICP_BYTES_PER_POINT = 25.0, 80.0     # per point of source + target after downsampling
-FPFH_MB, FPFH_BYTES_PER_POINT = 95.0, 2200.0  # normals, FPFH (100 neighbours), RANSAC, per point per scan
-SCENE_MB, SCENE_BYTES_PER_POINT = 60.0, 18000.0  # FPFH + the scene network's context graph, per point per scan
+ICP_MB, ICP_BYTES_PER_POINT = 14.0, 270.0    # per point of source + target after downsampling
+FPFH_MB, FPFH_BYTES_PER_POINT = 33.0, 5500.0  # normals, FPFH (100 neighbours), matching, RANSAC / SC2
+FGR_MB, FGR_BYTES_PER_POINT = 50.0, 4000.0    # FPFH + Fast Global Registration's correspondence sets
+SCENE_MB, SCENE_BYTES_PER_POINT = 45.0, 20000.0  # FPFH + the scene network's context graph, per point per scan
 NETWORK_MB, NETWORK_BYTES_PER_POINT = 40.0, 20000.0  # the ModelNet40 VRNet (streamed matching), per point per cloud
 MIN_GLOBAL_POINTS, MIN_ICP_POINTS, MIN_NETWORK_POINTS = 1000, 5000, 256
 
@@ -84,10 +88,13 @@ def _stage_mb(profile: str | None, largest_scan: int, global_points: int, networ
     """Largest transient of the run's stages (MB), safety factor included; ``profile``: the global
     estimator's (:data:`PROFILES`; None: unknown, only the voxel grid and ICP are predicted);
     ``scale``: its per-point cost against the shipped model's (a larger scene model costs more)."""
+    global_points, icp_points = min(global_points, largest_scan), min(icp_points, largest_scan)  # no scan grows
     stages = [VOXEL_BYTES_PER_INPUT_POINT * largest_scan / MB,
               ICP_MB + ICP_BYTES_PER_POINT * 2 * icp_points / MB]
-    if profile in ("fpfh", "fgr", "sc2"):
+    if profile in ("fpfh", "sc2"):
         stages.append(FPFH_MB + FPFH_BYTES_PER_POINT * global_points / MB)
+    if profile == "fgr":
+        stages.append(FGR_MB + FGR_BYTES_PER_POINT * global_points / MB)
     if profile == "sc2":  # the compatibility graph: one bit per pair of correspondences (one per point)
         stages.append(FPFH_MB + global_points * global_points / 8 / MB)
     elif profile == "scene":
