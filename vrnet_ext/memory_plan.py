@@ -26,7 +26,7 @@ VOXEL_BYTES_PER_INPUT_POINT = 110.0          # voxel_downsample of the larger sc
 ICP_MB, ICP_BYTES_PER_POINT = 14.0, 270.0    # per point of source + target after downsampling
 FPFH_MB, FPFH_BYTES_PER_POINT = 33.0, 5500.0  # normals, FPFH (100 neighbours), matching, RANSAC / SC2
 FGR_MB, FGR_BYTES_PER_POINT = 50.0, 4000.0    # FPFH + Fast Global Registration's correspondence sets
-SCENE_MB, SCENE_BYTES_PER_POINT = 45.0, 20000.0  # FPFH + the scene network's context graph, per point per scan
+SCENE_MB, SCENE_BYTES_PER_POINT = 60.0, 21000.0  # FPFH + the scene network's context graph, per point per scan
 NETWORK_MB, NETWORK_BYTES_PER_POINT = 40.0, 20000.0  # the ModelNet40 VRNet (streamed matching), per point per cloud
 MIN_GLOBAL_POINTS, MIN_ICP_POINTS, MIN_NETWORK_POINTS = 1000, 5000, 256
 
