@@ -7,7 +7,7 @@
 For every pair (the 3DMatch kitchen pair 4 -> 0 at full resolution and the LiDAR pair) and method, at
 the default point counts, the planner's smallest counts and large ones (20,000 global, 200,000 ICP
 points), one fresh process reads the scans,
-asks :func:`vrnet_ext.memory_plan.plan_registration` what peak it predicts for exactly those counts
+asks :func:`vrnet_ext.registration.budget.plan_registration` what peak it predicts for exactly those counts
 (what the process holds then included), runs :func:`vrnet_ext.registration.register` with them and
 reports its peak resident memory (``ru_maxrss``, the whole process). The ratio predicted / measured
 should lie in [1, 1.25]: below 1 a budget could be exceeded, above 1.25 a budget the run fits in
@@ -32,11 +32,11 @@ CHILD = r"""
 import json, resource, sys
 import torch
 torch.set_num_threads(2)
-from vrnet_ext.io import read_points
-from vrnet_ext.memory_plan import plan_registration
+from vrnet_ext.geometry.io import read_points
+from vrnet_ext.registration.budget import plan_registration
 from vrnet_ext.registration import IcpSettings, register
 from vrnet_ext.registration.global_estimators import make_global_estimator
-from vrnet_ext.pretrained import DEFAULT_SCENE_MODEL, load_pretrained
+from vrnet_ext.model.pretrained import DEFAULT_SCENE_MODEL, load_pretrained
 from vrnet_ext.model.scene import SceneConfig, SceneVRNet
 
 source, target, method, global_points, icp_points, large = sys.argv[1:7]
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> None:
 
     import torch
 
-    from vrnet_ext.memory_plan import MIN_GLOBAL_POINTS, MIN_ICP_POINTS
+    from vrnet_ext.registration.budget import MIN_GLOBAL_POINTS, MIN_ICP_POINTS
     from vrnet_ext.registration import IcpSettings
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -147,7 +147,7 @@ def _pdl_case(N, quick=True, skip_torch=None):
 def _scan_points(voxel: float) -> torch.Tensor:
     """A room-sized synthetic scan (vrnet_ext.data.procedural.room_scan, 300k points) voxel-downsampled."""
     from vrnet_ext.data.procedural import room_scan
-    from vrnet_ext.preprocessing import voxel_downsample
+    from vrnet_ext.geometry.preprocessing import voxel_downsample
 
     return torch.as_tensor(voxel_downsample(room_scan(300_000, 0), voxel))
 

@@ -71,8 +71,8 @@ def rotated(pair: dict, degrees: float, seed: int, workdir: Path) -> dict:
     """The pair with its source turned by a random rotation of up to ``degrees`` about its centroid."""
     from scipy.spatial.transform import Rotation
 
-    from vrnet_ext.io import read_points
-    from vrnet_ext.transforms import apply, to_homogeneous
+    from vrnet_ext.geometry.io import read_points
+    from vrnet_ext.geometry.transforms import apply, to_homogeneous
 
     rng = np.random.default_rng(seed)
     axis = rng.normal(size=3)

@@ -6,7 +6,7 @@
 Every run is a fresh process (so time and peak RSS include imports and reading the scans), and
 the implementations take turns within each repetition (interleaved), so a machine that slows
 down mid-run slows all alike. Same settings on both sides: the global estimate works on the scans
-voxel-downsampled to about 5,000 points (``vrnet_ext.preprocessing.voxel_size_for``, which the
+voxel-downsampled to about 5,000 points (``vrnet_ext.geometry.preprocessing.voxel_size_for``, which the
 benchmark runs beforehand for Open3D and hands it the two voxel edges, so Open3D's time leaves
 that search out while ours includes it; FPFH radius
 5 voxels with at most 100 neighbours, RANSAC inliers within 1.5 voxels, Open3D's tutorial
@@ -41,8 +41,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_large_scene import DEFAULT_DATA, pairs  # noqa: E402
 
-from vrnet_ext.io import read_points  # noqa: E402
-from vrnet_ext.preprocessing import voxel_size_for  # noqa: E402
+from vrnet_ext.geometry.io import read_points  # noqa: E402
+from vrnet_ext.geometry.preprocessing import voxel_size_for  # noqa: E402
 
 GLOBAL_POINTS, ICP_POINTS = 5000, 50_000
 SUCCESS_RE_DEG, SUCCESS_TE_M = 15.0, 0.3
@@ -52,7 +52,7 @@ OPEN3D_SCRIPT = textwrap.dedent("""
     start = time.perf_counter()
     import numpy as np
     import open3d as o3d
-    from vrnet_ext.io import read_points
+    from vrnet_ext.geometry.io import read_points
     src_path, tgt_path, estimator, out = sys.argv[1:5]
     voxel, icp_voxel = float(sys.argv[5]), float(sys.argv[6])
     global_method = sys.argv[7] if len(sys.argv) > 7 else "ransac"

@@ -34,12 +34,12 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from vrnet_ext.checkpoints import load_vrnet
+from vrnet_ext.model.pretrained import load_vrnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.registration.ransac import fpfh_ransac
-from vrnet_ext.metrics import summarize
+from vrnet_ext.geometry.metrics import summarize
 from vrnet_ext.ops import kabsch
-from vrnet_ext.pretrained import available
+from vrnet_ext.model.pretrained import available
 from vrnet_ext.registration import IcpFailure, icp
 
 METHODS = ("vrnet", "vcp", "icp", "fpfh")

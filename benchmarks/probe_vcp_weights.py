@@ -14,9 +14,9 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from vrnet_ext.checkpoints import load_vrnet
+from vrnet_ext.model.pretrained import load_vrnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
-from vrnet_ext.metrics import euler_zyx_deg, rotation_error_deg
+from vrnet_ext.geometry.metrics import euler_zyx_deg, rotation_error_deg
 from vrnet_ext.model.vrnet import robust_procrustes
 from vrnet_ext.ops import kabsch
 

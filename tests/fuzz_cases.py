@@ -290,7 +290,7 @@ def run_malformed(examples: int) -> None:
 
 
 def _sample_files(folder: Path) -> list[Path]:
-    from vrnet_ext.io import write_ply
+    from vrnet_ext.geometry.io import write_ply
 
     points = np.random.default_rng(0).normal(size=(20, 3)).astype(np.float32)
     write_ply(folder / "a.ply", points)
@@ -305,7 +305,7 @@ def _sample_files(folder: Path) -> list[Path]:
 
 
 def run_readers(examples: int) -> None:
-    from vrnet_ext.io import PointCloudError, read_points
+    from vrnet_ext.geometry.io import PointCloudError, read_points
 
     folder = Path(tempfile.mkdtemp())
     originals = [(path, path.read_bytes()) for path in _sample_files(folder)]
@@ -340,7 +340,8 @@ def run_readers(examples: int) -> None:
 
 def run_checkpoints(examples: int) -> None:
     from vrnet_ext import VRNet, VRNetConfig
-    from vrnet_ext.checkpoints import CheckpointError, load_model
+    from vrnet_ext.model.checkpoints import CheckpointError
+    from vrnet_ext.model.pretrained import load_model
 
     config = VRNetConfig.small(k=4, dgcnn_channels=(8, 8), emb_dims=16, heads=2, ff_dims=16, walk_channels=(8, 3))
     buffer = io.BytesIO()
@@ -407,7 +408,7 @@ def run_second_order(examples: int) -> None:
 def run_memory_plan(examples: int) -> None:
     """Scene models of any size a file may hold, any budget and scan size: the plan stays within the
     budget or is refused at once (MemoryBudgetError), never a plan predicted above the budget."""
-    from vrnet_ext.memory_plan import MB, MemoryBudgetError, plan_registration
+    from vrnet_ext.registration.budget import MB, MemoryBudgetError, plan_registration
     from vrnet_ext.model.scene import SCENE_LIMITS, SceneConfig
 
     sizes = {name: st.integers(max(low, 1) if name != "neighbours" else low, high)
@@ -464,7 +465,7 @@ def run_full_disk(examples: int) -> None:
     import json
     import subprocess
 
-    from vrnet_ext.io import read_points, write_ply
+    from vrnet_ext.geometry.io import read_points, write_ply
 
     folder = Path(tempfile.mkdtemp())
     write_ply(folder / "a.ply", np.random.default_rng(0).normal(size=(2000, 3)))

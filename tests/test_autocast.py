@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from vrnet_ext import VRNet, VRNetConfig, ops
-from vrnet_ext.losses import correspondence_loss
+from vrnet_ext.learning.losses import correspondence_loss
 
 
 def _inputs(generator):

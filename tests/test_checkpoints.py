@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from vrnet_ext import VRNet, VRNetConfig
-from vrnet_ext.checkpoints import CheckpointError, load_model, read_checkpoint
-from vrnet_ext.pretrained import export_pretrained
+from vrnet_ext.model.checkpoints import CheckpointError, read_checkpoint
+from vrnet_ext.model.pretrained import load_model
+from vrnet_ext.learning.export import export_pretrained
 
 TINY = dict(k=4, dgcnn_channels=[8, 8], emb_dims=16, heads=2, ff_dims=16, walk_channels=[8, 3])
 

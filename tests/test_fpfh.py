@@ -8,7 +8,7 @@ from vrnet_ext import ops
 from vrnet_ext.data.procedural import room_scan
 from vrnet_ext.ops.fpfh import fpfh_reference
 from vrnet_ext.ops.normals import neighbourhood
-from vrnet_ext.preprocessing import voxel_downsample
+from vrnet_ext.geometry.preprocessing import voxel_downsample
 
 
 def room_points(count: int = 30_000, voxel: float = 0.1, dtype=torch.float64) -> torch.Tensor:

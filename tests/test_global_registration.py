@@ -7,11 +7,12 @@ from conftest import DATA_DIR
 from test_register import motion, room
 from vrnet_ext.registration import ransac as ransac_module
 from vrnet_ext.cli import main
-from vrnet_ext.registration.ransac import _enough_hypotheses, fpfh_ransac, mutual_matches, ransac
-from vrnet_ext.io import write_ply
-from vrnet_ext.preprocessing import voxel_downsample
+from vrnet_ext.geometry.features import mutual_matches
+from vrnet_ext.registration.ransac import _enough_hypotheses, fpfh_ransac, ransac
+from vrnet_ext.geometry.io import write_ply
+from vrnet_ext.geometry.preprocessing import voxel_downsample
 from vrnet_ext.registration import IcpSettings, register, transform_errors
-from vrnet_ext.transforms import apply
+from vrnet_ext.geometry.transforms import apply
 
 KITCHEN = DATA_DIR / "scenes" / "3dmatch_redkitchen"
 

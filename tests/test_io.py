@@ -3,7 +3,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from conftest import DATA_DIR
-from vrnet_ext.io import PointCloudError, read_points, read_transform, write_ply
+from vrnet_ext.geometry.io import PointCloudError, read_points, read_transform, write_ply
 
 SCENES = DATA_DIR / "scenes"
 
@@ -173,7 +173,7 @@ def test_ascii_ply_is_read_without_per_line_python_objects(tmp_path):
         f.write(header)
         np.savetxt(f, cloud, fmt="%.6f")
     size_mb = path.stat().st_size / 2**20
-    code = ("import resource, sys; from vrnet_ext.io import read_points; "
+    code = ("import resource, sys; from vrnet_ext.geometry.io import read_points; "
             "base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss; p = read_points(sys.argv[1]); "
             "print(p.shape[0], (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) / 1024)")
     out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=300)
@@ -197,7 +197,7 @@ def test_georeferenced_coordinates_keep_their_precision(tmp_path):
 def test_as_points_takes_arrays_tensors_point_clouds_and_paths(tmp_path):
     import torch
 
-    from vrnet_ext.io import as_points
+    from vrnet_ext.geometry.io import as_points
 
     cloud = np.random.default_rng(1).normal(size=(20, 3))
     np.save(tmp_path / "c.npy", cloud)

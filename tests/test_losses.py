@@ -1,8 +1,8 @@
 import pytest
 import torch
 
-import vrnet_ext.losses as losses
-from vrnet_ext.transforms import move
+import vrnet_ext.learning.losses as losses
+from vrnet_ext.geometry.transforms import move
 from vrnet_ext.model.vrnet import VRNetOutput
 
 

@@ -3,7 +3,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from vrnet_ext import metrics
+from vrnet_ext.geometry import metrics
 
 
 def test_euler_and_isotropic_errors_on_known_transforms():
@@ -74,7 +74,7 @@ class _PerfectWalk(torch.nn.Module):
 
 
 def test_evaluate_reports_vcp_and_rcp_errors_on_inliers_and_outliers():
-    from vrnet_ext.evaluate import evaluate
+    from vrnet_ext.learning.evaluate import evaluate
     from vrnet_ext.ops import kabsch
     g = torch.Generator().manual_seed(0)
     src = torch.randn(20, 3, generator=g, dtype=torch.float64)

@@ -167,7 +167,7 @@ def test_robust_procrustes_ignores_gross_outliers_that_spoil_plain_kabsch():
     from scipy.spatial.transform import Rotation
 
     from vrnet_ext.model.vrnet import robust_procrustes
-    from vrnet_ext.metrics import rotation_error_deg
+    from vrnet_ext.geometry.metrics import rotation_error_deg
 
     g = torch.Generator().manual_seed(0)
     src = torch.rand(3, 200, 3, generator=g, dtype=torch.float64) * 2 - 1
@@ -238,7 +238,7 @@ def test_streamed_matching_equals_the_dense_matrix_path(device, backend):
 
 
 def test_a_confidence_trunk_keeps_the_offsets_loss_out_of_the_confidences():
-    from vrnet_ext.losses import offset_log_loss
+    from vrnet_ext.learning.losses import offset_log_loss
 
     model = small_model(walk_gate=True, walk_confidence=True, walk_confidence_trunk=True).train()
     assert model.walk.net[-1].out_channels == 4 and model.walk.confidence_net[-1].out_channels == 1

@@ -4,7 +4,7 @@ import torch
 from conftest import opcheck, requires_ext
 from vrnet_ext import ops
 from vrnet_ext.data.procedural import room_scan
-from vrnet_ext.preprocessing import voxel_downsample
+from vrnet_ext.geometry.preprocessing import voxel_downsample
 
 
 @pytest.mark.parametrize("backend", ["ext", "torch"])

@@ -7,12 +7,12 @@ import torch
 
 from conftest import MODELNET_DIR
 from vrnet_ext import load_pretrained
-from vrnet_ext.checkpoints import read_checkpoint
+from vrnet_ext.model.checkpoints import read_checkpoint
 from vrnet_ext.data import PairSpec, make_pair
 from vrnet_ext.data.procedural import chair
-from vrnet_ext.metrics import rotation_error_deg
+from vrnet_ext.geometry.metrics import rotation_error_deg
 from vrnet_ext.model.scene import SCENE_FORMAT
-from vrnet_ext.pretrained import DEFAULT_MODEL, WEIGHTS_DIR, available, model_card, weights_path
+from vrnet_ext.model.pretrained import DEFAULT_MODEL, WEIGHTS_DIR, available, model_card, weights_path
 
 
 def test_the_default_model_ships_as_small_float16_weights_with_a_card():
@@ -71,7 +71,7 @@ def test_vrnet_demo_runs_without_data(tmp_path, capsys):
 
 def test_eval_picks_the_shipped_model_of_the_setting_and_split(tmp_path, capsys):
     from vrnet_ext.cli import main
-    from vrnet_ext.pretrained import model_for
+    from vrnet_ext.model.pretrained import model_for
 
     assert model_for("PV", "UPC") == "vrnet-pv-upc-rcp" and model_for("PV", "ND") == "vrnet-pv-nd-rcp"
     assert model_for("RS", "UPC") is None
@@ -85,7 +85,7 @@ def test_eval_picks_the_shipped_model_of_the_setting_and_split(tmp_path, capsys)
 
 
 def test_model_for_prefers_the_model_of_the_setting_then_one_trained_on_every_setting(tmp_path, monkeypatch):
-    import vrnet_ext.pretrained as pretrained
+    import vrnet_ext.model.pretrained as pretrained
 
     for name, setting, split in (("pv-upc", "PV", "UPC"), ("all-upc", "mixed", "UPC"), ("pv-nd", "PV", "ND")):
         torch.save({"model": {}, "config": {"model": {}, "setting": setting, "split": split}},

@@ -11,11 +11,11 @@ from conftest import DATA_DIR, MODELNET_DIR, requires_modelnet
 from vrnet_ext import ops
 from vrnet_ext.cli import main
 from vrnet_ext import load_pretrained
-from vrnet_ext.io import read_points, read_transform, write_ply
-from vrnet_ext.preprocessing import voxel_downsample
+from vrnet_ext.geometry.io import read_points, read_transform, write_ply
+from vrnet_ext.geometry.preprocessing import voxel_downsample
 from vrnet_ext.registration import IcpFailure, IcpSettings, ObjectNetwork, icp, register, transform_errors
 from vrnet_ext.registration.refinement import TargetReach
-from vrnet_ext.transforms import apply, to_homogeneous
+from vrnet_ext.geometry.transforms import apply, to_homogeneous
 
 LIDAR = DATA_DIR / "scenes" / "lidar_pair"
 
@@ -194,7 +194,7 @@ def test_the_vrnet_executable_writes_everything_and_keeps_its_exit_status(tmp_pa
 
 @requires_modelnet
 def test_cli_register_with_checkpoint(tmp_path):
-    from vrnet_ext.train import TrainConfig, train
+    from vrnet_ext.learning.train import TrainConfig, train
 
     train(TrainConfig.from_preset("tiny", data_dir=str(MODELNET_DIR), out_dir=str(tmp_path / "run"), progress=False,
                                   stage1_epochs=1, stage2_epochs=0))
@@ -229,7 +229,7 @@ def test_georeferenced_lidar_pair_through_the_cli(tmp_path):
     """The LiDAR pair shifted to UTM-like coordinates (5e5, 5e6, 100) m, in float64 files, through
     `vrnet register`: every moved point within 1 cm of the unshifted result (float32 alone is 0.5 m
     coarse there)."""
-    from vrnet_ext.transforms import in_shifted_frames
+    from vrnet_ext.geometry.transforms import in_shifted_frames
 
     src, tgt = read_points(LIDAR / "source.ply"), read_points(LIDAR / "target.ply")
     shift = np.array([5e5, 5e6, 100.0])

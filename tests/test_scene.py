@@ -9,13 +9,15 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from conftest import DATA_DIR
-from vrnet_ext.checkpoints import CheckpointError, load_model
+from vrnet_ext.model.checkpoints import CheckpointError
+from vrnet_ext.model.pretrained import load_model
 from vrnet_ext.cli import main
-from vrnet_ext.data.scans import describe, synthetic_pair
-from vrnet_ext.memory_plan import MemoryBudgetError, parse_memory_size, plan_registration
+from vrnet_ext.data.scans import synthetic_pair
+from vrnet_ext.geometry.features import describe
+from vrnet_ext.registration.budget import MemoryBudgetError, parse_memory_size, plan_registration
 from vrnet_ext.model.scene import SceneConfig, SceneVRNet
-from vrnet_ext.preprocessing import voxel_downsample
-from vrnet_ext.scene_training import SceneTrainConfig, pair_tensors, scene_loss, train_scene_model
+from vrnet_ext.geometry.preprocessing import voxel_downsample
+from vrnet_ext.learning.scene_training import SceneTrainConfig, pair_tensors, scene_loss, train_scene_model
 
 KITCHEN = DATA_DIR / "scenes" / "3dmatch_redkitchen"
 
@@ -153,7 +155,7 @@ def test_kitchen_pair_with_the_shipped_scene_model_under_a_budget(tmp_path):
 
 
 def test_scene_models_are_listed_apart_and_refused_where_a_modelnet_vrnet_is_needed(capsys):
-    from vrnet_ext.pretrained import DEFAULT_MODEL, DEFAULT_SCENE_MODEL, available
+    from vrnet_ext.model.pretrained import DEFAULT_MODEL, DEFAULT_SCENE_MODEL, available
 
     assert DEFAULT_SCENE_MODEL in available("scene") and DEFAULT_SCENE_MODEL not in available("vrnet")
     assert DEFAULT_MODEL in available("vrnet") and set(available()) == set(available("vrnet") + available("scene"))
@@ -204,7 +206,7 @@ def test_a_model_trained_on_mirrored_fpfh_reads_open3d_layout_descriptors():
 
 def test_train_scene_on_georeferenced_scans_recentres_them_with_a_warning(tmp_path, capsys):
     from vrnet_ext.cli import main
-    from vrnet_ext.io import write_ply
+    from vrnet_ext.geometry.io import write_ply
 
     scan = box_scan(6000)
     scan = scan - np.median(scan, axis=0)

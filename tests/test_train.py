@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from conftest import MODELNET_DIR, requires_modelnet
-from vrnet_ext.checkpoints import read_checkpoint as load_checkpoint
-from vrnet_ext.train import TrainConfig, train
+from vrnet_ext.model.checkpoints import read_checkpoint as load_checkpoint
+from vrnet_ext.learning.train import TrainConfig, train
 
 
 def tiny(tmp_path, name, **overrides):
@@ -102,7 +102,7 @@ def test_cli_errors_are_readable(tmp_path, capsys):
 
 @requires_modelnet
 def test_resume_from_a_mid_epoch_checkpoint_continues_bit_exactly(tmp_path, monkeypatch):
-    import vrnet_ext.train as train_module
+    import vrnet_ext.learning.train as train_module
 
     train(tiny(tmp_path, "straight", stage1_epochs=2, stage2_epochs=1))
     mid_epoch = []
@@ -181,7 +181,7 @@ def test_resume_extends_a_finished_stage_with_this_runs_milestones(tmp_path):
 
 def test_freeze_confidence_trains_the_offsets_only():
     from vrnet_ext.model import VRNet, VRNetConfig
-    from vrnet_ext.train import set_stage, stage_train_mode
+    from vrnet_ext.learning.train import set_stage, stage_train_mode
 
     model = VRNet(VRNetConfig.small(k=6, dgcnn_channels=(16, 16, 32), emb_dims=32, ff_dims=64,
                                     walk_channels=(32, 16, 3), walk_confidence=True, walk_confidence_trunk=True))
@@ -202,7 +202,7 @@ def test_freeze_confidence_trains_the_offsets_only():
 @requires_modelnet
 def test_resuming_or_warm_starting_from_the_wrong_kind_of_file_is_a_named_error(tmp_path):
     """Shipped weights and scene models hold no training state: a ValueError naming the file, no KeyError."""
-    from vrnet_ext.pretrained import DEFAULT_SCENE_MODEL, weights_path
+    from vrnet_ext.model.pretrained import DEFAULT_SCENE_MODEL, weights_path
 
     shipped, scene = weights_path("vrnet-pv-upc-rcp"), weights_path(DEFAULT_SCENE_MODEL)
     for path in (shipped, scene):

@@ -9,7 +9,7 @@ from conftest import DTYPES, compile_fullgraph, non_contiguous, opcheck, require
 from vrnet_ext import ops
 from vrnet_ext.data.procedural import room_scan
 from vrnet_ext.ops.voxel_downsample import voxel_downsample_reference
-from vrnet_ext.preprocessing import voxel_downsample, voxel_size_for
+from vrnet_ext.geometry.preprocessing import voxel_downsample, voxel_size_for
 
 
 def brute_force(points: torch.Tensor, voxel_size: float) -> torch.Tensor:

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from vrnet_ext.model import VRNet, VRNetConfig
-from vrnet_ext.warm_start import init_features_from, init_walk_from
+from vrnet_ext.learning.warm_start import init_features_from, init_walk_from
 
 
 def small_config(**overrides):

@@ -10,5 +10,5 @@ __getattr__ = lazy_attributes(__name__, {
     "register": "vrnet_ext.registration", "RegistrationResult": "vrnet_ext.registration",
     "ops": "vrnet_ext.ops", "nn": "vrnet_ext.nn", "VRNet": "vrnet_ext.model", "VRNetConfig": "vrnet_ext.model",
     "VRNetOutput": "vrnet_ext.model", "has_extension": "vrnet_ext._extension",
-    "load_pretrained": "vrnet_ext.pretrained", "set_flush_denormal": "vrnet_ext.runtime",
+    "load_pretrained": "vrnet_ext.model.pretrained", "set_flush_denormal": "vrnet_ext.runtime",
 })

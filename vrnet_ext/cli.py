@@ -60,7 +60,7 @@ def _positive_float(text: str) -> float:
 
 def _memory_size(text: str) -> int:
     """A memory size such as 2GB, 512MB, 1.5G or a plain byte count -> bytes."""
-    from vrnet_ext.memory_plan import parse_memory_size
+    from vrnet_ext.registration.budget import parse_memory_size
 
     try:
         return parse_memory_size(text)
@@ -128,7 +128,7 @@ DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNE
 
 
 def _train_parser(sub) -> None:
-    from vrnet_ext.train_config import FIELD_HELP, L4_FORMS, PRECISIONS, PRESETS, TrainConfig, preset_values
+    from vrnet_ext.learning.config import FIELD_HELP, L4_FORMS, PRECISIONS, PRESETS, TrainConfig, preset_values
 
     p = sub.add_parser("train", help="two-stage training on ModelNet40 (DDP under torchrun)",
                        description="Two-stage VRNet training. Start from a preset; any flag overrides it. "
@@ -189,7 +189,7 @@ def _train_parser(sub) -> None:
 
 def build_train_config(args):
     """TrainConfig from parsed ``vrnet train`` flags: the preset, then every flag given."""
-    from vrnet_ext.train_config import PRESETS, TrainConfig
+    from vrnet_ext.learning.config import PRESETS, TrainConfig
 
     model_keys = ("emb_dims", "k", "iterations", "walk_gate", "walk_confidence", "walk_match_stats",
                   "walk_confidence_trunk", "irls_iterations")
@@ -202,7 +202,7 @@ def build_train_config(args):
 
 
 def _run_train(args) -> int:
-    from vrnet_ext.train import train
+    from vrnet_ext.learning.train import train
 
     cfg = build_train_config(args)
     record = train(cfg)
@@ -248,11 +248,11 @@ def _eval_parser(sub) -> None:
 
 def _run_eval(args) -> int:
     from vrnet_ext.data import ModelNet40Pairs, PairSpec
-    from vrnet_ext.evaluate import evaluate, format_table, time_inference
-    from vrnet_ext.checkpoints import load_vrnet
+    from vrnet_ext.learning.evaluate import evaluate, format_table, time_inference
+    from vrnet_ext.model.pretrained import load_vrnet
 
     if args.checkpoint is None:
-        from vrnet_ext.pretrained import model_for
+        from vrnet_ext.model.pretrained import model_for
 
         wanted = (args.setting or "PV", args.split or "UPC")
         args.checkpoint = model_for(*wanted)
@@ -286,7 +286,7 @@ def _plot_parser(sub) -> None:
 
 
 def _run_plot(args) -> int:
-    from vrnet_ext.plots import plot_metrics
+    from vrnet_ext.learning.curves import plot_metrics
 
     print(f"wrote {plot_metrics(args.run_dir)}")
     return 0
@@ -351,14 +351,14 @@ INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "sc2": "FPFH + spati
 def _run_register(args) -> int:
     import numpy as np
 
-    from vrnet_ext.io import read_points, read_transform, write_ply
-    from vrnet_ext.pretrained import DEFAULT_SCENE_MODEL
+    from vrnet_ext.geometry.io import read_points, read_transform, write_ply
+    from vrnet_ext.model.pretrained import DEFAULT_SCENE_MODEL
     from vrnet_ext.registration import IcpSettings, register, transform_errors
     from vrnet_ext.registration.global_estimators import DEFAULT_METHOD
-    from vrnet_ext.transforms import apply
+    from vrnet_ext.geometry.transforms import apply
 
     if args.max_memory is not None:
-        from vrnet_ext.memory_plan import require_headroom
+        from vrnet_ext.registration.budget import require_headroom
 
         require_headroom(args.max_memory)
     method = getattr(args, "method", None) or ("fpfh" if args.fpfh else "vrnet" if args.checkpoint else DEFAULT_METHOD)
@@ -366,7 +366,7 @@ def _run_register(args) -> int:
         raise ValueError(f"--method {method} does not take {'--fpfh' if args.fpfh else '--checkpoint'}")
     model = None
     if method == "vrnet":  # before the scans: a bad checkpoint fails at once
-        from vrnet_ext.checkpoints import load_model
+        from vrnet_ext.model.pretrained import load_model
 
         model = load_model(args.checkpoint or DEFAULT_SCENE_MODEL, args.device)[0]
     src, tgt = read_points(args.source), read_points(args.target)
@@ -419,7 +419,7 @@ def _run_register(args) -> int:
 
 
 def _write_json(path: str | Path, record: dict) -> None:
-    from vrnet_ext.atomic import atomic_output
+    from vrnet_ext.geometry.atomic import atomic_output
 
     with atomic_output(path) as temporary:
         temporary.write_text(json.dumps(record, indent=1))
@@ -443,9 +443,9 @@ def _demo_parser(sub) -> None:
 
 
 def _run_demo(args) -> int:
-    from vrnet_ext.checkpoints import load_vrnet
+    from vrnet_ext.model.pretrained import load_vrnet
     from vrnet_ext.demo import run_demo
-    from vrnet_ext.pretrained import DEFAULT_MODEL
+    from vrnet_ext.model.pretrained import DEFAULT_MODEL
 
     name = args.model or DEFAULT_MODEL
     model, _ = load_vrnet(name)
@@ -493,9 +493,10 @@ def _read_test_results(path: str) -> str:
 
 
 def _run_export(args) -> int:
-    from vrnet_ext.checkpoints import read_checkpoint
+    from vrnet_ext.model.checkpoints import read_checkpoint
     from vrnet_ext.model.scene import SCENE_FORMAT
-    from vrnet_ext.pretrained import WEIGHTS_DIR, export_pretrained, export_scene_model, training_facts
+    from vrnet_ext.learning.export import export_pretrained, export_scene_model, training_facts
+    from vrnet_ext.model.pretrained import WEIGHTS_DIR
 
     out = Path(args.out_dir) if args.out_dir else WEIGHTS_DIR
     if read_checkpoint(args.checkpoint).get("format") == SCENE_FORMAT:
@@ -547,8 +548,8 @@ def _train_scene_parser(sub) -> None:
 
 
 def _run_train_scene(args) -> int:
-    from vrnet_ext.io import read_points
-    from vrnet_ext.scene_training import SceneTrainConfig, train_scene_model
+    from vrnet_ext.geometry.io import read_points
+    from vrnet_ext.learning.scene_training import SceneTrainConfig, train_scene_model
 
     scans = {Path(path).name: read_points(path) for path in args.scans}
     if len(scans) != len(args.scans):

@@ -15,7 +15,7 @@ import torch
 
 from vrnet_ext.data import PairSpec, load_h5, make_pair
 from vrnet_ext.data.procedural import chair
-from vrnet_ext.metrics import rotation_error_deg, translation_error
+from vrnet_ext.geometry.metrics import rotation_error_deg, translation_error
 from vrnet_ext.model import VRNet
 from vrnet_ext.ops import kabsch
 

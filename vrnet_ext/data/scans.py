@@ -1,7 +1,4 @@
-"""Scans as :class:`~vrnet_ext.model.scene.SceneVRNet` sees them, and self-supervised training pairs.
-
-``describe`` turns voxel-downsampled points into the network's input (voxel units + FPFH); the
-same function serves training and ``vrnet register --method vrnet``.
+"""Self-supervised training pairs of the scene model, cut from single scans.
 
 ``synthetic_pair`` makes a training pair from ONE scan: two overlapping slabs of it (cut along a
 random direction, 20-80 % shared), each turned by its own random rotation about the sensor (the
@@ -16,33 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from vrnet_ext import ops
-from vrnet_ext.preprocessing import voxel_downsample
-
-FEATURE_RADIUS_VOXELS = 5.0  # FPFH radius, as fpfh_ransac (Open3D's tutorial)
-
-
-@dataclass
-class ScanView:
-    """One downsampled scan: ``points`` (V, 3) in the scan's unit, ``voxel`` edge, FPFH (V, 33)."""
-
-    points: np.ndarray
-    voxel: float
-    descriptors: torch.Tensor
-
-    def network_points(self) -> torch.Tensor:
-        """(V, 3) float32 points in voxel units (the network's coordinates)."""
-        return torch.as_tensor(self.points / self.voxel, dtype=torch.float32)
-
-
-def describe(points: np.ndarray, voxel: float) -> ScanView:
-    """Voxel-downsampled points (V, 3) (sensor at the origin) -> :class:`ScanView` with FPFH."""
-    if len(points) < 3:
-        raise ValueError(f"points: need at least 3 points after downsampling, got {len(points)}")
-    cloud = torch.as_tensor(points, dtype=torch.float64)
-    descriptors = ops.fpfh(cloud, ops.normals(cloud), FEATURE_RADIUS_VOXELS * voxel)
-    return ScanView(points, voxel, descriptors.float())
-
+from vrnet_ext.geometry.features import ScanView, describe
+from vrnet_ext.geometry.preprocessing import voxel_downsample
 
 @dataclass
 class ScanPair:

@@ -12,7 +12,7 @@ from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
 from vrnet_ext.ops import kabsch, soft_match
-from vrnet_ext.transforms import move
+from vrnet_ext.geometry.transforms import move
 from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
 
 

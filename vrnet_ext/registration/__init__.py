@@ -12,7 +12,7 @@
 - :mod:`~vrnet_ext.registration.result`: the one result type, :class:`RegistrationResult`;
 - :mod:`~vrnet_ext.registration.pipeline`: :func:`register`, global estimate + ICP + warnings.
 
-Conventions (frames, 4x4 transforms) are those of :mod:`vrnet_ext.transforms`.
+Conventions (frames, 4x4 transforms) are those of :mod:`vrnet_ext.geometry.transforms`.
 """
 from vrnet_ext.registration.estimators import ESTIMATORS, Estimator, make_estimator
 from vrnet_ext.registration.global_estimators import (GLOBAL_ESTIMATORS, Fgr, FpfhRansac, GlobalEstimator, NoMotion,

@@ -1,6 +1,6 @@
 """Local refinement steps for ICP, as plug-ins: point-to-point, point-to-plane, plane-to-plane (GICP).
 
-Transforms follow :mod:`vrnet_ext.transforms` (``T_target_source``, y = R x + t, float64 4x4).
+Transforms follow :mod:`vrnet_ext.geometry.transforms` (``T_target_source``, y = R x + t, float64 4x4).
 
 Each estimator is built once per pair (:meth:`prepare` computes what it needs of the fixed clouds:
 normals, covariances) and then asked, once per ICP iteration, for the next transform given the
@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext import ops
-from vrnet_ext.transforms import apply
+from vrnet_ext.geometry.transforms import apply
 
 ESTIMATORS = ("point_to_point", "point_to_plane", "gicp")
 PLANE_FLATNESS = 1e-3  # GICP: the smallest covariance eigenvalue, relative to the others

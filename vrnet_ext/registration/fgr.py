@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import torch
 
-from vrnet_ext.registration.ransac import nearest_both_ways
+from vrnet_ext.geometry.features import nearest_both_ways
 from vrnet_ext.registration.estimators import gauss_newton_step, skew
-from vrnet_ext.transforms import apply
+from vrnet_ext.geometry.transforms import apply
 
 
 def feature_correspondences(src_features: torch.Tensor, tgt_features: torch.Tensor) -> torch.Tensor:

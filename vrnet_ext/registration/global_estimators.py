@@ -3,7 +3,7 @@ small interface (:class:`GlobalEstimator`) that :func:`vrnet_ext.registration.re
 name or as an object.
 
 Scans are (N, 3) float arrays in one unit (metres for the shared data); every estimator returns a
-(4, 4) float64 array that maps source points into the target frame (:mod:`vrnet_ext.transforms`).
+(4, 4) float64 array that maps source points into the target frame (:mod:`vrnet_ext.geometry.transforms`).
 
 Built in (:data:`GLOBAL_ESTIMATORS`): ``"vrnet"`` (a learned estimate: :class:`SceneNetwork` for a
 :class:`~vrnet_ext.model.scene.SceneVRNet`, :class:`ObjectNetwork` for a ModelNet40
@@ -21,11 +21,12 @@ import torch
 
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
-from vrnet_ext.preprocessing import subsample, voxel_downsample, voxel_size_for
+from vrnet_ext.geometry.preprocessing import subsample, voxel_downsample, voxel_size_for
 from vrnet_ext.registration.fgr import fast_global_registration
 from vrnet_ext import ops
-from vrnet_ext.registration.ransac import fpfh_ransac, ransac, voxel_fpfh
-from vrnet_ext.transforms import to_homogeneous
+from vrnet_ext.geometry.features import voxel_fpfh
+from vrnet_ext.registration.ransac import fpfh_ransac, ransac
+from vrnet_ext.geometry.transforms import to_homogeneous
 
 CPU = torch.device("cpu")
 
@@ -38,7 +39,7 @@ class GlobalEstimator:
     estimates ICP also starts from, the refinement with the higher fitness winning (for estimators
     that may not transfer to a pair, such as a network trained on other data: the result is then
     never worse than theirs); ``memory_profile``: the key of
-    :func:`vrnet_ext.memory_plan.plan_registration`'s per-point costs, or None when unknown (a
+    :func:`vrnet_ext.registration.budget.plan_registration`'s per-point costs, or None when unknown (a
     ``max_memory`` budget then plans only the ICP stage).
     """
 
@@ -157,7 +158,7 @@ class SceneNetwork(GlobalEstimator):
         return max(1.0, self.model.config.values_per_point() / SceneConfig().values_per_point())
 
     def estimate(self, src, tgt, seed):
-        from vrnet_ext.data.scans import describe
+        from vrnet_ext.geometry.features import describe
 
         voxel = voxel_size_for(tgt, self.points)
         src_view, tgt_view = (describe(voxel_downsample(cloud, voxel), voxel) for cloud in (src, tgt))

@@ -7,15 +7,15 @@ import time
 import numpy as np
 import torch
 
-from vrnet_ext.io import as_points
-from vrnet_ext.memory_plan import plan_registration
+from vrnet_ext.geometry.io import as_points
+from vrnet_ext.registration.budget import plan_registration
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
-from vrnet_ext.preprocessing import coarse_in_float32, voxel_downsample, voxel_size_for
+from vrnet_ext.geometry.preprocessing import coarse_in_float32, voxel_downsample, voxel_size_for
 from vrnet_ext.registration.global_estimators import DEFAULT_METHOD, GlobalEstimator, make_global_estimator
 from vrnet_ext.registration.refinement import COARSE_FACTOR, IcpFailure, IcpSettings, icp
 from vrnet_ext.registration.result import RegistrationResult
-from vrnet_ext.transforms import in_shifted_frames
+from vrnet_ext.geometry.transforms import in_shifted_frames
 
 LOW_FITNESS = 0.2  # below this share of source points with a target point within reach, warn
 FITNESS_TIE = 0.005  # refinements whose fitness differs by less converged to the same fit
@@ -49,7 +49,7 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     """Estimates the rigid transform taking src (N, 3) onto tgt (M, 3), both in the same unit.
 
     src, tgt: numpy arrays or torch tensors of shape (N, 3), objects with a ``points`` attribute
-    (an Open3D point cloud) or file paths (:func:`vrnet_ext.io.as_points`). They are handled in
+    (an Open3D point cloud) or file paths (:func:`vrnet_ext.geometry.io.as_points`). They are handled in
     float64; when they lie so far from the origin that float32 would blur them (georeferenced
     coordinates: UTM, ~1e6 m), both are shifted by the target's median before any float32
     computation (an estimator object then sees the shifted clouds), and the result is expressed
@@ -69,7 +69,7 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     estimator's own). If ICP finds no pairs within reach, the result
     is the initial estimate with a message in ``warnings``. max_memory: a budget in bytes for the
     process's peak resident memory; the point counts are lowered to fit it
-    (:func:`vrnet_ext.memory_plan.plan_registration`, notes in ``warnings``; for a
+    (:func:`vrnet_ext.registration.budget.plan_registration`, notes in ``warnings``; for a
     GlobalEstimator object only ICP's) or MemoryBudgetError says at once what would fit.
     """
     if not isinstance(icp_settings, IcpSettings):
@@ -130,7 +130,7 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, method, model, global_po
     else:
         method = method or ("vrnet" if model is not None else DEFAULT_METHOD)
         if method == "vrnet" and model is None:
-            from vrnet_ext.pretrained import DEFAULT_SCENE_MODEL, load_pretrained
+            from vrnet_ext.model.pretrained import DEFAULT_SCENE_MODEL, load_pretrained
 
             model = load_pretrained(DEFAULT_SCENE_MODEL, device)
     plan_notes = []

@@ -19,26 +19,7 @@ import math
 import torch
 
 from vrnet_ext import ops
-
-
-def nearest_both_ways(src_features: torch.Tensor, tgt_features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(N, F), (M, F) descriptors -> (each source point's nearest target (N,), each target point's
-    nearest source (M,)), through ``ops.knn``."""
-    _, forward = ops.knn(src_features[None], tgt_features[None], 1)
-    _, backward = ops.knn(tgt_features[None], src_features[None], 1)
-    return forward[0, :, 0], backward[0, :, 0]
-
-
-def mutual_matches(src_features: torch.Tensor, tgt_features: torch.Tensor) -> torch.Tensor:
-    """(N, F), (M, F) -> (C, 2) index pairs (i, j): j is i's nearest target feature and i is j's
-    nearest source feature. Falls back to every source point's nearest target feature when fewer
-    than 10 pairs are mutual."""
-    forward, backward = nearest_both_ways(src_features, tgt_features)
-    src_idx = torch.arange(src_features.shape[0], device=src_features.device)
-    mutual = backward[forward] == src_idx
-    if int(mutual.sum()) < 10:
-        mutual = torch.ones_like(mutual)
-    return torch.stack([src_idx[mutual], forward[mutual]], dim=1)
+from vrnet_ext.geometry.features import mutual_matches, voxel_fpfh
 
 
 def _enough_hypotheses(inlier_ratio: float, confidence: float) -> float:
@@ -93,12 +74,6 @@ def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_d
     transform = torch.eye(4, dtype=src.dtype, device=src.device)
     transform[:3, :3], transform[:3, 3] = R[0], t[0]
     return transform, best_count
-
-
-def voxel_fpfh(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
-    """FPFH (N, 33) of a cloud voxel-downsampled at ``voxel_size``, at Open3D's tutorial radii:
-    normals from 30 neighbours, features within 5 voxels."""
-    return ops.fpfh(points, ops.normals(points), 5.0 * voxel_size)
 
 
 def fpfh_ransac(src: torch.Tensor, tgt: torch.Tensor, voxel_size: float, iterations: int = 50_000,

@@ -13,7 +13,7 @@ import torch
 from vrnet_ext import ops
 from vrnet_ext.registration.estimators import make_estimator
 from vrnet_ext.registration.result import RegistrationResult
-from vrnet_ext.transforms import apply
+from vrnet_ext.geometry.transforms import apply
 
 
 COARSE_FACTOR = 4  # IcpSettings.coarse_start: the coarse voxel edge and reach, in fine ones

@@ -6,14 +6,14 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from vrnet_ext.metrics import rotation_error_deg, translation_error
+from vrnet_ext.geometry.metrics import rotation_error_deg, translation_error
 
 
 @dataclass
 class RegistrationResult:
     """One registration of a source scan onto a target scan (of :func:`register`, or one ICP run).
 
-    ``T_target_source`` (4, 4) maps source points into the target frame (:mod:`vrnet_ext.transforms`);
+    ``T_target_source`` (4, 4) maps source points into the target frame (:mod:`vrnet_ext.geometry.transforms`);
     ``initial`` is the transform the refinement started from.
     """
     T_target_source: np.ndarray
@@ -39,7 +39,7 @@ class RegistrationResult:
 
 
 def transform_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
-    """Rotation error (degrees, isotropic; :func:`vrnet_ext.metrics.rotation_error_deg`) and
+    """Rotation error (degrees, isotropic; :func:`vrnet_ext.geometry.metrics.rotation_error_deg`) and
     translation error (same unit as the input) of two 4x4 transforms."""
     est, gt = torch.as_tensor(estimate[None]), torch.as_tensor(truth[None])
     return {"rotation_error_deg": float(rotation_error_deg(est[:, :3, :3], gt[:, :3, :3])),

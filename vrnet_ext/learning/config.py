@@ -1,6 +1,6 @@
 """What a training run is: :class:`TrainConfig`, the presets and the help text of every option.
 
-Free of torch, so that ``vrnet train --help`` answers at once; :mod:`vrnet_ext.train` runs it.
+Free of torch, so that ``vrnet train --help`` answers at once; :mod:`vrnet_ext.learning.train` runs it.
 """
 from __future__ import annotations
 

@@ -9,7 +9,7 @@ the new walk computes exactly what the old one did until training moves it.
 """
 from __future__ import annotations
 
-from vrnet_ext.checkpoints import read_checkpoint, validate_model_config
+from vrnet_ext.model.checkpoints import read_checkpoint, validate_model_config
 from vrnet_ext.model import VRNet, VRNetConfig
 
 FEATURE_FIELDS = ("k", "dgcnn_channels", "emb_dims", "negative_slope", "heads", "ff_dims", "encoder_layers",

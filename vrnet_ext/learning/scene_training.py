@@ -24,11 +24,11 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from vrnet_ext import ops
-from vrnet_ext.atomic import save_atomically
-from vrnet_ext.checkpoints import read_checkpoint
+from vrnet_ext.geometry.atomic import save_atomically
+from vrnet_ext.model.checkpoints import read_checkpoint
 from vrnet_ext.data.scans import ScanPair, synthetic_pair
 from vrnet_ext.model.scene import SCENE_FORMAT, SceneConfig, SceneOutput, SceneVRNet
-from vrnet_ext.preprocessing import coarse_in_float32, voxel_size_for
+from vrnet_ext.geometry.preprocessing import coarse_in_float32, voxel_size_for
 
 PARTNER_VOXELS = 1.0
 CORRECT_VOXELS = 2.0

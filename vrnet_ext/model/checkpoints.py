@@ -10,9 +10,9 @@ suggests ``weights_only=False``, which would let the file run code.
 Two kinds of file are read:
 
 * a training checkpoint (``last.pt``, ``best.pt`` of ``vrnet train``): ``model``, ``config``
-  (the :class:`~vrnet_ext.train.TrainConfig` as a dict, ``config["model"]`` the model's), the
+  (the :class:`~vrnet_ext.learning.train.TrainConfig` as a dict, ``config["model"]`` the model's), the
   optimizer state and progress counters;
-* shipped weights (``vrnet_ext/weights/*.pt``, see :mod:`vrnet_ext.pretrained`): the same
+* shipped weights (``vrnet_ext/weights/*.pt``, see :mod:`vrnet_ext.model.pretrained`): the same
   ``model`` and ``config`` keys with float16 tensors, plus a ``card`` of metrics.
 """
 from __future__ import annotations
@@ -102,26 +102,4 @@ def model_from_state(state: dict, source: str) -> VRNet | SceneVRNet:
     return model
 
 
-def load_model(checkpoint: str | os.PathLike,
-               map_location: str | torch.device = "cpu") -> tuple[VRNet | SceneVRNet, dict]:
-    """(model in eval mode, checkpoint dict) from a checkpoint path or a shipped name
-    (:func:`vrnet_ext.pretrained.available`)."""
-    from vrnet_ext.pretrained import available, weights_path
-
-    path = weights_path(str(checkpoint)) if str(checkpoint) in available() else Path(checkpoint)
-    state = read_checkpoint(path, map_location)
-    model = model_from_state(state, str(path)).to(map_location)
-    return model.eval(), state
-
-
-def load_vrnet(checkpoint: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[VRNet, dict]:
-    """:func:`load_model` for commands that need a ModelNet40 :class:`VRNet` (eval, demo, tables):
-    a scene model is refused with an error that says where it belongs."""
-    model, state = load_model(checkpoint, map_location)
-    if isinstance(model, SceneVRNet):
-        raise CheckpointError(f"{checkpoint}: a scene model (for `vrnet register`), not a ModelNet40 VRNet")
-    return model, state
-
-
-__all__ = ["CheckpointError", "MODEL_LIMITS", "load_model", "load_vrnet", "model_from_state", "read_checkpoint",
-           "validate_model_config"]
+__all__ = ["CheckpointError", "MODEL_LIMITS", "model_from_state", "read_checkpoint", "validate_model_config"]

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 import torch
 from torch.nn import functional as F
 
-from vrnet_ext.metrics import correspondence_error
+from vrnet_ext.geometry.metrics import correspondence_error
 from vrnet_ext.model.vrnet import VRNetOutput
 from vrnet_ext.ops import kabsch, pairwise_distance_loss
-from vrnet_ext.transforms import move
+from vrnet_ext.geometry.transforms import move
 
 
 def rmse(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vrnet_ext.atomic import atomic_output
+from vrnet_ext.geometry.atomic import atomic_output
 
 MIN_POINTS = 3
 

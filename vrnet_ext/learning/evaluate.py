@@ -9,10 +9,10 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
-from vrnet_ext.losses import correspondence_loss
-from vrnet_ext.metrics import (chamfer_distance, correct_match_ratio, correspondence_error, euler_zyx_deg,
+from vrnet_ext.learning.losses import correspondence_loss
+from vrnet_ext.geometry.metrics import (chamfer_distance, correct_match_ratio, correspondence_error, euler_zyx_deg,
                                rotation_error_deg, summarize)
-from vrnet_ext.transforms import move
+from vrnet_ext.geometry.transforms import move
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.vrnet import robust_procrustes
 from vrnet_ext.ops import kabsch

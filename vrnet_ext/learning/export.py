@@ -1,95 +1,21 @@
-"""Shipped VRNet weights: ``load_pretrained(name=None)`` and the export that makes them.
-
-The files live in ``vrnet_ext/weights/`` as ``<name>.pt`` (float16 weights in the checkpoint layout
-of :mod:`vrnet_ext.checkpoints`, plus a ``card`` of the training facts and metrics) with a model
-card ``<name>.md`` beside each. Every model takes clouds as :meth:`VRNet.forward` does:
-``src (B, N, 3)``, ``tgt (B, M, 3)`` in the frame and scale of ModelNet40's unit-sphere shapes,
-and returns ``R src + t ~ tgt``.
-"""
+"""Shipped weights from training runs: ``vrnet export`` (float16 weights, the training config without
+local paths, a card of training facts and metrics, and the model card beside them)."""
 from __future__ import annotations
 
 import json
 import os
 from pathlib import Path
 
-import torch
-
-from vrnet_ext.atomic import save_atomically, write_text_atomically
-from vrnet_ext.model import VRNet
-
-WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-DEFAULT_MODEL = "vrnet-pv-upc-rcp"
-DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-kitchen"  # vrnet register --method vrnet (vrnet_ext.model.scene)
-FORMAT = "vrnet_ext.pretrained/1"
-
-
-KINDS = ("vrnet", "scene")
-
-
-def available(kind: str | None = None) -> list[str]:
-    """Names of the shipped models (``vrnet_ext/weights/<name>.pt``); ``kind``: only the ModelNet40
-    VRNets (``"vrnet"``) or only the scene models (``"scene"``, :mod:`vrnet_ext.model.scene`)."""
-    names = sorted(path.stem for path in WEIGHTS_DIR.glob("*.pt"))
-    if kind is None:
-        return names
-    if kind not in KINDS:
-        raise ValueError(f"kind must be one of {KINDS} or None, got {kind!r}")
-    from vrnet_ext.checkpoints import read_checkpoint
-    from vrnet_ext.model.scene import SCENE_FORMAT
-
-    def is_scene(name: str) -> bool:
-        return read_checkpoint(WEIGHTS_DIR / f"{name}.pt").get("format") == SCENE_FORMAT
-
-    return [name for name in names if is_scene(name) == (kind == "scene")]
-
-
-def model_for(setting: str, split: str) -> str | None:
-    """The shipped ModelNet40 VRNet for (setting, split) (``"PV"``, ``"UPC"``): the one trained for
-    exactly that setting, else one trained on every setting (``"mixed"``) for that split, else None."""
-    from vrnet_ext.checkpoints import read_checkpoint
-    from vrnet_ext.data.protocol import MIXED
-
-    trained_for = {}
-    for name in available("vrnet"):
-        config = read_checkpoint(WEIGHTS_DIR / f"{name}.pt")["config"]
-        trained_for.setdefault((config.get("setting"), config.get("split")), name)
-    return trained_for.get((setting, split)) or trained_for.get((MIXED, split))
-
-
-def weights_path(name: str) -> Path:
-    """The file of a shipped model; ValueError listing the names when ``name`` is not one."""
-    if name not in available():
-        raise ValueError(f"no shipped model named {name!r}; available: {available() or 'none'}")
-    return WEIGHTS_DIR / f"{name}.pt"
-
-
-def load_pretrained(name: str | None = None, device: str | torch.device = "cpu") -> VRNet:
-    """A shipped VRNet in eval mode, float32, on ``device``; ``name=None`` is the PV/UPC model.
-    A scene model's name (``DEFAULT_SCENE_MODEL``) returns a :class:`~vrnet_ext.model.scene.SceneVRNet`.
-
-    Example::
-
-        model = vrnet_ext.load_pretrained()
-        out = model(src, tgt)          # src (B, N, 3), tgt (B, M, 3), e.g. 768-point partial views
-        out.rotation, out.translation  # R src + t ~ tgt
-    """
-    from vrnet_ext.checkpoints import load_model
-
-    return load_model(weights_path(name or DEFAULT_MODEL), device)[0]
-
-
-def model_card(name: str | None = None) -> dict:
-    """The training facts and metrics stored with a shipped model."""
-    from vrnet_ext.checkpoints import read_checkpoint
-
-    return dict(read_checkpoint(weights_path(name or DEFAULT_MODEL)).get("card", {}))
+from vrnet_ext.geometry.atomic import save_atomically, write_text_atomically
+from vrnet_ext.model.checkpoints import model_from_state, read_checkpoint, validate_model_config
+from vrnet_ext.model.pretrained import DEFAULT_MODEL, FORMAT
+from vrnet_ext.model.scene import SCENE_FORMAT
 
 
 def training_facts(checkpoint: str | os.PathLike) -> dict:
     """What a model card says about training, read from a ``vrnet train`` checkpoint and the
     ``metrics.jsonl`` beside it: setting, split, preset, the selected epoch, steps, wall time and
     that epoch's validation metrics."""
-    from vrnet_ext.checkpoints import read_checkpoint
 
     state = read_checkpoint(checkpoint)
     config = state["config"]
@@ -113,7 +39,6 @@ def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike
     they are), the training config without local paths, and ``card`` (plain JSON values); and the
     model card ``<out_path>.md`` beside it (:func:`model_card_markdown`). ``model_overrides`` change
     inference-time fields of the model config (``procrustes_points``, ``irls_iterations``)."""
-    from vrnet_ext.checkpoints import read_checkpoint, validate_model_config
 
     state = read_checkpoint(checkpoint)
     weights = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
@@ -133,8 +58,6 @@ def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike
 def export_scene_model(run: str | os.PathLike, out_path: str | os.PathLike, card: dict) -> Path:
     """Writes a ``vrnet train-scene`` run as shipped weights (float16, the run's facts in the card)
     and its model card ``<out_path>.md``."""
-    from vrnet_ext.checkpoints import model_from_state, read_checkpoint
-    from vrnet_ext.model.scene import SCENE_FORMAT
 
     state = read_checkpoint(run)
     if state.get("format") != SCENE_FORMAT:
@@ -189,7 +112,3 @@ def model_card_markdown(name: str, config: dict, card: dict) -> str:
             lines += _table(card[key])
     lines += ["", "## Notes", ""] + [f"- {note}" for note in card.get("notes", [])]
     return "\n".join(lines) + "\n"
-
-
-__all__ = ["DEFAULT_MODEL", "DEFAULT_SCENE_MODEL", "available", "export_pretrained", "export_scene_model", "load_pretrained", "model_card", "model_card_markdown",
-           "training_facts", "weights_path"]

@@ -5,7 +5,7 @@ import numpy as np
 import torch
 
 from vrnet_ext.ops import knn
-from vrnet_ext.transforms import move
+from vrnet_ext.geometry.transforms import move
 
 
 def euler_zyx_deg(rotation: torch.Tensor | np.ndarray) -> np.ndarray:

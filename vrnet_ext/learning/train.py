@@ -39,16 +39,16 @@ from torch.utils.data import DataLoader
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
-from vrnet_ext.checkpoints import read_checkpoint, validate_model_config
+from vrnet_ext.model.checkpoints import read_checkpoint, validate_model_config
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
-from vrnet_ext.evaluate import evaluate, to_device
-from vrnet_ext.losses import HybridLossWeights, correspondence_loss, hybrid_loss
+from vrnet_ext.learning.evaluate import evaluate, to_device
+from vrnet_ext.learning.losses import HybridLossWeights, correspondence_loss, hybrid_loss
 from vrnet_ext.model import VRNet, VRNetConfig
-from vrnet_ext.plots import plot_metrics
+from vrnet_ext.learning.curves import plot_metrics
 from vrnet_ext.runtime import set_flush_denormal
-from vrnet_ext.atomic import save_atomically
-from vrnet_ext.warm_start import init_features_from, init_walk_from
-from vrnet_ext.train_config import FIELD_HELP, PRECISIONS, PRESETS, TrainConfig, preset_values  # noqa: F401
+from vrnet_ext.geometry.atomic import save_atomically
+from vrnet_ext.learning.warm_start import init_features_from, init_walk_from
+from vrnet_ext.learning.config import FIELD_HELP, PRECISIONS, PRESETS, TrainConfig, preset_values  # noqa: F401
 
 class _Run:
     """Distributed context: rank, world size, device."""

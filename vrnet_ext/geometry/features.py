@@ -1,0 +1,60 @@
+"""FPFH at a voxel size and feature matching: the descriptors of the FPFH-based estimators and of
+the scene model (:class:`ScanView`, :func:`describe`), and nearest-neighbour matches between two
+sets of descriptors."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from vrnet_ext import ops
+
+FEATURE_RADIUS_VOXELS = 5.0  # FPFH radius in voxels (Open3D's global registration tutorial)
+
+
+def voxel_fpfh(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
+    """FPFH (N, 33) of a cloud voxel-downsampled at ``voxel_size``, at Open3D's tutorial radii:
+    normals from 30 neighbours, features within 5 voxels."""
+    return ops.fpfh(points, ops.normals(points), FEATURE_RADIUS_VOXELS * voxel_size)
+
+
+@dataclass
+class ScanView:
+    """One downsampled scan: ``points`` (V, 3) in the scan's unit, ``voxel`` edge, FPFH (V, 33)."""
+
+    points: np.ndarray
+    voxel: float
+    descriptors: torch.Tensor
+
+    def network_points(self) -> torch.Tensor:
+        """(V, 3) float32 points in voxel units (the network's coordinates)."""
+        return torch.as_tensor(self.points / self.voxel, dtype=torch.float32)
+
+
+def describe(points: np.ndarray, voxel: float) -> ScanView:
+    """Voxel-downsampled points (V, 3) (sensor at the origin) -> :class:`ScanView` with FPFH."""
+    if len(points) < 3:
+        raise ValueError(f"points: need at least 3 points after downsampling, got {len(points)}")
+    descriptors = voxel_fpfh(torch.as_tensor(points, dtype=torch.float64), voxel)
+    return ScanView(points, voxel, descriptors.float())
+
+
+def nearest_both_ways(src_features: torch.Tensor, tgt_features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, F), (M, F) descriptors -> (each source point's nearest target (N,), each target point's
+    nearest source (M,)), through ``ops.knn``."""
+    _, forward = ops.knn(src_features[None], tgt_features[None], 1)
+    _, backward = ops.knn(tgt_features[None], src_features[None], 1)
+    return forward[0, :, 0], backward[0, :, 0]
+
+
+def mutual_matches(src_features: torch.Tensor, tgt_features: torch.Tensor) -> torch.Tensor:
+    """(N, F), (M, F) -> (C, 2) index pairs (i, j): j is i's nearest target feature and i is j's
+    nearest source feature. Falls back to every source point's nearest target feature when fewer
+    than 10 pairs are mutual."""
+    forward, backward = nearest_both_ways(src_features, tgt_features)
+    src_idx = torch.arange(src_features.shape[0], device=src_features.device)
+    mutual = backward[forward] == src_idx
+    if int(mutual.sum()) < 10:
+        mutual = torch.ones_like(mutual)
+    return torch.stack([src_idx[mutual], forward[mutual]], dim=1)

@@ -1,0 +1,100 @@
+"""Shipped weights and how models are found: ``load_pretrained(name=None)``, ``load_model(path or name)``.
+
+The files live in ``vrnet_ext/weights/`` as ``<name>.pt`` (float16 weights in the checkpoint layout
+of :mod:`vrnet_ext.model.checkpoints`, plus a ``card`` of the training facts and metrics) with a model
+card ``<name>.md`` beside each. Every model takes clouds as :meth:`VRNet.forward` does:
+``src (B, N, 3)``, ``tgt (B, M, 3)`` in the frame and scale of ModelNet40's unit-sphere shapes,
+and returns ``R src + t ~ tgt``.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from vrnet_ext.model import VRNet
+from vrnet_ext.model.checkpoints import CheckpointError, model_from_state, read_checkpoint
+from vrnet_ext.model.scene import SCENE_FORMAT, SceneVRNet
+
+WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
+DEFAULT_MODEL = "vrnet-pv-upc-rcp"
+DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-kitchen"  # vrnet register --method vrnet (vrnet_ext.model.scene)
+FORMAT = "vrnet_ext.pretrained/1"
+
+
+KINDS = ("vrnet", "scene")
+MIXED_SETTING = "mixed"  # the training setting of a model for every setting (vrnet_ext.data.protocol.MIXED)
+
+
+def available(kind: str | None = None) -> list[str]:
+    """Names of the shipped models (``vrnet_ext/weights/<name>.pt``); ``kind``: only the ModelNet40
+    VRNets (``"vrnet"``) or only the scene models (``"scene"``, :mod:`vrnet_ext.model.scene`)."""
+    names = sorted(path.stem for path in WEIGHTS_DIR.glob("*.pt"))
+    if kind is None:
+        return names
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS} or None, got {kind!r}")
+    def is_scene(name: str) -> bool:
+        return read_checkpoint(WEIGHTS_DIR / f"{name}.pt").get("format") == SCENE_FORMAT
+
+    return [name for name in names if is_scene(name) == (kind == "scene")]
+
+
+def model_for(setting: str, split: str) -> str | None:
+    """The shipped ModelNet40 VRNet for (setting, split) (``"PV"``, ``"UPC"``): the one trained for
+    exactly that setting, else one trained on every setting (``"mixed"``) for that split, else None."""
+    trained_for = {}
+    for name in available("vrnet"):
+        config = read_checkpoint(WEIGHTS_DIR / f"{name}.pt")["config"]
+        trained_for.setdefault((config.get("setting"), config.get("split")), name)
+    return trained_for.get((setting, split)) or trained_for.get((MIXED_SETTING, split))
+
+
+def weights_path(name: str) -> Path:
+    """The file of a shipped model; ValueError listing the names when ``name`` is not one."""
+    if name not in available():
+        raise ValueError(f"no shipped model named {name!r}; available: {available() or 'none'}")
+    return WEIGHTS_DIR / f"{name}.pt"
+
+
+def load_pretrained(name: str | None = None, device: str | torch.device = "cpu") -> VRNet:
+    """A shipped VRNet in eval mode, float32, on ``device``; ``name=None`` is the PV/UPC model.
+    A scene model's name (``DEFAULT_SCENE_MODEL``) returns a :class:`~vrnet_ext.model.scene.SceneVRNet`.
+
+    Example::
+
+        model = vrnet_ext.load_pretrained()
+        out = model(src, tgt)          # src (B, N, 3), tgt (B, M, 3), e.g. 768-point partial views
+        out.rotation, out.translation  # R src + t ~ tgt
+    """
+    return load_model(weights_path(name or DEFAULT_MODEL), device)[0]
+
+
+def model_card(name: str | None = None) -> dict:
+    """The training facts and metrics stored with a shipped model."""
+
+    return dict(read_checkpoint(weights_path(name or DEFAULT_MODEL)).get("card", {}))
+
+
+def load_model(checkpoint: str | os.PathLike,
+               map_location: str | torch.device = "cpu") -> tuple[VRNet | SceneVRNet, dict]:
+    """(model in eval mode, checkpoint dict) from a checkpoint path or a shipped name
+    (:func:`vrnet_ext.model.pretrained.available`)."""
+    path = weights_path(str(checkpoint)) if str(checkpoint) in available() else Path(checkpoint)
+    state = read_checkpoint(path, map_location)
+    model = model_from_state(state, str(path)).to(map_location)
+    return model.eval(), state
+
+
+def load_vrnet(checkpoint: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[VRNet, dict]:
+    """:func:`load_model` for commands that need a ModelNet40 :class:`VRNet` (eval, demo, tables):
+    a scene model is refused with an error that says where it belongs."""
+    model, state = load_model(checkpoint, map_location)
+    if isinstance(model, SceneVRNet):
+        raise CheckpointError(f"{checkpoint}: a scene model (for `vrnet register`), not a ModelNet40 VRNet")
+    return model, state
+
+
+__all__ = ["DEFAULT_MODEL", "DEFAULT_SCENE_MODEL", "available", "load_model", "load_pretrained", "load_vrnet",
+           "model_card", "model_for", "weights_path"]
