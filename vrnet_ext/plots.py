@@ -12,6 +12,16 @@ from vrnet_ext.geometry.atomic import atomic_output  # noqa: E402
 from vrnet_ext.geometry.transforms import apply  # noqa: E402
 
 
+def _save(fig, path: str | Path, dpi: int) -> Path:
+    """Writes ``fig`` to ``path`` atomically and closes it."""
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_output(path) as temporary:
+        fig.savefig(temporary, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def plot_registration(src, tgt, transforms: dict, path: str | Path, max_points: int = 20000, seed: int = 0) -> Path:
     """Top and side views of the target (grey) with the source moved by each named 4x4 transform.
 
@@ -37,12 +47,7 @@ def plot_registration(src, tgt, transforms: dict, path: str | Path, max_points: 
             ax.set_aspect("equal")
             ax.set_title(f"{label}: {title}")
             ax.legend(loc="upper right", markerscale=20)
-    fig.tight_layout()
-    path = Path(path)
-    with atomic_output(path) as temporary:
-        fig.savefig(temporary, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi=110)
 
 
 def plot_pair(src, tgt, truth, vcp, rcp, estimate, path: str | Path, title: str = "") -> Path:
@@ -77,9 +82,4 @@ def plot_pair(src, tgt, truth, vcp, rcp, estimate, path: str | Path, title: str 
         ax.set_title(panel_title, fontsize=10)
         ax.set_xticklabels([]); ax.set_yticklabels([]); ax.set_zticklabels([])
     fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    with atomic_output(path) as temporary:
-        fig.savefig(temporary, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi=100)
