@@ -16,6 +16,7 @@ import torch
 from vrnet_ext.data import PairSpec, load_h5, make_pair
 from vrnet_ext.data.procedural import chair
 from vrnet_ext.geometry.metrics import rotation_error_deg, translation_error
+from vrnet_ext.geometry.transforms import move
 from vrnet_ext.model import VRNet
 from vrnet_ext.ops import kabsch
 
@@ -70,8 +71,8 @@ def run_demo(model: VRNet, pairs: int = 4, seed: int = 0, data_dir: str | Path |
         row = rows[0]
         title = (f"pair 0 ({origin.split(' of ')[0]}): true motion {row['true_angle_deg']:.1f} deg; "
                  f"error {row['rotation_error_deg']:.2f} deg / {row['translation_error']:.3f}")
-        result["plot"] = str(plot_pair(pair["src"], pair["tgt"], pair["src"] @ R_gt.T + t_gt, out.vcp[0].numpy(),
-                                       out.rcp[0].numpy(), pair["src"] @ R.T + t, plot_path, title))
+        result["plot"] = str(plot_pair(pair["src"], pair["tgt"], move(pair["src"], R_gt, t_gt), out.vcp[0].numpy(),
+                                       out.rcp[0].numpy(), move(pair["src"], R, t), plot_path, title))
     return result
 
 

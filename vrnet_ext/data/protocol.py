@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vrnet_ext.geometry.transforms import move
+
 SETTINGS = ("CO", "PV", "RS", "PV+RS")  # the paper's
 MIXED = "mixed"  # one of SETTINGS per pair
 FAR_POINTS = ("prnet", "sphere", "mixed")
@@ -106,7 +108,7 @@ def make_pair(base: np.ndarray, spec: PairSpec, rng: np.random.Generator) -> dic
         if setting == "CO":
             base = base[np.sort(rng.choice(base.shape[0], spec.num_subsampled, replace=False))]
     rotation, translation, euler = random_motion(rng, spec.max_angle_deg, spec.max_translation)
-    moved = base @ rotation.T + translation
+    moved = move(base, rotation, translation)
     scheme = spec.far_points if spec.far_points != "mixed" else ("prnet", "sphere")[int(rng.integers(2))]
     src_keep = select(base, spec, setting, rng, (1, -1), scheme)
     tgt_keep = select(moved, spec, setting, rng, (1, -1, 2, -2), scheme)

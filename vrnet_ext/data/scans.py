@@ -15,6 +15,7 @@ import torch
 
 from vrnet_ext.geometry.features import ScanView, describe
 from vrnet_ext.geometry.preprocessing import voxel_downsample
+from vrnet_ext.geometry.transforms import move
 
 @dataclass
 class ScanPair:
@@ -31,7 +32,7 @@ def _slab(points: np.ndarray, direction: np.ndarray, low: float, high: float) ->
 
 def _view(points: np.ndarray, rotation: np.ndarray, voxel: float, rng: np.random.Generator) -> np.ndarray:
     shift = rng.uniform(0.0, voxel, 3)
-    return voxel_downsample(points @ rotation.T + shift, voxel) - shift
+    return voxel_downsample(move(points, rotation, shift), voxel) - shift
 
 
 def synthetic_pair(scan: np.ndarray, voxel: float, rng: np.random.Generator) -> ScanPair:
