@@ -74,6 +74,14 @@ def test_readme_results_table_is_rendered_from_its_json():
     assert render(record) in text
 
 
+def test_benchmarks_page_is_rendered_from_the_results_folder():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from benchmarks_page import render
+
+    assert (ROOT / "docs" / "benchmarks.md").read_text() == render(), \
+        "regenerate: python benchmarks/benchmarks_page.py > docs/benchmarks.md"
+
+
 def test_ops_reference_covers_every_op():
     """Every public op has a signature line and a table row in docs/ops.md, and a docstring."""
     from vrnet_ext import ops

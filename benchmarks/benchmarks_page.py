@@ -1,0 +1,79 @@
+"""docs/benchmarks.md, assembled from benchmarks/results/ (never edited by hand).
+
+    python benchmarks/benchmarks_page.py > docs/benchmarks.md
+
+Newest results first. A result the benchmark wrote as Markdown beside its JSON is included as it
+is; op timings (lists of bench_ops.py records) become one table per file, each op's implementations
+side by side with their ratio to the pure-PyTorch reference. tests/test_docs.py checks that
+docs/benchmarks.md is exactly this rendering of the results folder.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+TITLES = {  # file stem (without a numbered suffix) -> what wrote it
+    "real_pairs": "Real scan pairs (`bench_real_pairs.py`)",
+    "real_pairs_turned": "Real scan pairs turned by a further rotation (`bench_real_pairs.py --extra-rotation`)",
+    "modelnet40_tables": "ModelNet40 tables (`modelnet40_tables.py`)",
+    "modelnet40_tables_nd": "ModelNet40 tables, noisy data (`modelnet40_tables.py`)",
+    "modelnet40_tables_uc": "ModelNet40 tables, unseen categories (`modelnet40_tables.py`)",
+    "memory_plan": "Memory planner: predicted vs measured peaks (`bench_memory_plan.py`)",
+    "memory_plan_scene": "Memory planner, scene model (`bench_memory_plan.py --methods vrnet vrnet-large`)",
+    "large": "Large scenes under memory budgets (`bench_large_scene.py`)",
+    "register": "Registration against Open3D and small_gicp (`bench_register.py`)",
+    "register_lidar": "Registration, LiDAR pair (`bench_register.py`)",
+    "register_lidar7": "Registration, LiDAR pair (`bench_register.py`)",
+    "register_gicp": "Registration with GICP (`bench_register.py`)",
+    "ops": "Op timings (`bench_ops.py`)",
+    "busy": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
+    "busy_1": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
+    "busy_2": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
+    "edgeconv": "EdgeConv timings (`bench_ops.py`)",
+}
+
+
+def op_table(records: list[dict]) -> str:
+    """bench_ops.py records -> one row per (op, case, implementation), with the ratio to the
+    reference implementation of the same case."""
+    reference = {(r["op"], r["case"]): r["median_s"] for r in records if r["impl"] == "torch"}
+    lines = ["| op | case | implementation | median (ms) | peak (MB) | vs reference |", "|---|---|---|---:|---:|---:|"]
+    for r in records:
+        ref = reference.get((r["op"], r["case"]))
+        ratio = f"{ref / r['median_s']:.2f}x" if ref and r["median_s"] else "–"
+        peak = f"{r['peak_mb']:.1f}" if isinstance(r.get("peak_mb"), (int, float)) else "–"
+        median = f"{1000 * r['median_s']:.3f}" if isinstance(r.get("median_s"), (int, float)) else "–"
+        lines.append(f"| {r['op']} | {r['case']} | {r['impl']} | {median} | {peak} | {ratio} |")
+    first = records[0]
+    lines.insert(0, f"{first.get('cpu_count', '?')} CPUs, {first.get('threads', '?')} threads, torch "
+                    f"{first.get('torch', '?')}, device {first.get('device', 'cpu')}"
+                    f"{', beside a busy process' if first.get('beside_busy') else ''}.\n")
+    return "\n".join(lines)
+
+
+def section(json_path: Path) -> str:
+    title = TITLES.get(json_path.stem, json_path.stem)
+    link = f"[{json_path.name}](../{json_path.relative_to(RESULTS.parents[1]).as_posix()})"
+    markdown = json_path.with_suffix(".md")
+    if markdown.exists():
+        body = markdown.read_text().strip()
+    else:
+        data = json.loads(json_path.read_text())
+        body = op_table(data) if isinstance(data, list) and data and "op" in data[0] else f"(see {link})"
+    return f"### {title}\n\nFrom {link}.\n\n{body}\n"
+
+
+def render() -> str:
+    parts = ["# Benchmarks", "",
+             "Every table below is generated from `benchmarks/results/` by `benchmarks/benchmarks_page.py`; "
+             "each names the JSON it comes from and the script that measured it. Newest first.", ""]
+    for folder in sorted((p for p in RESULTS.iterdir() if p.is_dir()), reverse=True):
+        parts += [f"## {folder.name}", ""]
+        for json_path in sorted(folder.glob("*.json")):
+            parts.append(section(json_path))
+    return "\n".join(parts).rstrip() + "\n"
+
+
+if __name__ == "__main__":
+    print(render(), end="")
