@@ -2,6 +2,7 @@
 bash), unless the line before it says ``<!-- not run: REASON -->``; the README stays short."""
 from __future__ import annotations
 
+import ast
 import json
 import re
 import subprocess
@@ -86,7 +87,21 @@ def test_ops_reference_covers_every_op():
     """Every public op has a signature line and a table row in docs/ops.md, and a docstring."""
     from vrnet_ext import ops
 
+    import inspect
+
     text = (ROOT / "docs" / "ops.md").read_text()
     for name in ops.__all__:
         assert f"ops.{name}(" in text and f"| `{name}` |" in text, f"docs/ops.md does not describe {name}"
         assert (getattr(ops, name).__doc__ or "").strip(), f"ops.{name} has no docstring"
+    # the signature lines name the op's real parameters, in order, with its real defaults
+    for line in re.findall(r"ops\.\w+\(.*", text):
+        call = line.split("#")[0].strip()
+        if "..." in call or "<name>" in call:
+            continue
+        node = ast.parse(call, mode="eval").body
+        name = node.func.attr
+        parameters = list(inspect.signature(getattr(ops, name)).parameters.values())
+        assert [a.id for a in node.args] == [p.name for p in parameters[:len(node.args)]], (name, call)
+        for keyword in node.keywords:
+            default = next(p.default for p in parameters if p.name == keyword.arg)
+            assert ast.literal_eval(keyword.value) == default, (name, keyword.arg)
