@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import MODELNET_DIR, requires_modelnet
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -73,3 +75,13 @@ def test_bench_memory_plan_predicts_at_least_the_measured_peak(tmp_path):
     assert [r["counts"] for r in rows] == ["default", "smallest", "large"]
     for row in rows:  # a budget the plan accepts must hold: no prediction below the measured peak
         assert row["predicted_mb"] >= row["peak_mb"], row
+
+
+@requires_modelnet
+@pytest.mark.parametrize("ablation", ["iterations", "outliers", "matches", "ransac"])
+def test_ablations_write_json_and_png(tmp_path, ablation):
+    run([str(ROOT / "benchmarks" / "ablations.py"), ablation, "--max-items", "2", "--batch-size", "2",
+         "--data-dir", str(MODELNET_DIR), "--out-dir", str(tmp_path)], tmp_path)
+    result = json.loads((tmp_path / f"ablation_{ablation}.json").read_text())
+    assert result["pairs"] == 2 and len(result["rows"]) == (6 if ablation == "iterations" else 5)
+    assert (tmp_path / f"ablation_{ablation}.png").stat().st_size > 10_000

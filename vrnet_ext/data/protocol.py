@@ -7,7 +7,9 @@
   CO all points; PV the ``num_subsampled`` points nearest to a random far point
   (``far_points="prnet"``, the paper's: U[0,1]^3 + 500 s (1,1,1), s in {1,-1} for the source and
   {1,-1,2,-2} for the target, so every view looks along the diagonal; ``"sphere"``: 500 times a
-  uniformly random direction, drawn for each cloud; ``"mixed"``: one of the two per pair, at random);
+  uniformly random direction, drawn for each cloud; ``"mixed"``: one of the two per pair, at random;
+  ``"symmetric"``: the source's far point as PRNet's, the target's at its mirror image through the
+  origin, as in the paper's ablations: more partiality and more outliers);
   RS ``num_subsampled`` random points per cloud; PV+RS first ``pvrs_presample`` random points,
   then the PV crop of those. ``"mixed"`` (for training one model for every setting) draws one of
   the four per pair; its CO pairs keep a random ``num_subsampled`` of the shape's points (the same
@@ -27,7 +29,7 @@ from vrnet_ext.geometry.transforms import move
 
 SETTINGS = ("CO", "PV", "RS", "PV+RS")  # the paper's
 MIXED = "mixed"  # one of SETTINGS per pair
-FAR_POINTS = ("prnet", "sphere", "mixed")
+FAR_POINTS = ("prnet", "sphere", "mixed", "symmetric")
 
 
 @dataclass
@@ -80,18 +82,19 @@ def nearest_to_far_point(points: np.ndarray, count: int, far: np.ndarray) -> np.
 
 
 def select(points: np.ndarray, spec: PairSpec, setting: str, rng: np.random.Generator, scales,
-           scheme: str) -> np.ndarray:
+           scheme: str, far: np.ndarray | None = None) -> np.ndarray:
     """Indices kept by ``setting``'s crop (one of SETTINGS), in ascending order (``scheme``: "prnet" or
-    "sphere")."""
+    "sphere"; ``far``: the partial view's far point when it is fixed beforehand)."""
     n = points.shape[0]
     if setting == "CO":
         return np.arange(n)
     if setting == "RS":
         return np.sort(rng.choice(n, spec.num_subsampled, replace=False))
     if setting == "PV":
-        return nearest_to_far_point(points, spec.num_subsampled, far_point(rng, scheme, scales))
+        return nearest_to_far_point(points, spec.num_subsampled, far if far is not None else far_point(rng, scheme, scales))
     pre = np.sort(rng.choice(n, spec.pvrs_presample, replace=False))
-    return pre[nearest_to_far_point(points[pre], spec.num_subsampled, far_point(rng, scheme, scales))]
+    far = far if far is not None else far_point(rng, scheme, scales)
+    return pre[nearest_to_far_point(points[pre], spec.num_subsampled, far)]
 
 
 def jitter(points: np.ndarray, rng: np.random.Generator, sigma: float = 0.01, clip: float = 0.05) -> np.ndarray:
@@ -110,8 +113,13 @@ def make_pair(base: np.ndarray, spec: PairSpec, rng: np.random.Generator) -> dic
     rotation, translation, euler = random_motion(rng, spec.max_angle_deg, spec.max_translation)
     moved = move(base, rotation, translation)
     scheme = spec.far_points if spec.far_points != "mixed" else ("prnet", "sphere")[int(rng.integers(2))]
-    src_keep = select(base, spec, setting, rng, (1, -1), scheme)
-    tgt_keep = select(moved, spec, setting, rng, (1, -1, 2, -2), scheme)
+    if scheme == "symmetric":
+        far = far_point(rng, "prnet", (1, -1))
+        src_keep = select(base, spec, setting, rng, (1, -1), scheme, far)
+        tgt_keep = select(moved, spec, setting, rng, (1, -1), scheme, -far)
+    else:
+        src_keep = select(base, spec, setting, rng, (1, -1), scheme)
+        tgt_keep = select(moved, spec, setting, rng, (1, -1, 2, -2), scheme)
     src_keep = src_keep[rng.permutation(src_keep.size)]
     tgt_keep = tgt_keep[rng.permutation(tgt_keep.size)]
     row_in_tgt = np.full(base.shape[0], -1, dtype=np.int64)
