@@ -31,6 +31,10 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "busy_1": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
     "busy_2": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
     "edgeconv": "EdgeConv timings (`bench_ops.py`)",
+    "ablation_iterations": "Ablation: VRNet with iterations (`ablations.py iterations`)",
+    "ablation_outliers": "Ablation: robustness to outliers (`ablations.py outliers`)",
+    "ablation_matches": "Ablation: correct matches vs outlier ratio (`ablations.py matches`)",
+    "ablation_ransac": "Ablation: RANSAC vs the correction walk (`ablations.py ransac`)",
 }
 
 
@@ -52,15 +56,45 @@ def op_table(records: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def ablation_table(result: dict) -> str:
+    """benchmarks/ablations.py JSON -> a table: one row per iteration count or per outlier ratio."""
+    rows = result["rows"]
+    lines = [f"{result['pairs']} ModelNet40 PV/UPC test pairs, model `{result['model']}`, {result['date']}, "
+             f"{result['machine']}.", ""]
+    if "iterations" in rows[0]:
+        lines += ["| iterations | RMSE(R) | MAE(R) | RMSE(t) | MAE(t) | ms / pair | paper RMSE(R) | paper RMSE(t) |",
+                  "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        lines += [f"| {r['iterations']} | {r['RMSE(R)']:.4g} | {r['MAE(R)']:.4g} | {r['RMSE(t)']:.4g} | "
+                  f"{r['MAE(t)']:.4g} | {r['ms_per_pair']:.1f} | {r['paper']['RMSE(R)']} | {r['paper']['RMSE(t)']} |"
+                  for r in rows]
+    elif "correct_match_ratio" in rows[0]:
+        keys = list(rows[0]["correct_match_ratio"])
+        lines += ["| points | outlier ratio | " + " | ".join(keys) + " |", "|---:|---:|" + "---:|" * len(keys)]
+        lines += [f"| {r['points']} | {100 * r['outlier_ratio']:.1f} % | "
+                  + " | ".join(f"{r['correct_match_ratio'][k]:.3f}" for k in keys) + " |" for r in rows]
+    else:
+        methods = list(rows[0]["methods"])
+        lines += ["| points | outlier ratio | " + " | ".join(f"{m} RMSE(R) / RMSE(t)" for m in methods) + " |",
+                  "|---:|---:|" + "---:|" * len(methods)]
+        lines += [f"| {r['points']} | {100 * r['outlier_ratio']:.1f} % | "
+                  + " | ".join(f"{r['methods'][m]['RMSE(R)']:.3g} / {r['methods'][m]['RMSE(t)']:.3g}" for m in methods)
+                  + " |" for r in rows]
+    return "\n".join(lines)
+
+
 def section(json_path: Path) -> str:
     title = TITLES.get(json_path.stem, json_path.stem)
     link = f"[{json_path.name}](../{json_path.relative_to(RESULTS.parents[1]).as_posix()})"
-    markdown = json_path.with_suffix(".md")
+    markdown, picture = json_path.with_suffix(".md"), json_path.with_suffix(".png")
     if markdown.exists():
         body = markdown.read_text().strip()
+    elif json_path.stem.startswith("ablation_"):
+        body = ablation_table(json.loads(json_path.read_text()))
     else:
         data = json.loads(json_path.read_text())
         body = op_table(data) if isinstance(data, list) and data and "op" in data[0] else f"(see {link})"
+    if picture.exists():
+        body += f"\n\n![{json_path.stem}](../{picture.relative_to(RESULTS.parents[1]).as_posix()})"
     return f"### {title}\n\nFrom {link}.\n\n{body}\n"
 
 
