@@ -4,7 +4,8 @@
                                             [--methods vrnet vcp icp fpfh] [--json tables.json] [--markdown tables.md]
 
 For every model (a shipped name or a checkpoint path; default: every shipped model) the setting and
-split it was trained for define the test pairs: ``ModelNet40Pairs(partition="test")`` with seed
+split it was trained for (every setting of its split for a model trained on ``mixed`` settings, or
+those of ``--settings``) define the test pairs: ``ModelNet40Pairs(partition="test")`` with seed
 1234, the same deterministic pairs for every method. Methods:
 
 * ``vrnet``: the model's own estimate (RCPs, weighted when the model has a confidence head);
@@ -36,6 +37,7 @@ from tqdm import tqdm
 
 from vrnet_ext.model.pretrained import load_vrnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
+from vrnet_ext.data.protocol import MIXED, SETTINGS
 from vrnet_ext.registration.ransac import fpfh_ransac
 from vrnet_ext.geometry.metrics import summarize
 from vrnet_ext.ops import kabsch
@@ -68,12 +70,6 @@ PAPER = {
                        "DCP-v2": (5.818, 3.399, 0.0184, 0.0138), "PRNet": (4.924, 2.573, 0.0162, 0.0112),
                        "VRNet": (1.109, 0.513, 0.0037, 0.0023)},
 }
-
-
-def _as_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
 
 
 def network_estimates(model, data, batch_size: int, methods) -> dict:
@@ -115,11 +111,21 @@ def classical_estimates(data, method: str, icp_max_distance: float, fpfh_voxel: 
     return np.stack(rotations), np.stack(translations), seconds, failures
 
 
-def evaluate_model(name: str, args) -> dict:
-    model, state = load_vrnet(name)
-    config = state["config"]
+def cells_of(config: dict) -> list[tuple[str, str]]:
+    """The (setting, split) cells a model serves: its own, or every setting for a mixed-setting model."""
     setting, split = config.get("setting", "PV"), config.get("split", "UPC")
-    spec = PairSpec(num_points=config.get("num_points", 1024), num_subsampled=config.get("num_subsampled", 768))
+    return [(s, split) for s in SETTINGS] if setting == MIXED else [(setting, split)]
+
+
+def evaluate_model(name: str, args) -> list[dict]:
+    model, state = load_vrnet(name)
+    return [evaluate_cell(name, model, state["config"], setting, split, args)
+            for setting, split in cells_of(state["config"]) if not args.settings or setting in args.settings]
+
+
+def evaluate_cell(name: str, model, config: dict, setting: str, split: str, args) -> dict:
+    spec = PairSpec(setting=setting, num_points=config.get("num_points", 1024),
+                    num_subsampled=config.get("num_subsampled", 768))
     data = ModelNet40Pairs(args.data_dir, partition="test", setting=setting, split=split, max_items=args.max_items,
                            seed=1234, spec=spec)
     gt_R = np.stack([data[i]["rotation"].double().numpy() for i in range(len(data))])
@@ -162,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--models", nargs="+", default=None, help="shipped names or checkpoints (default: every shipped ModelNet40 VRNet)")
     parser.add_argument("--data-dir", default=None, help="folder of modelnet40_1024_test.h5 (default: ../shared)")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
+    parser.add_argument("--settings", nargs="+", choices=SETTINGS, default=None,
+                        help="only these settings of the models' cells (default: every cell a model serves)")
     parser.add_argument("--max-items", type=int, default=None, help="first N test shapes only (default: all)")
     parser.add_argument("--batch-size", type=int, default=16)
     parser.add_argument("--icp-max-distance", type=float, default=1.0)
@@ -173,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     if not models:
         print("modelnet40_tables: no shipped model and no --models given", file=sys.stderr)
         return 2
-    results = [evaluate_model(name, args) for name in models]
+    results = [cell for name in models for cell in evaluate_model(name, args)]
     machine = f"{platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
     Path(args.json).write_text(json.dumps({"machine": machine, "results": results}, indent=1))
     Path(args.markdown).write_text(markdown(results, machine))
