@@ -1,0 +1,126 @@
+"""Argument types and helpers shared by the ``vrnet`` commands: each checks its value before any
+work starts and names what is wrong."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from pathlib import Path
+
+
+def parse_bool(text: str) -> bool:
+    value = text.strip().lower()
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected 1/0/true/false, got {text!r}")
+
+
+def int_at_least(low: int):
+    """An argparse type: an integer >= ``low``, with an error that says so."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {value}")
+        return value
+
+    parse.__name__ = f"integer >= {low}"
+    return parse
+
+
+positive_int = int_at_least(1)
+
+
+nonnegative_int = int_at_least(0)
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
+    return value
+
+
+def memory_size(text: str) -> int:
+    """A memory size such as 2GB, 512MB, 1.5G or a plain byte count -> bytes."""
+    from vrnet_ext.registration.budget import parse_memory_size
+
+    try:
+        return parse_memory_size(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def device_name(text: str) -> str:
+    """A device name torch knows and this machine has (checked before any work starts)."""
+    import torch
+
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        raise argparse.ArgumentTypeError(f"not a device name: {text!r} (e.g. cpu, cuda, cuda:1)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise argparse.ArgumentTypeError(f"{text!r}: no CUDA device is available here")
+    if device.type not in ("cpu", "cuda"):
+        raise argparse.ArgumentTypeError(f"{text!r}: only cpu and cuda devices are supported")
+    return text
+
+
+def train_device(text: str) -> str:
+    """``auto`` (CUDA when there is one) or a device of :func:`device_name`."""
+    return text if text == "auto" else device_name(text)
+
+
+def output_folder(text: str) -> str:
+    """A folder to create or fill: not an existing file, and under a writable existing ancestor."""
+    path = Path(text).expanduser().resolve()
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a file; give a folder")
+    ancestor = next(p for p in (path, *path.parents) if p.exists())
+    if not ancestor.is_dir() or not os.access(ancestor, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text!r}: {ancestor} is not a writable folder")
+    return text
+
+
+def writable_path(text: str) -> str:
+    """An output file whose folder exists and is writable, and that is not a folder itself (checked
+    before the work, not after it)."""
+    path = Path(text).expanduser().resolve()
+    if not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r}: the folder {path.parent} does not exist")
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a folder; give a file name")
+    if not os.access(path.parent, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text!r}: the folder {path.parent} is not writable")
+    return text
+
+
+MAX_VIEW_POINTS = 200_000  # train-scene: the InfoNCE matrix grows as the square of the view's points
+
+
+def view_points(text: str) -> int:
+    value = positive_int(text)
+    if value > MAX_VIEW_POINTS:
+        raise argparse.ArgumentTypeError(f"{value} is more than {MAX_VIEW_POINTS} points per view (memory grows "
+                                         f"as its square)")
+    return value
+
+
+DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNET_DATA/modelnet40, "
+                 "else ../shared/data/modelnet40 beside the project)")
+
+
+def write_json(path: str | Path, record: dict) -> None:
+    from vrnet_ext.geometry.atomic import atomic_output
+
+    with atomic_output(path) as temporary:
+        temporary.write_text(json.dumps(record, indent=1))
+    print(f"wrote {path}")

@@ -1,0 +1,175 @@
+"""``vrnet register`` and ``vrnet demo``."""
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+from pathlib import Path
+
+from vrnet_ext.cli.common import (device_name, memory_size, nonnegative_int, positive_float, positive_int,
+                                  writable_path, write_json)
+
+
+def add_register(sub) -> None:
+    from vrnet_ext.registration.global_estimators import DEFAULT_METHOD, GLOBAL_ESTIMATORS
+
+    p = sub.add_parser(
+        "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
+        description="Estimates the rigid transform taking SOURCE onto TARGET: a global estimate (--method sc2: "
+                    "FPFH matches filtered by spatial consistency, the default; --method fpfh: FPFH + RANSAC; "
+                    "--method vrnet: the shipped scene model, FPFH descriptors under VRNet's head, or --checkpoint, "
+                    "with ICP also started from sc2's estimate and the better fit kept; --method fgr: FPFH + Fast "
+                    "Global Registration; --method icp: none), refined by ICP (--estimator) on voxel-downsampled "
+                    "clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform (source -> "
+                    "target); --json, --out and --plot write the result, the moved source and a picture.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("source", help="point-cloud file to move")
+    p.add_argument("target", help="point-cloud file to align to (same unit)")
+    p.add_argument("--method", choices=GLOBAL_ESTIMATORS, default=argparse.SUPPRESS,
+                   help=f"global estimate (default: {DEFAULT_METHOD}, the best recall on the real pairs of "
+                        f"benchmarks/bench_real_pairs.py; vrnet when --checkpoint is given, fpfh with --fpfh)")
+    initial = p.add_mutually_exclusive_group()
+    initial.add_argument("--checkpoint", default=None,
+                         help="with --method vrnet: shipped model name or checkpoint (a scene model of `vrnet "
+                              "train-scene`, or best.pt of `vrnet train`); default: the shipped scene model")
+    initial.add_argument("--fpfh", action="store_true", help="the same as --method fpfh")
+    p.add_argument("--global-points", "--fpfh-points", dest="global_points", type=positive_int, default=5000,
+                   help="about this many points per scan for the global estimate (scene model, FPFH)")
+    p.add_argument("--max-memory", type=memory_size, default=None,
+                   help="peak memory budget of the whole run, e.g. 2GB or 512MB: sizes the point counts "
+                        "and fails at once if the budget cannot be met")
+    p.add_argument("--network-points", type=positive_int, default=1024, help="points per cloud fed to VRNet")
+    p.add_argument("--icp-points", type=positive_int, default=50_000,
+                   help="about this many points per cloud for ICP")
+    p.add_argument("--voxel-size", type=positive_float, default=None,
+                   help="ICP voxel edge, in the scans' unit (default: from --icp-points)")
+    p.add_argument("--max-distance", type=positive_float, default=None,
+                   help="ICP inlier reach, in the scans' unit (default: 3 voxels)")
+    p.add_argument("--icp-iterations", type=nonnegative_int, default=50, help="0: no ICP")
+    p.add_argument("--icp-tolerance", type=positive_float, default=1e-4,
+                   help="ICP stops when a step moves the transform by less (radians; the scans' unit)")
+    p.add_argument("--coarse-start", action=argparse.BooleanOptionalAction, default=True,
+                   help="ICP from no motion first runs on 4x coarser voxels with a 4x longer reach")
+    p.add_argument("--estimator", choices=("point_to_point", "point_to_plane", "gicp"), default="point_to_plane",
+                   help="ICP step: point-to-point (Kabsch), point-to-plane, or plane-to-plane (GICP)")
+    p.add_argument("--gt", default=None, help="ground-truth 4x4 transform file: report the errors")
+    p.add_argument("--json", type=writable_path, default=None, help="write the result here")
+    p.add_argument("--out", type=writable_path, default=None, help="write the moved source as a PLY here")
+    p.add_argument("--plot", type=writable_path, default=None, help="write top/side views (PNG) here")
+    p.add_argument("--backend", choices=("ext", "torch"), default="ext",
+                   help="ext: the compiled kernels; torch: the pure-PyTorch references")
+    p.add_argument("--device", type=device_name, default="cpu", help="torch device to run on, e.g. cpu or cuda")
+    p.add_argument("--seed", type=int, default=0, help="seed of the global estimate's sampling")
+
+
+INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "sc2": "FPFH + spatial consistency", "fgr": "FPFH + FGR",
+                 "icp": "identity"}
+
+
+def run_register(args) -> int:
+    import numpy as np
+
+    from vrnet_ext.geometry.io import read_points, read_transform, write_ply
+    from vrnet_ext.model.pretrained import DEFAULT_SCENE_MODEL
+    from vrnet_ext.registration import IcpSettings, register, transform_errors
+    from vrnet_ext.registration.global_estimators import DEFAULT_METHOD
+    from vrnet_ext.geometry.transforms import apply
+
+    if args.max_memory is not None:
+        from vrnet_ext.registration.budget import require_headroom
+
+        require_headroom(args.max_memory)
+    method = getattr(args, "method", None) or ("fpfh" if args.fpfh else "vrnet" if args.checkpoint else DEFAULT_METHOD)
+    if args.fpfh and method != "fpfh" or args.checkpoint and method != "vrnet":
+        raise ValueError(f"--method {method} does not take {'--fpfh' if args.fpfh else '--checkpoint'}")
+    model = None
+    if method == "vrnet":  # before the scans: a bad checkpoint fails at once
+        from vrnet_ext.model.pretrained import load_model
+
+        model = load_model(args.checkpoint or DEFAULT_SCENE_MODEL, args.device)[0]
+    src, tgt = read_points(args.source), read_points(args.target)
+    truth = read_transform(args.gt) if args.gt else None
+    icp_settings = IcpSettings(estimator=args.estimator, points=args.icp_points, voxel_size=args.voxel_size,
+                               max_distance=args.max_distance, max_iterations=args.icp_iterations,
+                               transform_tolerance=args.icp_tolerance, coarse_start=args.coarse_start)
+    result = register(src, tgt, method=method, model=model, global_points=args.global_points,
+                      network_points=args.network_points, icp_settings=icp_settings, seed=args.seed,
+                      device=args.device, backend=args.backend, max_memory=args.max_memory)
+    record = result.to_dict()
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    record.update(source=str(args.source), target=str(args.target), peak_rss_mb=peak_mb,
+                  checkpoint=args.checkpoint or (DEFAULT_SCENE_MODEL if method == "vrnet" else None))
+    unconverged = " (not converged)" if result.iterations and not result.converged else ""
+    print(f"source {len(src)} points, target {len(tgt)} points; "
+          f"initial estimate: {INITIAL_NAMES[result.start or method]}; "
+          f"ICP ({result.estimator}) iterations {result.iterations}{unconverged}, "
+          f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}; "
+          f"{sum(result.seconds.values()):.1f} s, peak memory {peak_mb:.0f} MB")
+    for warning in result.warnings:  # the library names its arguments; the command's user knows the flags
+        for argument, flag in (("IcpSettings.max_iterations", "--icp-iterations"), ("max_distance", "--max-distance")):
+            warning = warning.replace(argument, flag)
+        print(f"vrnet register: warning: {warning}", file=sys.stderr)
+    print("transform (source -> target):")
+    print(np.array2string(result.T_target_source, precision=6, suppress_small=True))
+    if truth is not None:
+        record["errors_initial"] = transform_errors(result.initial, truth)
+        record["errors"] = transform_errors(result.T_target_source, truth)
+        for label in ("errors_initial", "errors"):
+            e = record[label]
+            print(f"{label}: rotation {e['rotation_error_deg']:.3f} deg, translation {e['translation_error']:.4g}")
+        swapped = transform_errors(result.T_target_source, np.linalg.inv(truth))
+        if swapped["rotation_error_deg"] < 0.2 * record["errors"]["rotation_error_deg"] and \
+                record["errors"]["rotation_error_deg"] > 2.0:
+            print(f"vrnet register: warning: the estimate matches the inverse of --gt {args.gt} far better "
+                  f"({swapped['rotation_error_deg']:.2f} deg): --gt must map SOURCE into TARGET's frame; this one "
+                  f"seems to map TARGET into SOURCE's", file=sys.stderr)
+    if args.out:
+        write_ply(args.out, apply(result.T_target_source, src))
+        print(f"wrote {args.out}")
+    if args.plot:
+        from vrnet_ext.plots import plot_registration
+
+        views = {"initial": result.initial, "final": result.T_target_source}
+        print(f"wrote {plot_registration(src, tgt, views, args.plot)}")
+    if args.json:
+        write_json(args.json, record)
+    return 0
+
+
+
+def add_demo(sub) -> None:
+    p = sub.add_parser("demo", help="register a few pairs with the shipped model (no data needed)",
+                       description="Builds pairs with the paper's protocol (768-point partial views, angles in "
+                                   "[0, 45) deg) from procedural chairs, or from ModelNet40 test shapes with "
+                                   "--data-dir, registers them with a shipped model, prints the errors and times "
+                                   "and draws the first pair.",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--model", default=None,
+                   help="shipped model name or checkpoint path (default: the shipped PV/UPC model)")
+    p.add_argument("--data-dir", default=None, help="use ModelNet40 test shapes from this folder instead")
+    p.add_argument("--pairs", type=int, default=4, help="pairs to register")
+    p.add_argument("--seed", type=int, default=0, help="seed of the shapes and motions")
+    p.add_argument("--out", default="demo.png", help="picture of the first pair")
+    p.add_argument("--json", default=None, help="also write the results here")
+
+
+def run_demo(args) -> int:
+    from vrnet_ext.model.pretrained import load_vrnet
+    from vrnet_ext.demo import run_demo
+    from vrnet_ext.model.pretrained import DEFAULT_MODEL
+
+    name = args.model or DEFAULT_MODEL
+    model, _ = load_vrnet(name)
+    result = run_demo(model, args.pairs, args.seed, args.data_dir, args.out)
+    print(f"model {name}; {result['shapes']}")
+    print(f"{'pair':>4} {'true angle':>11} {'rot. error':>11} {'VCP-only':>9} {'transl. error':>14} {'time':>8}")
+    for row in result["pairs"]:
+        print(f"{row['pair']:>4} {row['true_angle_deg']:>9.1f}°  {row['rotation_error_deg']:>9.3f}° "
+              f"{row['vcp_only_rotation_error_deg']:>8.3f}° {row['translation_error']:>14.4f} {row['seconds']:>7.3f}s")
+    print(f"mean rotation error {result['mean_rotation_error_deg']:.3f}°, mean translation error "
+          f"{result['mean_translation_error']:.4f}, median {result['median_seconds_per_pair']:.3f} s per pair")
+    if result.get("plot"):
+        print(f"wrote {result['plot']}")
+    if args.json:
+        write_json(args.json, result)
+    return 0

@@ -1,0 +1,273 @@
+"""``vrnet train``, ``vrnet eval``, ``vrnet plot``, ``vrnet export`` and ``vrnet train-scene``."""
+from __future__ import annotations
+
+import argparse
+import json
+import typing
+from dataclasses import fields
+from pathlib import Path
+
+from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, nonnegative_int, output_folder, parse_bool,
+                                  positive_float, positive_int, train_device, view_points, writable_path, write_json)
+from vrnet_ext.data.protocol import FAR_POINTS, MIXED, SETTINGS
+
+
+def add_train(sub) -> None:
+    from vrnet_ext.learning.config import FIELD_HELP, L4_FORMS, PRECISIONS, PRESETS, TrainConfig, preset_values
+
+    p = sub.add_parser("train", help="two-stage training on ModelNet40 (DDP under torchrun)",
+                       description="Two-stage VRNet training. Start from a preset; any flag overrides it. "
+                                   "Under `torchrun --nproc_per_node N` the same command trains with DDP.")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="small",
+                   help="paper: batch 28, 100+100 epochs (GPU); cpu: the small model on the full training split at the paper's 768-point views (the shipped model; hours per session on a CPU); small: minutes on a CPU; tiny: seconds (smoke test)")
+    hints = typing.get_type_hints(TrainConfig)
+    for f in fields(TrainConfig):
+        if f.name in ("preset", "model", "progress"):
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        kind = hints[f.name]
+        values = preset_values(f.name)
+        shown = {str(v) for v in values.values()}
+        default = (f"default: {shown.pop()}" if len(shown) == 1
+                   else "default: " + ", ".join(f"{k} {v}" for k, v in values.items()))
+        description = f"{FIELD_HELP.get(f.name, f.name)} ({default})"
+        if f.name in ("classes", "lr_milestones"):
+            p.add_argument(flag, type=int, nargs="+", default=None, help=description)
+        elif f.name == "setting":
+            p.add_argument(flag, choices=SETTINGS + (MIXED,), default=None, help=description)
+        elif f.name == "split":
+            p.add_argument(flag, choices=("UPC", "UC", "ND"), default=None, help=description)
+        elif f.name == "data_dir":
+            p.add_argument(flag, default=None, help=DATA_DIR_HELP)
+        elif f.name == "out_dir":
+            p.add_argument(flag, type=output_folder, default=None, help=description)
+        elif f.name == "device":
+            p.add_argument(flag, type=train_device, default=None, help=description)
+        elif f.name == "precision":
+            p.add_argument(flag, choices=PRECISIONS, default=None, help=description)
+        elif f.name == "backend":
+            p.add_argument(flag, choices=("ext", "torch"), default=None, help=description)
+        elif f.name == "loss_l4_form":
+            p.add_argument(flag, choices=L4_FORMS, default=None, help=description)
+        elif f.name == "far_points":
+            p.add_argument(flag, choices=FAR_POINTS, default=None, help=description)
+        elif kind is bool:
+            p.add_argument(flag, type=parse_bool, default=None, help=description)
+        else:
+            base = int if "int" in str(kind) else float if "float" in str(kind) else str
+            p.add_argument(flag, type=base, default=None, help=description)
+    p.add_argument("--emb-dims", type=int, default=None, help="model embedding size c")
+    p.add_argument("--k", type=int, default=None, help="DGCNN neighbours")
+    p.add_argument("--iterations", type=int, default=None, help="ICP-like passes at evaluation")
+    p.add_argument("--walk-gate", type=parse_bool, default=None,
+                   help="1: the walk's offsets are gated per point (right VCPs stay exact); 0: the paper's walk")
+    p.add_argument("--walk-confidence", type=parse_bool, default=None,
+                   help="1: the walk also predicts per-point confidences that weight the Procrustes; 0: unweighted")
+    p.add_argument("--walk-match-stats", type=parse_bool, default=None,
+                   help="1: the walk also sees each point's largest matching weight and matching entropy")
+    p.add_argument("--walk-confidence-trunk", type=parse_bool, default=None,
+                   help="1: the confidence has its own MLP (the offsets' loss L4 does not shape it)")
+    p.add_argument("--irls-iterations", type=int, default=None,
+                   help="Cauchy reweighting steps after the Procrustes solve (0: none)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def build_train_config(args):
+    """TrainConfig from parsed ``vrnet train`` flags: the preset, then every flag given."""
+    from vrnet_ext.learning.config import PRESETS, TrainConfig
+
+    model_keys = ("emb_dims", "k", "iterations", "walk_gate", "walk_confidence", "walk_match_stats",
+                  "walk_confidence_trunk", "irls_iterations")
+    overrides = {k: v for k, v in vars(args).items() if k not in ("command", "preset", "no_progress") + model_keys}
+    model = dict(PRESETS[args.preset]["model"])
+    for key in model_keys:
+        if getattr(args, key) is not None:
+            model[key] = getattr(args, key)
+    return TrainConfig.from_preset(args.preset, model=model, progress=not args.no_progress, **overrides)
+
+
+def run_train(args) -> int:
+    from vrnet_ext.learning.train import train
+
+    cfg = build_train_config(args)
+    record = train(cfg)
+    out_dir = Path(cfg.out_dir)
+    if record.get("stopped"):  # saved and resumable, but not finished: the shell's status of that signal
+        return 128 + record.get("signal", 0) if record.get("signal") else 1
+    if record:
+        summary = ", ".join(f"{k} {record[k]:.4g}" for k in ("val_RMSE(R)", "val_MAE(R)", "val_RMSE(t)") if k in record)
+        print(f"last epoch (stage {record['stage']}, epoch {record['epoch']}): {summary}")
+    roles = {"last.pt": "last.pt (to --resume)", "best.pt": "best.pt (lowest validation RMSE(R))"}
+    written = [roles.get(name, name) for name in ("last.pt", "best.pt", "best_stage1.pt", "best_stage2.pt",
+                                                  "metrics.jsonl", "metrics.csv", "curves.png")
+               if (out_dir / name).exists()]
+    print(f"wrote {out_dir}/: {', '.join(written)}")
+    print(f"evaluate with: vrnet eval --checkpoint {out_dir / 'best.pt'}")
+    return 0
+
+
+def add_eval(sub) -> None:
+    p = sub.add_parser("eval", help="evaluate a checkpoint on the ModelNet40 test pairs",
+                       description="Prints the paper's table (RMSE/MAE of Euler angles and translation) "
+                                   "plus isotropic errors, recall, Chamfer distances and match ratios; writes JSON.")
+    p.add_argument("--checkpoint", default=None,
+                   help="a shipped model name (e.g. vrnet-pv-upc-rcp) or best.pt / last.pt written by `vrnet train` "
+                        "(default: the shipped model trained for --setting / --split)")
+    p.add_argument("--setting", choices=SETTINGS, default=None, help="default: the checkpoint's, else PV")
+    p.add_argument("--split", choices=("UPC", "UC", "ND"), default=None, help="default: the checkpoint's, else UPC")
+    p.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--max-items", type=positive_int, default=None,
+                   help="evaluate the first N test shapes only (default: the whole test split)")
+    p.add_argument("--iterations", type=int, default=None, help="ICP-like passes (paper Table 'with iteration')")
+    p.add_argument("--far-points", choices=FAR_POINTS, default="prnet",
+                   help="partial views: prnet = the paper's far points near the diagonal; sphere = in a random "
+                        "direction for each cloud; mixed = one of the two per pair")
+    p.add_argument("--backend", choices=("ext", "torch"), default="ext",
+                   help="ext: the compiled kernels; torch: the pure-PyTorch references")
+    p.add_argument("--device", default="cpu", help="torch device to run on, e.g. cpu or cuda")
+    p.add_argument("--json", default=None,
+                   help="output JSON path (default: eval_SETTING_SPLIT.json beside a checkpoint file, or in the "
+                        "working folder for a shipped model)")
+
+
+def run_eval(args) -> int:
+    from vrnet_ext.data import ModelNet40Pairs, PairSpec
+    from vrnet_ext.learning.evaluate import evaluate, format_table, time_inference
+    from vrnet_ext.model.pretrained import load_vrnet
+
+    if args.checkpoint is None:
+        from vrnet_ext.model.pretrained import model_for
+
+        wanted = (args.setting or "PV", args.split or "UPC")
+        args.checkpoint = model_for(*wanted)
+        if args.checkpoint is None:
+            raise ValueError(f"no shipped model is trained for setting {wanted[0]} / split {wanted[1]}; "
+                             f"give --checkpoint")
+    model, state = load_vrnet(args.checkpoint, args.device)
+    cfg = state["config"]
+    if args.iterations:
+        model.config.iterations = args.iterations
+    # the paper's protocol unless the checkpoint says otherwise (shipped weights carry no data path)
+    setting, split = args.setting or cfg.get("setting", "PV"), args.split or cfg.get("split", "UPC")
+    spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768),
+                    far_points=args.far_points)
+    data = ModelNet40Pairs(args.data_dir or cfg.get("data_dir"), partition="test", setting=setting, split=split,
+                           max_items=args.max_items, seed=cfg.get("seed", 1234), spec=spec)
+    model.to(args.device)
+    result = evaluate(model, data, args.batch_size, args.device, args.backend)
+    result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
+    result.update(setting=setting, split=split, far_points=args.far_points, checkpoint=str(args.checkpoint),
+                  iterations=model.config.iterations)
+    print(format_table({k: v for k, v in result.items() if isinstance(v, (int, float))}, f"VRNet {setting} {split}"))
+    out = Path(args.json) if args.json else Path(args.checkpoint).with_name(f"eval_{setting}_{split}.json".replace("+", ""))
+    write_json(out, result)
+    return 0
+
+
+def add_plot(sub) -> None:
+    p = sub.add_parser("plot", help="plot a training run's curves to RUN_DIR/curves.png")
+    p.add_argument("run_dir", help="the --out-dir of `vrnet train`")
+
+
+def run_plot(args) -> int:
+    from vrnet_ext.learning.curves import plot_metrics
+
+    print(f"wrote {plot_metrics(args.run_dir)}")
+    return 0
+
+
+def add_export(sub) -> None:
+    p = sub.add_parser("export", help="write a checkpoint as shipped float16 weights with a model card",
+                       description="Writes OUT_DIR/NAME.pt (float16 weights, the training config without local "
+                                   "paths, a card of training facts and metrics) and OUT_DIR/NAME.md (the model "
+                                   "card). load_pretrained(NAME) then finds it when OUT_DIR is vrnet_ext/weights.",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("checkpoint", help="best.pt / last.pt of `vrnet train` (metrics.jsonl beside it is read too)")
+    p.add_argument("name", help="model name, e.g. vrnet-pv-upc-rcp")
+    p.add_argument("--out-dir", type=output_folder, default=None,
+                   help="folder to write to (default: the package's weights folder)")
+    p.add_argument("--test-json", default=None, help="`vrnet eval --json` output on the test split (a VRNet), or a Markdown results table (a scene model), for the card")
+    p.add_argument("--summary", default="", help="one paragraph: what the model is for")
+    p.add_argument("--machine", default=None, help="where it was trained (for the card)")
+    p.add_argument("--sessions", type=positive_int, default=None, help="how many sessions the training took")
+    p.add_argument("--note", action="append", default=[], help="a note for the card (repeatable)")
+    p.add_argument("--procrustes-points", choices=("rcp", "vcp"), default=None,
+                   help="set the exported model's final Procrustes points (an inference-time choice; default: as trained)")
+    p.add_argument("--irls-iterations", type=nonnegative_int, default=None,
+                   help="set the exported model's Cauchy reweighting steps (default: as trained)")
+
+
+def _read_test_results(path: str) -> str:
+    try:
+        return Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"--test-json {path}: cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
+
+
+def run_export(args) -> int:
+    from vrnet_ext.model.checkpoints import read_checkpoint
+    from vrnet_ext.model.scene import SCENE_FORMAT
+    from vrnet_ext.learning.export import export_pretrained, export_scene_model, training_facts
+    from vrnet_ext.model.pretrained import WEIGHTS_DIR
+
+    out = Path(args.out_dir) if args.out_dir else WEIGHTS_DIR
+    if read_checkpoint(args.checkpoint).get("format") == SCENE_FORMAT:
+        card = {"summary": args.summary, "notes": args.note,
+                "training": {k: v for k, v in (("machine", args.machine), ("sessions", args.sessions)) if v}}
+        if args.test_json:
+            card["results"] = _read_test_results(args.test_json).splitlines()
+            card["results_note"] = f"From {Path(args.test_json).name}."
+        path = export_scene_model(args.checkpoint, out / f"{args.name}.pt", card)
+        print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")
+        return 0
+    training = training_facts(args.checkpoint)
+    if args.machine:
+        training["machine"] = args.machine
+    if args.sessions:
+        training["sessions"] = args.sessions
+    card = {"summary": args.summary, "training": training, "notes": args.note}
+    if args.test_json:
+        try:
+            test = json.loads(_read_test_results(args.test_json))
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--test-json {args.test_json}: not the JSON of `vrnet eval` ({exc})") from None
+        if not isinstance(test, dict):
+            raise ValueError(f"--test-json {args.test_json}: not the JSON of `vrnet eval` (no object of metrics)")
+        card["test"] = {k: v for k, v in test.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        card["test_note"] = (f"`vrnet eval` on {test.get('pairs')} ModelNet40 test pairs ({test.get('setting')} / "
+                             f"{test.get('split')}, the whole official test split unless fewer are stated).")
+    overrides = {k: getattr(args, k) for k in ("procrustes_points", "irls_iterations") if getattr(args, k) is not None}
+    path = export_pretrained(args.checkpoint, out / f"{args.name}.pt", card, overrides)
+    print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")
+    return 0
+
+
+def add_train_scene(sub) -> None:
+    p = sub.add_parser("train-scene", help="train the scene model (FPFH + VRNet head) on real scans",
+                       description="Self-supervised: each step cuts two overlapping views out of one of the scans, "
+                                   "turns each by a random rotation and resamples it on its own grid; the network "
+                                   "learns to match them. No pair of different scans is used. Resumes from --out "
+                                   "when it exists.",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("scans", nargs="+", help="point-cloud files (sensor at the origin), e.g. 3DMatch fragments")
+    p.add_argument("--out", required=True, type=writable_path, help="checkpoint to write (and resume)")
+    p.add_argument("--steps", type=positive_int, default=600, help="training pairs")
+    p.add_argument("--points", type=view_points, default=3000,
+                   help=f"about this many points per training view (at most {MAX_VIEW_POINTS})")
+    p.add_argument("--lr", type=positive_float, default=2e-3, help="Adam learning rate")
+    p.add_argument("--seed", type=int, default=0, help="seed of the views and rotations")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run_train_scene(args) -> int:
+    from vrnet_ext.geometry.io import read_points
+    from vrnet_ext.learning.scene_training import SceneTrainConfig, train_scene_model
+
+    scans = {Path(path).name: read_points(path) for path in args.scans}
+    if len(scans) != len(args.scans):
+        raise ValueError("scans: give each file once (file names must differ)")
+    cfg = SceneTrainConfig(steps=args.steps, points=args.points, lr=args.lr, seed=args.seed)
+    path = train_scene_model(scans, args.out, cfg, progress=not args.no_progress)
+    print(f"wrote {path}")
+    return 0
