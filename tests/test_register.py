@@ -406,3 +406,19 @@ def test_coincident_points_are_refused_and_a_line_is_warned_about():
         register(np.ones((100, 3)), solid, method="icp")
     with pytest.raises(ValueError, match="tgt: all 100 points coincide"):
         register(solid, np.full((100, 3), 5e6), model=load_pretrained("vrnet-pv-upc-rcp"))
+
+
+def test_a_prepared_icp_problem_runs_from_several_starts_like_icp():
+    from vrnet_ext.registration import IcpProblem
+
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(800, 3)) * [2.0, 1.0, 0.5]
+    truth = to_homogeneous(Rotation.from_euler("z", 8, degrees=True).as_matrix(), [0.1, 0.0, 0.05])
+    tgt = apply(truth, src)
+    problem = IcpProblem(src, tgt, 0.5, "point_to_plane")
+    for start in (np.eye(4), to_homogeneous(np.eye(3), [0.05, 0.0, 0.0])):
+        prepared = problem.run(start, 50)
+        once = icp(src, tgt, start, 0.5, 50, estimator="point_to_plane")
+        np.testing.assert_array_equal(prepared.T_target_source, once.T_target_source)
+        assert prepared.iterations == once.iterations and prepared.fitness == once.fitness
+        assert transform_errors(prepared.T_target_source, truth)["rotation_error_deg"] < 0.01

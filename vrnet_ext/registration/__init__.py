@@ -7,7 +7,8 @@
   matching and robust fits those use;
 - :mod:`~vrnet_ext.registration.estimators`: ICP's local steps (point-to-point, point-to-plane,
   GICP) behind one interface, :class:`Estimator`;
-- :mod:`~vrnet_ext.registration.refinement`: ICP itself, its settings (:class:`IcpSettings`) and
+- :mod:`~vrnet_ext.registration.refinement`: ICP itself (:class:`IcpProblem` prepares a pair once for
+  several starts), its settings (:class:`IcpSettings`) and
   :func:`fitness`, a score of any transform on a pair;
 - :mod:`~vrnet_ext.registration.result`: the one result type, :class:`RegistrationResult`;
 - :mod:`~vrnet_ext.registration.pipeline`: :func:`register`, global estimate + ICP + warnings.
@@ -18,10 +19,10 @@ from vrnet_ext.registration.estimators import ESTIMATORS, Estimator, make_estima
 from vrnet_ext.registration.global_estimators import (GLOBAL_ESTIMATORS, Fgr, FpfhRansac, GlobalEstimator, NoMotion,
                                                       ObjectNetwork, SceneNetwork, SpatialConsistency,
                                                       make_global_estimator)
-from vrnet_ext.registration.refinement import IcpFailure, IcpSettings, fitness, icp
+from vrnet_ext.registration.refinement import IcpFailure, IcpProblem, IcpSettings, fitness, icp
 from vrnet_ext.registration.pipeline import register
 from vrnet_ext.registration.result import RegistrationResult, transform_errors
 
 __all__ = ["ESTIMATORS", "Estimator", "make_estimator", "GLOBAL_ESTIMATORS", "GlobalEstimator", "FpfhRansac", "Fgr",
            "NoMotion", "ObjectNetwork", "SceneNetwork", "SpatialConsistency", "make_global_estimator", "IcpFailure",
-           "IcpSettings", "fitness", "icp", "register", "RegistrationResult", "transform_errors"]
+           "IcpProblem", "IcpSettings", "fitness", "icp", "register", "RegistrationResult", "transform_errors"]

@@ -13,7 +13,7 @@ from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.geometry.preprocessing import coarse_in_float32, voxel_downsample, voxel_size_for
 from vrnet_ext.registration.global_estimators import DEFAULT_METHOD, GlobalEstimator, make_global_estimator
-from vrnet_ext.registration.refinement import COARSE_FACTOR, IcpFailure, IcpSettings, icp
+from vrnet_ext.registration.refinement import COARSE_FACTOR, IcpFailure, IcpProblem, IcpSettings, icp
 from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import in_shifted_frames
 
@@ -169,13 +169,14 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, method, model, global_po
     warnings = list(plan_notes)
     start = time.perf_counter()
     refined, failures = {}, []
+    problem = IcpProblem(src_icp, tgt_icp, reach, step, device, backend)  # prepared once for every start
     for name, guess in starts.items():
         try:
             start_at = guess
             if icp_settings.coarse_start and np.array_equal(guess, np.eye(4)):
                 start_at = _coarse_start(src, tgt, voxel, reach, icp_settings, device, backend)
-            refined[name] = icp(src_icp, tgt_icp, start_at, reach, icp_settings.max_iterations,
-                                icp_settings.transform_tolerance, device, backend, step, icp_settings.settled)
+            refined[name] = problem.run(start_at, icp_settings.max_iterations, icp_settings.transform_tolerance,
+                                        icp_settings.settled)
             refined[name].initial = guess
         except IcpFailure as failure:
             failures.append(f"{failure} (from {_label(name)})")

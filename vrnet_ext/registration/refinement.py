@@ -87,6 +87,60 @@ def _nearest_in_reach(moved: torch.Tensor, tgt: torch.Tensor, reach: TargetReach
 
 
 
+class IcpProblem:
+    """One ICP problem, prepared once and run from any number of starts (as small_gicp prepares
+    clouds before aligning): both scans as float64 tensors, the estimator's per-cloud data (normals
+    for point-to-plane, covariances for GICP) and the reach grid (:class:`TargetReach`).
+
+    src (N, 3), tgt (M, 3) arrays in one unit; max_distance: pairs farther apart get weight 0;
+    estimator: :mod:`vrnet_ext.registration.estimators` (point_to_point, point_to_plane, gicp).
+    """
+
+    def __init__(self, src: np.ndarray, tgt: np.ndarray, max_distance: float, estimator: str = "point_to_point",
+                 device: torch.device = torch.device("cpu"), backend: str = "ext") -> None:
+        self.src = torch.as_tensor(src, dtype=torch.float64, device=device).unsqueeze(0)
+        self.tgt = torch.as_tensor(tgt, dtype=torch.float64, device=device).unsqueeze(0)
+        self.max_distance, self.estimator, self.backend = max_distance, estimator, backend
+        self.step = make_estimator(estimator)
+        self.step.prepare(self.src[0], self.tgt[0])
+        self.reach = TargetReach(self.tgt, max_distance)
+
+    def run(self, initial: np.ndarray, iterations: int = 50, tolerance: float = 1e-6,
+            settled: float = 1e-6) -> RegistrationResult:
+        """ICP from ``initial`` (4, 4); see :func:`icp`."""
+        src_t, tgt_t, max_distance = self.src, self.tgt, self.max_distance
+        T = torch.as_tensor(initial, dtype=torch.float64, device=src_t.device)
+        done, converged, previous = 0, False, None
+        while done < iterations:
+            moved = apply(T, src_t)
+            candidates, dist2, idx = _nearest_in_reach(moved, tgt_t, self.reach, self.backend)
+            inliers = (dist2 <= max_distance ** 2).to(src_t.dtype)
+            count = int(inliers.sum())
+            if count < 3:
+                raise IcpFailure(f"ICP: fewer than 3 point pairs within max_distance={max_distance:g} of the initial "
+                                 "estimate (too far off; raise max_distance or check the inputs)")
+            current = (count / src_t.shape[1], float((dist2 * inliers).sum() / count) ** 0.5)
+            if previous is not None and abs(current[0] - previous[0]) < settled \
+                    and abs(current[1] - previous[1]) < settled:
+                converged = True
+                break
+            previous = current
+            new = self.step.step(T, candidates, idx, inliers)
+            done += 1
+            change_rotation = torch.linalg.matrix_norm(new[:3, :3] - T[:3, :3]).item()
+            change_translation = torch.linalg.vector_norm(new[:3, 3] - T[:3, 3]).item()
+            T = new
+            if change_rotation < tolerance and change_translation < tolerance:
+                converged = True
+                break
+        _, dist2, _ = _nearest_in_reach(apply(T, src_t), tgt_t, self.reach, self.backend)
+        close = dist2[dist2 <= max_distance ** 2]
+        rmse = float(close.mean().sqrt()) if len(close) else float("nan")
+        return RegistrationResult(T.cpu().numpy(), np.asarray(initial, dtype=np.float64), "icp", self.estimator, done,
+                                  converged, len(close) / src_t.shape[1], rmse, len(close),
+                                  points={"source": src_t.shape[1], "target": tgt_t.shape[1]})
+
+
 def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: float, iterations: int = 50,
         tolerance: float = 1e-6, device: torch.device = torch.device("cpu"), backend: str = "ext",
         estimator: str = "point_to_point", settled: float = 1e-6) -> RegistrationResult:
@@ -97,46 +151,12 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: flo
     inlier RMSE (in the scans' unit) of the correspondences both change by less than ``settled``
     from one iteration to the next (Open3D's ICPConvergenceCriteria: the pairs have settled). At most
     ``iterations`` steps. Points that :class:`TargetReach` rules out are not searched (they would
-    get weight 0 anyway).
+    get weight 0 anyway). Several starts on the same scans: prepare an :class:`IcpProblem` once.
 
     Returns a :class:`RegistrationResult` (method "icp"); raises IcpFailure when fewer than 3 pairs
     are within reach.
     """
-    src_t = torch.as_tensor(src, dtype=torch.float64, device=device).unsqueeze(0)
-    tgt_t = torch.as_tensor(tgt, dtype=torch.float64, device=device).unsqueeze(0)
-    step = make_estimator(estimator)
-    step.prepare(src_t[0], tgt_t[0])
-    reach = TargetReach(tgt_t, max_distance)
-    T = torch.as_tensor(initial, dtype=torch.float64, device=device)
-    done, converged, previous = 0, False, None
-    while done < iterations:
-        moved = apply(T, src_t)
-        candidates, dist2, idx = _nearest_in_reach(moved, tgt_t, reach, backend)
-        inliers = (dist2 <= max_distance ** 2).to(src_t.dtype)
-        count = int(inliers.sum())
-        if count < 3:
-            raise IcpFailure(f"ICP: fewer than 3 point pairs within max_distance={max_distance:g} of the initial "
-                             "estimate (too far off; raise max_distance or check the inputs)")
-        current = (count / src_t.shape[1], float((dist2 * inliers).sum() / count) ** 0.5)
-        if previous is not None and abs(current[0] - previous[0]) < settled and abs(current[1] - previous[1]) < settled:
-            converged = True
-            break
-        previous = current
-        new = step.step(T, candidates, idx, inliers)
-        done += 1
-        change_rotation = torch.linalg.matrix_norm(new[:3, :3] - T[:3, :3]).item()
-        change_translation = torch.linalg.vector_norm(new[:3, 3] - T[:3, 3]).item()
-        T = new
-        if change_rotation < tolerance and change_translation < tolerance:
-            converged = True
-            break
-    _, dist2, _ = _nearest_in_reach(apply(T, src_t), tgt_t, reach, backend)
-    close = dist2[dist2 <= max_distance ** 2]
-    rmse = float(close.mean().sqrt()) if len(close) else float("nan")
-    return RegistrationResult(T.cpu().numpy(), np.asarray(initial, dtype=np.float64), "icp", estimator, done,
-                              converged, len(close) / src_t.shape[1], rmse, len(close),
-                              points={"source": len(src), "target": len(tgt)})
-
+    return IcpProblem(src, tgt, max_distance, estimator, device, backend).run(initial, iterations, tolerance, settled)
 
 
 def fitness(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: float, backend: str = "ext") -> float:
