@@ -21,6 +21,11 @@ def apply(T, points):
     return move(points, T[..., :3, :3], T[..., :3, 3])
 
 
+def compose(rotation_2, translation_2, rotation_1, translation_1):
+    """The motion (R2, t2) after (R1, t1) -> (R2 R1, R2 t1 + t2) ((..., 3, 3), (..., 3) each)."""
+    return rotation_2 @ rotation_1, (rotation_2 @ translation_1[..., None])[..., 0] + translation_2
+
+
 def to_homogeneous(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """(3, 3) R and (3,) t -> (4, 4) float64 numpy matrix."""
     T = np.eye(4)
@@ -39,4 +44,4 @@ def in_shifted_frames(T, shift) -> np.ndarray:
     return translation(shift) @ np.asarray(T, dtype=np.float64) @ translation(-np.asarray(shift, dtype=np.float64))
 
 
-__all__ = ["apply", "in_shifted_frames", "move", "to_homogeneous", "translation"]
+__all__ = ["apply", "compose", "in_shifted_frames", "move", "to_homogeneous", "translation"]

@@ -12,7 +12,7 @@ from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
 from vrnet_ext.ops import kabsch, soft_match
-from vrnet_ext.geometry.transforms import move
+from vrnet_ext.geometry.transforms import compose, move
 from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
 
 
@@ -145,8 +145,7 @@ class VRNet(nn.Module):
         for _ in range(self.config.iterations):
             out = self._single_pass(moved, tgt, backend, return_matching)
             with torch.autocast(src.device.type, enabled=False):  # compose the motions in src's dtype
-                rotation = out.rotation @ rotation
-                translation = (out.rotation @ translation.unsqueeze(-1)).squeeze(-1) + out.translation
+                rotation, translation = compose(out.rotation, out.translation, rotation, translation)
                 moved = move(src, rotation, translation)
         out.rotation, out.translation = rotation, translation
         return out

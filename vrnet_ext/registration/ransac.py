@@ -20,6 +20,7 @@ import torch
 
 from vrnet_ext import ops
 from vrnet_ext.geometry.features import mutual_matches, voxel_fpfh
+from vrnet_ext.geometry.transforms import move
 
 
 def _enough_hypotheses(inlier_ratio: float, confidence: float) -> float:
@@ -60,7 +61,7 @@ def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_d
         if not bool(agree.any()):
             continue
         R, t = ops.kabsch(hp[agree], hq[agree])
-        residual = (p[None] @ R.mT + t[:, None] - q[None]).norm(dim=-1)  # (H, C)
+        residual = (move(p[None], R, t) - q[None]).norm(dim=-1)  # (H, C)
         counts = (residual <= inlier_distance).sum(1)
         top = int(counts.argmax())
         if int(counts[top]) > best_count:
