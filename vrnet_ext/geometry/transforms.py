@@ -33,6 +33,13 @@ def to_homogeneous(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     return T
 
 
+def from_normalised(rotation, translation_normalised, src_centre, tgt_centre, scale):
+    """A motion (R, t') estimated between normalised clouds ``(src - src_centre) / scale`` and
+    ``(tgt - tgt_centre) / scale`` -> (R, t) between the clouds themselves:
+    ``t = scale t' + tgt_centre - R src_centre``. Arrays or tensors, (3, 3) and (3,)."""
+    return rotation, scale * translation_normalised + tgt_centre - (rotation @ src_centre[..., None])[..., 0]
+
+
 def translation(vector) -> np.ndarray:
     """(3,) t -> the (4, 4) float64 matrix of the pure translation by t."""
     return to_homogeneous(np.eye(3), vector)
@@ -44,4 +51,4 @@ def in_shifted_frames(T, shift) -> np.ndarray:
     return translation(shift) @ np.asarray(T, dtype=np.float64) @ translation(-np.asarray(shift, dtype=np.float64))
 
 
-__all__ = ["apply", "compose", "in_shifted_frames", "move", "to_homogeneous", "translation"]
+__all__ = ["apply", "compose", "from_normalised", "in_shifted_frames", "move", "to_homogeneous", "translation"]

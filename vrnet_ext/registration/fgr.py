@@ -22,7 +22,7 @@ import torch
 
 from vrnet_ext.geometry.features import nearest_both_ways
 from vrnet_ext.registration.estimators import gauss_newton_step, skew
-from vrnet_ext.geometry.transforms import apply
+from vrnet_ext.geometry.transforms import apply, from_normalised
 
 
 def feature_correspondences(src_features: torch.Tensor, tgt_features: torch.Tensor) -> torch.Tensor:
@@ -85,8 +85,7 @@ def fast_global_registration(src: torch.Tensor, tgt: torch.Tensor, src_features:
         weights = (mu / (mu + residual.square().sum(-1))).square()
         J = torch.cat([-skew(moved), eye], -1)  # (C, 3, 6)
         T = gauss_newton_step(J, residual, weights, T)
-    R, t_scaled = T[:3, :3], T[:3, 3]
+    R, t = from_normalised(T[:3, :3], T[:3, 3], src_centre, tgt_centre, scale)
     out = torch.eye(4, dtype=src.dtype, device=src.device)
-    out[:3, :3] = R
-    out[:3, 3] = scale * t_scaled + tgt_centre - R @ src_centre
+    out[:3, :3], out[:3, 3] = R, t
     return out

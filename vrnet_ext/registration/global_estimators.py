@@ -26,7 +26,7 @@ from vrnet_ext.registration.fgr import fast_global_registration
 from vrnet_ext import ops
 from vrnet_ext.geometry.features import voxel_fpfh
 from vrnet_ext.registration.ransac import fpfh_ransac, ransac
-from vrnet_ext.geometry.transforms import to_homogeneous
+from vrnet_ext.geometry.transforms import from_normalised, to_homogeneous
 
 CPU = torch.device("cpu")
 
@@ -203,8 +203,7 @@ class ObjectNetwork(GlobalEstimator):
             out = self.model(normalised(src_small), normalised(tgt_small), backend=self.backend)
         R = out.rotation[0].double().cpu().numpy()
         t_normalised = out.translation[0].double().cpu().numpy()
-        # y_n = R x_n + t_n with p_n = (p - c) / s  =>  y = R x + s t_n + c - R c
-        return to_homogeneous(R, scale * t_normalised + centre - R @ centre)
+        return to_homogeneous(*from_normalised(R, t_normalised, centre, centre, scale))
 
 
 GLOBAL_ESTIMATORS = ("sc2", "fpfh", "vrnet", "fgr", "icp")
