@@ -169,3 +169,17 @@ def test_real_3dmatch_pair_from_fpfh(tmp_path):
     record = json.loads((tmp_path / "r.json").read_text())
     assert record["errors_initial"]["rotation_error_deg"] < 3.0, record["errors_initial"]
     assert record["errors"]["rotation_error_deg"] < 2.0 and record["errors"]["translation_error"] < 0.1, record["errors"]
+
+
+def test_global_estimators_return_registration_results_with_their_consensus():
+    from vrnet_ext.registration import FpfhRansac, RegistrationResult, SpatialConsistency, register
+
+    truth = motion(30.0, [0.2, -0.1, 0.05])
+    src, tgt = room(8000), apply(truth, room(8000, seed=1))
+    for estimator in (FpfhRansac(3000), SpatialConsistency(3000)):
+        estimate = estimator.estimate(src, tgt, seed=0)
+        assert isinstance(estimate, RegistrationResult) and estimate.method == estimator.name
+        assert estimate.consensus >= 3 and estimate.iterations == 0 and estimate.estimator == "none"
+        assert estimate.points["source_global"] > 1000 and np.isfinite(estimate.T_target_source).all()
+        result = register(src, tgt, method=estimator)
+        assert result.consensus == estimate.consensus and "source_global" in result.to_dict()["points"]

@@ -120,7 +120,7 @@ class ExactModel(torch.nn.Module):
 def test_network_estimate_undoes_the_normalisation():
     src = room(500) * 30.0 + 200.0  # far from the origin and not unit-sized: a scan in metres
     truth = motion(40.0, [5.0, -3.0, 2.0])
-    T = ObjectNetwork(ExactModel(), points=10_000).estimate(src, apply(truth, src), seed=0)
+    T = ObjectNetwork(ExactModel(), points=10_000).estimate(src, apply(truth, src), seed=0).T_target_source
     errors = transform_errors(T, truth)
     assert errors["rotation_error_deg"] < 1e-3 and errors["translation_error"] < 1e-3, errors
 

@@ -3,7 +3,9 @@ small interface (:class:`GlobalEstimator`) that :func:`vrnet_ext.registration.re
 name or as an object.
 
 Scans are (N, 3) float arrays in one unit (metres for the shared data); every estimator returns a
-(4, 4) float64 array that maps source points into the target frame (:mod:`vrnet_ext.geometry.transforms`).
+:class:`~vrnet_ext.registration.result.RegistrationResult` (``RegistrationResult.global_estimate``:
+``T_target_source`` maps source points into the target frame, :mod:`vrnet_ext.geometry.transforms`;
+``consensus`` counts the correspondences it agreed on; ``points`` the points it used).
 
 Built in (:data:`GLOBAL_ESTIMATORS`): ``"vrnet"`` (a learned estimate: :class:`SceneNetwork` for a
 :class:`~vrnet_ext.model.scene.SceneVRNet`, :class:`ObjectNetwork` for a ModelNet40
@@ -26,6 +28,7 @@ from vrnet_ext.registration.fgr import fast_global_registration
 from vrnet_ext import ops
 from vrnet_ext.geometry.features import voxel_fpfh
 from vrnet_ext.registration.ransac import fpfh_ransac, ransac
+from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import from_normalised, to_homogeneous
 
 CPU = torch.device("cpu")
@@ -48,8 +51,9 @@ class GlobalEstimator:
     memory_profile: ClassVar[str | None] = None
     memory_scale: ClassVar[float] = 1.0  # per-point cost against the profile's (a larger model costs more)
 
-    def estimate(self, src: np.ndarray, tgt: np.ndarray, seed: int) -> np.ndarray:
-        """src (N, 3), tgt (M, 3) -> (4, 4) ``T_target_source``; ``seed`` fixes any sampling."""
+    def estimate(self, src: np.ndarray, tgt: np.ndarray, seed: int) -> RegistrationResult:
+        """src (N, 3), tgt (M, 3) -> :meth:`RegistrationResult.global_estimate` (a bare (4, 4)
+        ``T_target_source`` array is accepted from an estimator of one's own); ``seed`` fixes any sampling."""
         raise NotImplementedError
 
 
@@ -61,7 +65,11 @@ class NoMotion(GlobalEstimator):
     memory_profile: ClassVar[str | None] = "icp"
 
     def estimate(self, src, tgt, seed):
-        return np.eye(4)
+        return RegistrationResult.global_estimate(np.eye(4), self.name)
+
+
+def _counts(src: torch.Tensor, tgt: torch.Tensor) -> dict[str, int]:
+    return {"source_global": len(src), "target_global": len(tgt)}
 
 
 def downsampled_pair(src: np.ndarray, tgt: np.ndarray, points: int,
@@ -88,7 +96,8 @@ class FpfhRansac(GlobalEstimator):
 
     def estimate(self, src, tgt, seed):
         src_down, tgt_down, voxel = downsampled_pair(src, tgt, self.points, self.device)
-        return fpfh_ransac(src_down, tgt_down, voxel, seed=seed)[0].cpu().numpy()
+        T, inliers = fpfh_ransac(src_down, tgt_down, voxel, seed=seed)
+        return RegistrationResult.global_estimate(T.cpu().numpy(), self.name, inliers, _counts(src_down, tgt_down))
 
 
 @dataclass
@@ -103,8 +112,9 @@ class Fgr(GlobalEstimator):
 
     def estimate(self, src, tgt, seed):
         src_down, tgt_down, voxel = downsampled_pair(src, tgt, self.points, self.device)
-        return fast_global_registration(src_down, tgt_down, voxel_fpfh(src_down, voxel), voxel_fpfh(tgt_down, voxel),
-                                        seed=seed).cpu().numpy()
+        T = fast_global_registration(src_down, tgt_down, voxel_fpfh(src_down, voxel), voxel_fpfh(tgt_down, voxel),
+                                     seed=seed)
+        return RegistrationResult.global_estimate(T.cpu().numpy(), self.name, points=_counts(src_down, tgt_down))
 
 
 @dataclass
@@ -129,7 +139,8 @@ class SpatialConsistency(GlobalEstimator):
         if int(inliers.sum()) < 3:
             raise ValueError("spatial consistency found no set of 3 or more consistent FPFH matches: the features "
                              "do not match (try another point count for --global-points)")
-        return transform.numpy()
+        return RegistrationResult.global_estimate(transform.numpy(), self.name, int(inliers.sum()),
+                                                  _counts(src_down, tgt_down))
 
 
 SCENE_PAIRS = 1000  # most confident (source, RCP) pairs the scene model hands to RANSAC
@@ -170,7 +181,10 @@ class SceneNetwork(GlobalEstimator):
         src_pairs = torch.as_tensor(src_view.points, dtype=torch.float64)[keep]
         rcp_pairs = out.rcp[0, keep].double() * voxel
         pairs = torch.arange(len(keep)).unsqueeze(1).expand(-1, 2)
-        return ransac(src_pairs, rcp_pairs, pairs, 1.5 * voxel, seed=seed)[0].cpu().numpy()
+        T, inliers = ransac(src_pairs, rcp_pairs, pairs, 1.5 * voxel, seed=seed)
+        return RegistrationResult.global_estimate(T.cpu().numpy(), self.name, inliers,
+                                                  {"source_global": len(src_view.points),
+                                                   "target_global": len(tgt_view.points)})
 
 
 @dataclass
@@ -203,7 +217,9 @@ class ObjectNetwork(GlobalEstimator):
             out = self.model(normalised(src_small), normalised(tgt_small), backend=self.backend)
         R = out.rotation[0].double().cpu().numpy()
         t_normalised = out.translation[0].double().cpu().numpy()
-        return to_homogeneous(*from_normalised(R, t_normalised, centre, centre, scale))
+        return RegistrationResult.global_estimate(to_homogeneous(*from_normalised(R, t_normalised, centre, centre, scale)),
+                                                  self.name, len(src_small), {"source_global": len(src_small),
+                                                                              "target_global": len(tgt_small)})
 
 
 GLOBAL_ESTIMATORS = ("sc2", "fpfh", "vrnet", "fgr", "icp")

@@ -144,22 +144,20 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, method, model, global_po
         plan_notes = plan.notes
     estimator = given or make_global_estimator(method, model, global_points, network_points, device, backend)
     seconds, start = {}, time.perf_counter()
-    initial = np.asarray(estimator.estimate(src, tgt, seed), dtype=np.float64)
+    estimate = _as_estimate(estimator.name, estimator.estimate(src, tgt, seed))
+    initial, consensus = estimate.T_target_source, estimate.consensus
     seconds["initial"] = time.perf_counter() - start
-    if initial.shape != (4, 4) or not np.isfinite(initial).all():
-        raise ValueError(f"the {estimator.name} estimator returned no finite 4x4 transform "
-                         f"(shape {initial.shape})")
     starts = {estimator.name: initial}
     for name in estimator.also_start_from:
         start = time.perf_counter()
-        starts[name] = np.asarray(make_global_estimator(name, None, global_points, network_points, device, backend)
-                                  .estimate(src, tgt, seed), dtype=np.float64)
+        other = make_global_estimator(name, None, global_points, network_points, device, backend)
+        starts[name] = _as_estimate(name, other.estimate(src, tgt, seed)).T_target_source
         seconds[f"initial ({name})"] = time.perf_counter() - start
-    points = {"source": len(src), "target": len(tgt)}
+    points = {"source": len(src), "target": len(tgt), **estimate.points}
     step = icp_settings.estimator
     if icp_settings.max_iterations == 0:
         return RegistrationResult(initial, initial, estimator.name, step, 0, False, float("nan"), float("nan"), 0,
-                                  seconds, points, plan_notes, start=estimator.name)
+                                  seconds, points, plan_notes, start=estimator.name, consensus=consensus)
     start = time.perf_counter()
     voxel = voxel_size if voxel_size is not None else voxel_size_for(tgt, icp_points)
     src_icp, tgt_icp = voxel_downsample(src, voxel), voxel_downsample(tgt, voxel)
@@ -184,7 +182,7 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, method, model, global_po
     if not refined:
         warnings.append(f"{'; '.join(failures)}; returning the unrefined initial estimate")
         return RegistrationResult(initial, initial, estimator.name, step, 0, False, 0.0, float("nan"), 0, seconds,
-                                  points, warnings, start=estimator.name)
+                                  points, warnings, start=estimator.name, consensus=consensus)
     winner = max(refined, key=lambda name: (refined[name].fitness, -refined[name].inlier_rmse))
     if estimator.name in refined and refined[estimator.name].fitness >= refined[winner].fitness - FITNESS_TIE:
         winner = estimator.name  # the estimator's own start unless another fits clearly better
@@ -203,7 +201,19 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, method, model, global_po
                         f"{reach:.3g}; the scans may overlap little or the result may be wrong")
     return RegistrationResult(best.T_target_source, best.initial, estimator.name, step, best.iterations,
                               best.converged, best.fitness, best.inlier_rmse, best.correspondences, seconds, points,
-                              warnings, start=winner)
+                              warnings, start=winner,
+                              consensus=consensus)
+
+
+def _as_estimate(name: str, value) -> RegistrationResult:
+    """A global estimator's answer as a :class:`RegistrationResult` (a bare 4x4 array, as an estimator
+    of one's own may return, becomes one); ValueError unless it holds a finite 4x4 transform."""
+    if not isinstance(value, RegistrationResult):
+        value = RegistrationResult.global_estimate(np.asarray(value, dtype=np.float64), name)
+    T = value.T_target_source
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f"the {name} estimator returned no finite 4x4 transform (shape {T.shape})")
+    return value
 
 
 def _label(name: str) -> str:

@@ -29,6 +29,16 @@ class RegistrationResult:
     points: dict[str, int] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     start: str = ""         # the estimate ICP started from: ``method``, or an estimate it also tried
+    consensus: int = 0      # correspondences the global estimate agreed on (RANSAC / spatial-consistency
+                            # inliers, pairs a network used; 0 when it has no such count)
+
+    @classmethod
+    def global_estimate(cls, T_target_source, method: str, consensus: int = 0,
+                        points: dict[str, int] | None = None) -> "RegistrationResult":
+        """A global estimate before any refinement: no ICP (estimator "none", 0 iterations), fitness and
+        inlier RMSE not measured (NaN), ``initial`` the identity."""
+        return cls(np.asarray(T_target_source, dtype=np.float64), np.eye(4), method, "none", 0, False, float("nan"),
+                   float("nan"), 0, points=dict(points or {}), start=method, consensus=int(consensus))
 
     def to_dict(self) -> dict:
         out = asdict(self)
