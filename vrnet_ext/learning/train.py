@@ -29,7 +29,7 @@ import signal
 import threading
 import time
 from collections import Counter
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -217,21 +217,50 @@ def train(cfg: TrainConfig) -> dict:
         _check_resumable(state, model_cfg, cfg.resume)
         model.load_state_dict(state["model"])
     loss_weights = HybridLossWeights(l4=cfg.loss_l4, l4_form=cfg.loss_l4_form, motion=cfg.loss_motion)
-    step = state["step"] if state else 0
-    best_rmse = state.get("best_rmse", float("inf")) if state else float("inf")
-    train_seconds = state.get("train_seconds", 0.0) if state else 0.0
+    progress = _Progress()
+    if state:
+        progress = _Progress(state["step"], state.get("best_rmse", float("inf")), state.get("train_seconds", 0.0))
     autocast = torch.autocast(run.device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
     stop = _StopRequest(enabled=run.world == 1)
+    setup = _Setup(cfg, run, model, train_set, val_set, sampler, loss_weights, autocast, stop, out_dir)
     try:
-        return _train_stages(cfg, run, model, train_set, val_set, sampler, state, loss_weights, step, best_rmse,
-                             train_seconds, autocast, stop, out_dir)
+        return _train_stages(setup, state, progress)
     finally:
         stop.restore()
 
 
-def _train_stages(cfg, run, model, train_set, val_set, sampler, state, loss_weights, step, best_rmse, train_seconds,
-                  autocast, stop, out_dir) -> dict:
-    """The stage and epoch loops of :func:`train` (its arguments are the state :func:`train` set up)."""
+@dataclass
+class _Setup:
+    """What :func:`train` prepares for its loops: the options, the process group, the model, the data
+    and the loss, the precision, the stop request and the output folder."""
+
+    cfg: TrainConfig
+    run: _Run
+    model: VRNet
+    train_set: ModelNet40Pairs
+    val_set: ModelNet40Pairs
+    sampler: DistributedSampler
+    loss_weights: HybridLossWeights
+    autocast: torch.autocast
+    stop: _StopRequest
+    out_dir: Path
+
+
+@dataclass
+class _Progress:
+    """What the loops advance and checkpoint: optimiser steps, the best validation RMSE(R) so far and
+    the training time."""
+
+    step: int = 0
+    best_rmse: float = float("inf")
+    train_seconds: float = 0.0
+
+
+def _train_stages(setup: _Setup, state: dict | None, progress: _Progress) -> dict:
+    """The stage and epoch loops of :func:`train` (``state``: the checkpoint resumed from, or None)."""
+    cfg, run, model, train_set, val_set = setup.cfg, setup.run, setup.model, setup.train_set, setup.val_set
+    sampler, loss_weights, autocast, stop, out_dir = (setup.sampler, setup.loss_weights, setup.autocast, setup.stop,
+                                                      setup.out_dir)
     record: dict = {}
     for stage, epochs, lr in ((1, cfg.stage1_epochs, cfg.lr_stage1), (2, cfg.stage2_epochs, cfg.lr_stage2)):
         if state is not None and (state["stage"] > stage or (state["stage"] == stage and state["epoch"] + 1 >= epochs)):
@@ -273,34 +302,35 @@ def _train_stages(cfg, run, model, train_set, val_set, sampler, state, loss_weig
                         loss = correspondence_loss(out.matching, batch["gt_idx"])
                         parts = {"L0": float(loss.detach())}
                     else:
-                        generator = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+                        generator = torch.Generator().manual_seed(cfg.seed * 1_000_003 + progress.step)
                         loss, parts = hybrid_loss(out, batch["src"], batch["rotation"], batch["translation"],
                                                   loss_weights, generator, cfg.backend)
                 if not torch.isfinite(loss):
-                    raise FloatingPointError(f"non-finite loss at stage {stage}, step {step}: {parts}")
+                    raise FloatingPointError(f"non-finite loss at stage {stage}, step {progress.step}: {parts}")
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
-                step += 1
+                progress.step += 1
                 batches += 1
                 for k, v in dict(parts, loss=float(loss.detach())).items():
                     totals[k] = totals.get(k, 0.0) + v
                 bar.set_postfix(loss=f"{float(loss.detach()):.4f}")
                 if run.main and (stop.requested or time.time() - saved_at > 60 * cfg.checkpoint_minutes):
                     now = time.time()
-                    train_seconds += now - started
+                    progress.train_seconds += now - started
                     started = saved_at = now
-                    _save(_checkpoint(model, optimizer, scheduler, cfg, stage, epoch - 1, step, best, best_rmse,
-                                      train_seconds, {"epoch": epoch, "batches": batches, "totals": dict(totals)}),
-                          out_dir / "last.pt")
+                    partial_epoch = {"epoch": epoch, "batches": batches, "totals": dict(totals)}
+                    _save(_checkpoint(model, optimizer, scheduler, cfg, stage, epoch - 1, progress.step, best,
+                                      progress.best_rmse, progress.train_seconds, partial_epoch), out_dir / "last.pt")
                 if stop.requested:
                     bar.close()
                     print(f"vrnet train: stopped at stage {stage}, epoch {epoch + 1}, batch {batches}; "
                           f"continue with --resume {out_dir / 'last.pt'}", flush=True)
-                    return {"stage": stage, "epoch": epoch + 1, "step": step, "stopped": True,
+                    return {"stage": stage, "epoch": epoch + 1, "step": progress.step, "stopped": True,
                             "signal": stop.signal}
             scheduler.step()
-            record = {"stage": stage, "epoch": epoch + 1, "step": step, "lr": optimizer.param_groups[0]["lr"],
+            record = {"stage": stage, "epoch": epoch + 1, "step": progress.step,
+                      "lr": optimizer.param_groups[0]["lr"],
                       "epoch_seconds": round(time.time() - epoch_started, 2), "world_size": run.world}
             record.update({f"train_{k}": v / max(batches, 1) for k, v in totals.items()})
             record["replica_max_abs_diff"] = _replica_spread(model, run)
@@ -309,12 +339,12 @@ def _train_stages(cfg, run, model, train_set, val_set, sampler, state, loss_weig
                                progress=cfg.progress, use_rcp=stage == 2)
                 record.update({f"val_{k}": v for k, v in val.items()})
                 score = val["L0"] if stage == 1 else val["RMSE(R)"]
-                improved, improved_rmse = score < best, val["RMSE(R)"] < best_rmse
-                best, best_rmse = min(best, score), min(best_rmse, val["RMSE(R)"])
-                train_seconds += time.time() - started
-                record["train_seconds"] = round(train_seconds, 1)
-                ckpt = _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse,
-                                   train_seconds)
+                improved, improved_rmse = score < best, val["RMSE(R)"] < progress.best_rmse
+                best, progress.best_rmse = min(best, score), min(progress.best_rmse, val["RMSE(R)"])
+                progress.train_seconds += time.time() - started
+                record["train_seconds"] = round(progress.train_seconds, 1)
+                ckpt = _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, progress.step, best,
+                                   progress.best_rmse, progress.train_seconds)
                 _save(ckpt, out_dir / "last.pt")
                 if improved:
                     _save(ckpt, out_dir / f"best_stage{stage}.pt")
