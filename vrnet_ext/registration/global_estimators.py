@@ -85,54 +85,58 @@ def downsampled_pair(src: np.ndarray, tgt: np.ndarray, points: int,
 
 
 @dataclass
-class FpfhRansac(GlobalEstimator):
-    """FPFH + RANSAC (:mod:`vrnet_ext.registration.ransac`) on both scans voxel-downsampled to
-    about ``points`` points (the voxel edge sets the feature radii)."""
+class _OnDownsampledScans(GlobalEstimator):
+    """An estimator that works on both scans voxel-downsampled to about ``points`` points on
+    ``device`` (the voxel edge, chosen on the target, sets the feature radii)."""
 
     points: int = 5000
     device: torch.device = CPU
+
+    def downsampled(self, src: np.ndarray, tgt: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, float]:
+        return downsampled_pair(src, tgt, self.points, self.device)
+
+
+@dataclass
+class FpfhRansac(_OnDownsampledScans):
+    """FPFH + RANSAC (:mod:`vrnet_ext.registration.ransac`) on the downsampled scans."""
+
     name: ClassVar[str] = "fpfh"
     memory_profile: ClassVar[str | None] = "fpfh"
 
     def estimate(self, src, tgt, seed):
-        src_down, tgt_down, voxel = downsampled_pair(src, tgt, self.points, self.device)
+        src_down, tgt_down, voxel = self.downsampled(src, tgt)
         T, inliers = fpfh_ransac(src_down, tgt_down, voxel, seed=seed)
         return RegistrationResult.global_estimate(T.cpu().numpy(), self.name, inliers, _counts(src_down, tgt_down))
 
 
 @dataclass
-class Fgr(GlobalEstimator):
-    """FPFH + Fast Global Registration (:mod:`vrnet_ext.registration.fgr`) on both scans
-    voxel-downsampled to about ``points`` points (FPFH within 5 voxels)."""
+class Fgr(_OnDownsampledScans):
+    """FPFH + Fast Global Registration (:mod:`vrnet_ext.registration.fgr`) on the downsampled scans."""
 
-    points: int = 5000
-    device: torch.device = CPU
     name: ClassVar[str] = "fgr"
     memory_profile: ClassVar[str | None] = "fgr"
 
     def estimate(self, src, tgt, seed):
-        src_down, tgt_down, voxel = downsampled_pair(src, tgt, self.points, self.device)
+        src_down, tgt_down, voxel = self.downsampled(src, tgt)
         T = fast_global_registration(src_down, tgt_down, voxel_fpfh(src_down, voxel), voxel_fpfh(tgt_down, voxel),
                                      seed=seed)
         return RegistrationResult.global_estimate(T.cpu().numpy(), self.name, points=_counts(src_down, tgt_down))
 
 
 @dataclass
-class SpatialConsistency(GlobalEstimator):
+class SpatialConsistency(_OnDownsampledScans):
     """FPFH matches filtered by spatial consistency (:func:`vrnet_ext.ops.spatial_consistency`, the
     idea of SC^2-PCR): both scans voxel-downsampled to about ``points`` points, each source point
     matched to its nearest target feature, correspondences compatible when the distances they span
     agree within 2 voxels, inliers within 2 voxels; ``seeds`` fits of ``consensus`` neighbours."""
 
-    points: int = 5000
-    device: torch.device = CPU
     seeds: int = 100
     consensus: int = 30
     name: ClassVar[str] = "sc2"
     memory_profile: ClassVar[str | None] = "sc2"
 
     def estimate(self, src, tgt, seed):
-        src_down, tgt_down, voxel = downsampled_pair(src, tgt, self.points, self.device)
+        src_down, tgt_down, voxel = self.downsampled(src, tgt)
         _, nearest = ops.knn(voxel_fpfh(src_down, voxel)[None], voxel_fpfh(tgt_down, voxel)[None], 1)
         transform, inliers = ops.spatial_consistency(src_down, tgt_down[nearest[0, :, 0]], 2.0 * voxel, 2.0 * voxel,
                                                      self.seeds, self.consensus)
