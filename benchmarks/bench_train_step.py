@@ -29,7 +29,8 @@ import torch
 from vrnet_ext.learning.losses import HybridLossWeights, correspondence_loss, hybrid_loss
 from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.runtime import set_flush_denormal
-from vrnet_ext.learning.train import PRESETS, set_stage, stage_train_mode
+from vrnet_ext.learning.config import PRESETS
+from vrnet_ext.learning.train import set_stage, stage_train_mode
 
 IMPLS = {"ext": ("ext", False), "torch": ("torch", False), "ext-bf16": ("ext", True)}  # name: (backend, bf16)
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 import argparse
 import resource
 import sys
-from pathlib import Path
 
 from vrnet_ext.cli.common import (device_name, memory_size, nonnegative_int, positive_float, positive_int,
                                   writable_path, write_json)
@@ -134,7 +133,6 @@ def run_register(args) -> int:
     if args.json:
         write_json(args.json, record)
     return 0
-
 
 
 def add_demo(sub) -> None:

@@ -62,7 +62,6 @@ def chair(rng: np.random.Generator, num_points: int = 1024) -> np.ndarray:
     return points.astype(np.float32)
 
 
-
 def room_scan(points: int, seed: int) -> np.ndarray:
     """A 10 x 8 x 3 m room with a table and two boxes, sampled uniformly by area, 3 mm noise."""
     rng = np.random.default_rng(seed)

@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from vrnet_ext.geometry.features import ScanView, describe
 from vrnet_ext.geometry.preprocessing import voxel_downsample

@@ -48,7 +48,7 @@ from vrnet_ext.learning.curves import plot_metrics
 from vrnet_ext.runtime import set_flush_denormal
 from vrnet_ext.geometry.atomic import save_atomically
 from vrnet_ext.learning.warm_start import init_features_from, init_walk_from
-from vrnet_ext.learning.config import FIELD_HELP, PRECISIONS, PRESETS, TrainConfig, preset_values  # noqa: F401
+from vrnet_ext.learning.config import TrainConfig
 
 class _Run:
     """Distributed context: rank, world size, device."""

@@ -86,7 +86,6 @@ def _nearest_in_reach(moved: torch.Tensor, tgt: torch.Tensor, reach: TargetReach
     return candidates, torch.cat(dist2), torch.cat(idx)
 
 
-
 class IcpProblem:
     """One ICP problem, prepared once and run from any number of starts (as small_gicp prepares
     clouds before aligning): both scans as float64 tensors, the estimator's per-cloud data (normals
@@ -167,7 +166,6 @@ def fitness(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: floa
     T = torch.as_tensor(transform, dtype=torch.float64)
     _, dist2, _ = _nearest_in_reach(apply(T, src_t), tgt_t, TargetReach(tgt_t, reach), backend)
     return int((dist2 <= reach ** 2).sum()) / len(src)
-
 
 
 @dataclass(frozen=True)

@@ -47,7 +47,6 @@ class RegistrationResult:
         return out
 
 
-
 def transform_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     """Rotation error (degrees, isotropic; :func:`vrnet_ext.geometry.metrics.rotation_error_deg`) and
     translation error (same unit as the input) of two 4x4 transforms."""
