@@ -130,6 +130,21 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert not model.training
     assert main(["export", str(run / "best.pt"), "x", "--out-dir", str(tmp_path), "--test-json",
                  str(tmp_path / "missing.json")]) == 2
+    # a model trained on every setting: eval asks for the setting; the card holds one test per cell
+    mixed = torch.load(run / "best.pt", weights_only=False)
+    mixed["config"]["setting"] = "mixed"
+    torch.save(mixed, tmp_path / "mixed.pt")
+    assert main(["eval", "--checkpoint", str(tmp_path / "mixed.pt")]) == 2
+    cells = []
+    for setting in ("CO", "RS"):
+        cells.append(tmp_path / f"eval_{setting}.json")
+        assert main(["eval", "--checkpoint", str(tmp_path / "mixed.pt"), "--setting", setting, "--data-dir",
+                     str(MODELNET_DIR), "--max-items", "4", "--json", str(cells[-1])]) == 0
+    assert main(["export", str(tmp_path / "mixed.pt"), "mixed-model", "--out-dir", str(tmp_path / "weights"),
+                 *[a for cell in cells for a in ("--test-json", str(cell))]]) == 0
+    card = read_checkpoint(tmp_path / "weights" / "mixed-model.pt")["card"]
+    assert set(card["tests"]) == {"CO/UPC", "RS/UPC"} and card["tests"]["RS/UPC"]["pairs"] == 4
+    assert "## Test: CO/UPC" in (tmp_path / "weights" / "mixed-model.md").read_text()
     # a file-size limit (as a full disk): one line naming the file, non-zero exit, nothing left behind
     script = ("import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000)); "
               "from vrnet_ext.cli import run; sys.argv = ['vrnet'] + sys.argv[1:]; run()")

@@ -29,7 +29,8 @@ def test_the_default_model_ships_as_small_float16_weights_with_a_card():
         else:
             # the whole official test split: 2,468 shapes; for UC its 1,266 shapes of labels 20-39
             whole = 1266 if card["training"]["split"] == "UC" else 2468
-            assert card["training"]["setting"] and "test" in card and card["test"]["pairs"] >= whole
+            tests = card.get("tests") or {f"{card['training']['setting']}/{card['training']['split']}": card["test"]}
+            assert card["training"]["setting"] and all(t["pairs"] >= whole for t in tests.values()), name
 
 
 def test_load_pretrained_registers_a_partial_view_pair():

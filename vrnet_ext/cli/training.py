@@ -150,6 +150,8 @@ def run_eval(args) -> int:
         model.config.iterations = args.iterations
     # the paper's protocol unless the checkpoint says otherwise (shipped weights carry no data path)
     setting, split = args.setting or cfg.get("setting", "PV"), args.split or cfg.get("split", "UPC")
+    if setting == MIXED:
+        raise ValueError(f"{args.checkpoint} was trained on every setting: give --setting ({' | '.join(SETTINGS)})")
     spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768),
                     far_points=args.far_points)
     data = ModelNet40Pairs(args.data_dir or cfg.get("data_dir"), partition="test", setting=setting, split=split,
@@ -187,7 +189,9 @@ def add_export(sub) -> None:
     p.add_argument("name", help="model name, e.g. vrnet-pv-upc-rcp")
     p.add_argument("--out-dir", type=output_folder, default=None,
                    help="folder to write to (default: the package's weights folder)")
-    p.add_argument("--test-json", default=None, help="`vrnet eval --json` output on the test split (a VRNet), or a Markdown results table (a scene model), for the card")
+    p.add_argument("--test-json", action="append", default=None,
+                   help="`vrnet eval --json` output on the test split (a VRNet; repeat it for each cell a "
+                        "mixed-setting model serves), or a Markdown results table (a scene model), for the card")
     p.add_argument("--summary", default="", help="one paragraph: what the model is for")
     p.add_argument("--machine", default=None, help="where it was trained (for the card)")
     p.add_argument("--sessions", type=positive_int, default=None, help="how many sessions the training took")
@@ -196,6 +200,16 @@ def add_export(sub) -> None:
                    help="set the exported model's final Procrustes points (an inference-time choice; default: as trained)")
     p.add_argument("--irls-iterations", type=nonnegative_int, default=None,
                    help="set the exported model's Cauchy reweighting steps (default: as trained)")
+
+
+def _read_eval_json(path: str) -> dict:
+    try:
+        test = json.loads(_read_test_results(path))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--test-json {path}: not the JSON of `vrnet eval` ({exc})") from None
+    if not isinstance(test, dict):
+        raise ValueError(f"--test-json {path}: not the JSON of `vrnet eval` (no object of metrics)")
+    return test
 
 
 def _read_test_results(path: str) -> str:
@@ -216,8 +230,8 @@ def run_export(args) -> int:
         card = {"summary": args.summary, "notes": args.note,
                 "training": {k: v for k, v in (("machine", args.machine), ("sessions", args.sessions)) if v}}
         if args.test_json:
-            card["results"] = _read_test_results(args.test_json).splitlines()
-            card["results_note"] = f"From {Path(args.test_json).name}."
+            card["results"] = [line for path in args.test_json for line in _read_test_results(path).splitlines()]
+            card["results_note"] = f"From {', '.join(Path(path).name for path in args.test_json)}."
         path = export_scene_model(args.checkpoint, out / f"{args.name}.pt", card)
         print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")
         return 0
@@ -227,16 +241,19 @@ def run_export(args) -> int:
     if args.sessions:
         training["sessions"] = args.sessions
     card = {"summary": args.summary, "training": training, "notes": args.note}
-    if args.test_json:
-        try:
-            test = json.loads(_read_test_results(args.test_json))
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"--test-json {args.test_json}: not the JSON of `vrnet eval` ({exc})") from None
-        if not isinstance(test, dict):
-            raise ValueError(f"--test-json {args.test_json}: not the JSON of `vrnet eval` (no object of metrics)")
-        card["test"] = {k: v for k, v in test.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    tests = [_read_eval_json(path) for path in args.test_json or []]
+    for test in tests:
+        cell = f"{test.get('setting')}/{test.get('split')}"
+        metrics = {k: v for k, v in test.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        card.setdefault("tests", {})[cell] = metrics
+    if len(tests) == 1:
+        test = tests[0]
+        card["test"] = card.pop("tests")[f"{test.get('setting')}/{test.get('split')}"]
         card["test_note"] = (f"`vrnet eval` on {test.get('pairs')} ModelNet40 test pairs ({test.get('setting')} / "
                              f"{test.get('split')}, the whole official test split unless fewer are stated).")
+    elif tests:
+        card["tests_note"] = ("`vrnet eval` on the ModelNet40 test pairs of each cell (the whole official test split "
+                              "unless fewer are stated).")
     overrides = {k: getattr(args, k) for k in ("procrustes_points", "irls_iterations") if getattr(args, k) is not None}
     path = export_pretrained(args.checkpoint, out / f"{args.name}.pt", card, overrides)
     print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")

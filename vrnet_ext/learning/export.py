@@ -106,9 +106,9 @@ def model_card_markdown(name: str, config: dict, card: dict) -> str:
     if "validation" in card.get("training", {}):
         lines += ["", "Validation (pairs held out of the training split) at the selected epoch:", ""]
         lines += _table(card["training"]["validation"])
-    for title, key in (("Test", "test"),):
-        if key in card:
-            lines += ["", f"## {title}", "", card.get(f"{key}_note", ""), ""]
-            lines += _table(card[key])
+    if "test" in card:
+        lines += ["", "## Test", "", card.get("test_note", ""), ""] + _table(card["test"])
+    for cell, metrics in card.get("tests", {}).items():
+        lines += ["", f"## Test: {cell}", "", card.get("tests_note", ""), ""] + _table(metrics)
     lines += ["", "## Notes", ""] + [f"- {note}" for note in card.get("notes", [])]
     return "\n".join(lines) + "\n"
