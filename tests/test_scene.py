@@ -224,3 +224,16 @@ def test_train_scene_on_georeferenced_scans_recentres_them_with_a_warning(tmp_pa
     assert err.count("warning: scan.ply: coordinates up to 5e+06 lose precision in float32") == 1, err
     for near, utm in zip(*histories):
         assert near["nce"] == pytest.approx(utm["nce"], rel=0.02)  # voxel ties may fall either way
+
+
+def test_scene_training_takes_a_pair_provider(tmp_path):
+    calls = []
+
+    def provider(name, scan, voxel, rng):
+        calls.append(name)
+        return synthetic_pair(scan, voxel, rng)
+
+    cfg = SceneTrainConfig(steps=3, points=400, checkpoint_every=3)
+    train_scene_model({"a": box_scan(4000), "b": box_scan(4000) * 1.5}, tmp_path / "s.pt", cfg,
+                      SceneConfig(hidden=16, emb_dims=8, neighbours=6, walk_hidden=8), progress=False, pairs=provider)
+    assert calls == ["a", "b", "a"]

@@ -14,6 +14,7 @@ and at the end, so a run resumes where it stopped.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,6 +70,12 @@ def scene_loss(model: SceneVRNet, out: SceneOutput, batch: dict[str, torch.Tenso
     return nce + rectify + confidence, stats
 
 
+def synthetic_pair_of(name: str, scan: np.ndarray, voxel: float, rng: np.random.Generator) -> ScanPair:
+    """The default pair provider of :func:`train_scene_model`: a self-supervised pair cut from the one
+    scan ``name`` (:func:`vrnet_ext.data.scans.synthetic_pair`)."""
+    return synthetic_pair(scan, voxel, rng)
+
+
 def _near_origin(name: str, points: np.ndarray) -> np.ndarray:
     """``points`` (N, 3), re-centred on their median when float32 would round them too coarsely."""
     extent = float(np.max(points.max(axis=0) - points.min(axis=0))) if len(points) else 0.0
@@ -81,9 +88,14 @@ def _near_origin(name: str, points: np.ndarray) -> np.ndarray:
 
 
 def train_scene_model(scans: dict[str, np.ndarray], out_path: str | Path, cfg: SceneTrainConfig,
-                      model_config: SceneConfig | None = None, progress: bool = True) -> Path:
-    """Trains on synthetic pairs of ``scans`` (name -> (N, 3) points, sensor at the origin) and
-    writes ``out_path`` (resuming from it when it exists with the same scans). A scan whose
+                      model_config: SceneConfig | None = None, progress: bool = True,
+                      pairs: Callable[[str, np.ndarray, float, np.random.Generator], ScanPair] = synthetic_pair_of
+                      ) -> Path:
+    """Trains on pairs drawn from ``scans`` (name -> (N, 3) points, sensor at the origin) and writes
+    ``out_path`` (resuming from it when it exists with the same scans). Each step takes the next
+    scan's name and asks ``pairs(name, points, voxel, rng)`` for a :class:`ScanPair` (default: a
+    self-supervised pair cut from that scan; a provider of real pairs with ground truth can return
+    a pair of two scans instead). A scan whose
     coordinates float32 would round too coarsely (georeferenced: :func:`coarse_in_float32`) is
     re-centred on its median first (its views are cut and turned anyway), with a warning."""
     out_path = Path(out_path)
@@ -114,7 +126,7 @@ def train_scene_model(scans: dict[str, np.ndarray], out_path: str | Path, cfg: S
     while step < cfg.steps:
         started = time.perf_counter()
         name = names[step % len(names)]
-        batch = pair_tensors(synthetic_pair(scans[name], voxels[name], rng))
+        batch = pair_tensors(pairs(name, scans[name], voxels[name], rng))
         out = model(batch["src"], batch["src_descriptors"], batch["tgt"], batch["tgt_descriptors"])
         loss, stats = scene_loss(model, out, batch)
         optimizer.zero_grad(set_to_none=True)

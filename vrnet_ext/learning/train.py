@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, Dataset
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
@@ -190,8 +190,14 @@ def _replica_spread(model: VRNet, run: _Run) -> float:
     return float(max((g - flat).abs().max() for g in gathered))
 
 
-def train(cfg: TrainConfig) -> dict:
-    """Trains per ``cfg``; returns the last epoch's record (rank 0 writes files)."""
+def train(cfg: TrainConfig, datasets: tuple[Dataset, Dataset] | None = None) -> dict:
+    """Trains per ``cfg``; returns the last epoch's record (rank 0 writes files).
+
+    ``datasets``: (training, validation) pair providers to use instead of ModelNet40 per ``cfg``: any
+    map-style datasets whose items hold the protocol's fields (``src`` (N, 3), ``tgt`` (M, 3),
+    ``rotation`` (3, 3), ``translation`` (3,), ``gt_idx`` (N,): :func:`vrnet_ext.data.make_pair`);
+    a ``set_epoch(epoch)`` method, when present, is called before each epoch.
+    """
     run = _Run(cfg.device)
     if cfg.flush_denormal:
         set_flush_denormal(True)
@@ -202,7 +208,7 @@ def train(cfg: TrainConfig) -> dict:
     torch.manual_seed(cfg.seed)
     model_cfg = VRNetConfig.from_dict(dict(cfg.model, backend=cfg.backend))
     model = VRNet(model_cfg).to(run.device)
-    train_set, val_set = _datasets(cfg)
+    train_set, val_set = datasets if datasets is not None else _datasets(cfg)
     sampler = DistributedSampler(train_set, num_replicas=run.world, rank=run.rank, shuffle=True, seed=cfg.seed,
                                  drop_last=True)
     if len(sampler) < cfg.batch_size:
@@ -237,8 +243,8 @@ class _Setup:
     cfg: TrainConfig
     run: _Run
     model: VRNet
-    train_set: ModelNet40Pairs
-    val_set: ModelNet40Pairs
+    train_set: Dataset
+    val_set: Dataset
     sampler: DistributedSampler
     loss_weights: HybridLossWeights
     autocast: torch.autocast
@@ -279,7 +285,8 @@ def _train_stages(setup: _Setup, state: dict | None, progress: _Progress) -> dic
         wrapped = DistributedDataParallel(model) if run.world > 1 else model
         for epoch in range(first_epoch, epochs):
             global_epoch = epoch if stage == 1 else cfg.stage1_epochs + epoch
-            train_set.set_epoch(global_epoch)
+            if hasattr(train_set, "set_epoch"):
+                train_set.set_epoch(global_epoch)
             sampler.set_epoch(global_epoch)
             stage_train_mode(model, stage, cfg.freeze_confidence)
             epoch_started = started = time.time()
