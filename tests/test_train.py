@@ -261,3 +261,15 @@ def test_train_takes_any_pair_provider(tmp_path):
     record = train(cfg, datasets=(Chairs(8, 0), Chairs(4, 1)))
     assert record["stage"] == 2 and (tmp_path / "run" / "best.pt").exists()
     assert "val_RMSE(R)" in json.loads((tmp_path / "run" / "metrics.jsonl").read_text().splitlines()[-1])
+
+
+def test_every_option_belongs_to_one_section():
+    from vrnet_ext.learning.config import SECTIONS
+
+    listed = [key for keys in SECTIONS.values() for key in keys]
+    options = [f for f in TrainConfig.__dataclass_fields__ if f not in ("preset", "model", "progress")]
+    assert sorted(listed) == sorted(options) and len(listed) == len(set(listed))
+    cfg = TrainConfig.from_preset("tiny")
+    assert cfg.section("schedule")["batch_size"] == cfg.batch_size
+    with pytest.raises(ValueError, match="section must be one of"):
+        cfg.section("optimiser")

@@ -13,7 +13,8 @@ from vrnet_ext.data.protocol import FAR_POINTS, MIXED, SETTINGS
 
 
 def add_train(sub) -> None:
-    from vrnet_ext.learning.config import FIELD_HELP, L4_FORMS, PRECISIONS, PRESETS, TrainConfig, preset_values
+    from vrnet_ext.learning.config import (FIELD_HELP, L4_FORMS, PRECISIONS, PRESETS, SECTIONS, TrainConfig,
+                                           preset_values)
 
     p = sub.add_parser("train", help="two-stage training on ModelNet40 (DDP under torchrun)",
                        description="Two-stage VRNet training. Start from a preset; any flag overrides it. "
@@ -21,9 +22,12 @@ def add_train(sub) -> None:
     p.add_argument("--preset", choices=sorted(PRESETS), default="small",
                    help="paper: batch 28, 100+100 epochs (GPU); cpu: the small model on the full training split at the paper's 768-point views (the shipped model; hours per session on a CPU); small: minutes on a CPU; tiny: seconds (smoke test)")
     hints = typing.get_type_hints(TrainConfig)
+    groups = {name: p.add_argument_group(f"{name} options") for name in SECTIONS}
+    group_of = {key: groups[name] for name, keys in SECTIONS.items() for key in keys}
     for f in fields(TrainConfig):
         if f.name in ("preset", "model", "progress"):
             continue
+        add = group_of[f.name].add_argument
         flag = "--" + f.name.replace("_", "-")
         kind = hints[f.name]
         values = preset_values(f.name)
@@ -32,42 +36,43 @@ def add_train(sub) -> None:
                    else "default: " + ", ".join(f"{k} {v}" for k, v in values.items()))
         description = f"{FIELD_HELP.get(f.name, f.name)} ({default})"
         if f.name in ("classes", "lr_milestones"):
-            p.add_argument(flag, type=int, nargs="+", default=None, help=description)
+            add(flag, type=int, nargs="+", default=None, help=description)
         elif f.name == "setting":
-            p.add_argument(flag, choices=SETTINGS + (MIXED,), default=None, help=description)
+            add(flag, choices=SETTINGS + (MIXED,), default=None, help=description)
         elif f.name == "split":
-            p.add_argument(flag, choices=("UPC", "UC", "ND"), default=None, help=description)
+            add(flag, choices=("UPC", "UC", "ND"), default=None, help=description)
         elif f.name == "data_dir":
-            p.add_argument(flag, default=None, help=DATA_DIR_HELP)
+            add(flag, default=None, help=DATA_DIR_HELP)
         elif f.name == "out_dir":
-            p.add_argument(flag, type=output_folder, default=None, help=description)
+            add(flag, type=output_folder, default=None, help=description)
         elif f.name == "device":
-            p.add_argument(flag, type=train_device, default=None, help=description)
+            add(flag, type=train_device, default=None, help=description)
         elif f.name == "precision":
-            p.add_argument(flag, choices=PRECISIONS, default=None, help=description)
+            add(flag, choices=PRECISIONS, default=None, help=description)
         elif f.name == "backend":
-            p.add_argument(flag, choices=("ext", "torch"), default=None, help=description)
+            add(flag, choices=("ext", "torch"), default=None, help=description)
         elif f.name == "loss_l4_form":
-            p.add_argument(flag, choices=L4_FORMS, default=None, help=description)
+            add(flag, choices=L4_FORMS, default=None, help=description)
         elif f.name == "far_points":
-            p.add_argument(flag, choices=FAR_POINTS, default=None, help=description)
+            add(flag, choices=FAR_POINTS, default=None, help=description)
         elif kind is bool:
-            p.add_argument(flag, type=parse_bool, default=None, help=description)
+            add(flag, type=parse_bool, default=None, help=description)
         else:
             base = int if "int" in str(kind) else float if "float" in str(kind) else str
-            p.add_argument(flag, type=base, default=None, help=description)
-    p.add_argument("--emb-dims", type=int, default=None, help="model embedding size c")
-    p.add_argument("--k", type=int, default=None, help="DGCNN neighbours")
-    p.add_argument("--iterations", type=int, default=None, help="ICP-like passes at evaluation")
-    p.add_argument("--walk-gate", type=parse_bool, default=None,
+            add(flag, type=base, default=None, help=description)
+    model = p.add_argument_group("model options (stored in the checkpoint)")
+    model.add_argument("--emb-dims", type=int, default=None, help="model embedding size c")
+    model.add_argument("--k", type=int, default=None, help="DGCNN neighbours")
+    model.add_argument("--iterations", type=int, default=None, help="ICP-like passes at evaluation")
+    model.add_argument("--walk-gate", type=parse_bool, default=None,
                    help="1: the walk's offsets are gated per point (right VCPs stay exact); 0: the paper's walk")
-    p.add_argument("--walk-confidence", type=parse_bool, default=None,
+    model.add_argument("--walk-confidence", type=parse_bool, default=None,
                    help="1: the walk also predicts per-point confidences that weight the Procrustes; 0: unweighted")
-    p.add_argument("--walk-match-stats", type=parse_bool, default=None,
+    model.add_argument("--walk-match-stats", type=parse_bool, default=None,
                    help="1: the walk also sees each point's largest matching weight and matching entropy")
-    p.add_argument("--walk-confidence-trunk", type=parse_bool, default=None,
+    model.add_argument("--walk-confidence-trunk", type=parse_bool, default=None,
                    help="1: the confidence has its own MLP (the offsets' loss L4 does not shape it)")
-    p.add_argument("--irls-iterations", type=int, default=None,
+    model.add_argument("--irls-iterations", type=int, default=None,
                    help="Cauchy reweighting steps after the Procrustes solve (0: none)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 

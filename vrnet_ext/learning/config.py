@@ -79,6 +79,18 @@ def preset_values(name: str) -> dict[str, object]:
     return {preset: values.get(name, default) for preset, values in PRESETS.items()}
 
 
+# The options in sections (``vrnet train --help`` shows them so; ``TrainConfig.section`` reads one).
+SECTIONS = {
+    "data": ("data_dir", "setting", "split", "num_points", "num_subsampled", "far_points", "classes",
+             "max_train_items", "max_val_items", "val_fraction", "seed"),
+    "schedule": ("batch_size", "stage1_epochs", "stage2_epochs", "lr_stage1", "lr_stage2", "weight_decay",
+                 "lr_milestones", "lr_gamma"),
+    "loss": ("loss_l4", "loss_l4_form", "loss_motion"),
+    "start": ("resume", "features_from", "walk_from", "freeze_confidence"),
+    "runtime": ("out_dir", "device", "backend", "num_workers", "precision", "flush_denormal", "checkpoint_minutes"),
+}
+
+
 @dataclass
 class TrainConfig:
     """Everything a run needs; every field is a ``vrnet train`` flag."""
@@ -119,6 +131,13 @@ class TrainConfig:
     freeze_confidence: bool = False
     flush_denormal: bool = True
     progress: bool = True
+
+    def section(self, name: str) -> dict:
+        """The options of one of :data:`SECTIONS` (``"data"``, ``"schedule"``, ``"loss"``, ``"start"``,
+        ``"runtime"``) as a dict."""
+        if name not in SECTIONS:
+            raise ValueError(f"section must be one of {sorted(SECTIONS)}, got {name!r}")
+        return {key: getattr(self, key) for key in SECTIONS[name]}
 
     @classmethod
     def from_preset(cls, preset: str, **overrides) -> "TrainConfig":
