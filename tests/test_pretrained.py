@@ -75,9 +75,11 @@ def test_eval_picks_the_shipped_model_of_the_setting_and_split(tmp_path, capsys)
     from vrnet_ext.model.pretrained import model_for
 
     assert model_for("PV", "UPC") == "vrnet-pv-upc-rcp" and model_for("PV", "ND") == "vrnet-pv-nd-rcp"
-    assert model_for("RS", "UPC") is None
-    assert main(["eval", "--setting", "RS", "--split", "UPC"]) == 2
-    assert "no shipped model is trained for setting RS / split UPC" in capsys.readouterr().err
+    assert model_for("CO", "UPC") == "vrnet-pv-upc-rcp"  # chosen on validation pairs (its card names the cell)
+    assert model_for("RS", "UPC") == model_for("PV+RS", "UPC") == "vrnet-mixed-upc-rcp"
+    assert model_for("RS", "UC") is None
+    assert main(["eval", "--setting", "RS", "--split", "UC"]) == 2
+    assert "no shipped model is trained for setting RS / split UC" in capsys.readouterr().err
     if not (MODELNET_DIR / "modelnet40_1024_test.h5").exists():
         pytest.skip("ModelNet40 not found")
     out = tmp_path / "e.json"
@@ -91,7 +93,10 @@ def test_model_for_prefers_the_model_of_the_setting_then_one_trained_on_every_se
     for name, setting, split in (("pv-upc", "PV", "UPC"), ("all-upc", "mixed", "UPC"), ("pv-nd", "PV", "ND")):
         torch.save({"model": {}, "config": {"model": {}, "setting": setting, "split": split}},
                    tmp_path / f"{name}.pt")
+    torch.save({"model": {}, "config": {"model": {}, "setting": "PV", "split": "UC"},
+                "card": {"cells": ["CO/UC", "PV/UC"]}}, tmp_path / "pv-uc.pt")
     monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path)
     assert pretrained.model_for("PV", "UPC") == "pv-upc"
     assert pretrained.model_for("RS", "UPC") == pretrained.model_for("CO", "UPC") == "all-upc"
     assert pretrained.model_for("PV", "ND") == "pv-nd" and pretrained.model_for("RS", "ND") is None
+    assert pretrained.model_for("CO", "UC") == "pv-uc" and pretrained.cells("pv-uc") == ["CO/UC", "PV/UC"]

@@ -198,6 +198,9 @@ def add_export(sub) -> None:
                    help="`vrnet eval --json` output on the test split (a VRNet; repeat it for each cell a "
                         "mixed-setting model serves), or a Markdown results table (a scene model), for the card")
     p.add_argument("--summary", default="", help="one paragraph: what the model is for")
+    p.add_argument("--cells", nargs="+", default=None, metavar="SETTING/SPLIT",
+                   help="the ModelNet40 cells the model serves, chosen on validation pairs (e.g. RS/UPC "
+                        "PV+RS/UPC; default: the setting and split it was trained for)")
     p.add_argument("--machine", default=None, help="where it was trained (for the card)")
     p.add_argument("--sessions", type=positive_int, default=None, help="how many sessions the training took")
     p.add_argument("--note", action="append", default=[], help="a note for the card (repeatable)")
@@ -205,6 +208,16 @@ def add_export(sub) -> None:
                    help="set the exported model's final Procrustes points (an inference-time choice; default: as trained)")
     p.add_argument("--irls-iterations", type=nonnegative_int, default=None,
                    help="set the exported model's Cauchy reweighting steps (default: as trained)")
+
+
+def _cells(values: list[str]) -> list[str]:
+    """``--cells`` values checked: SETTING/SPLIT with a paper setting and split."""
+    for value in values:
+        setting, _, split = value.partition("/")
+        if setting not in SETTINGS or split not in ("UPC", "UC", "ND"):
+            raise ValueError(f"--cells {value!r}: give SETTING/SPLIT with SETTING in {SETTINGS} and SPLIT in "
+                             f"UPC, UC, ND")
+    return values
 
 
 def _read_eval_json(path: str) -> dict:
@@ -246,6 +259,8 @@ def run_export(args) -> int:
     if args.sessions:
         training["sessions"] = args.sessions
     card = {"summary": args.summary, "training": training, "notes": args.note}
+    if args.cells:
+        card["cells"] = _cells(args.cells)
     tests = [_read_eval_json(path) for path in args.test_json or []]
     for test in tests:
         cell = f"{test.get('setting')}/{test.get('split')}"

@@ -101,6 +101,9 @@ def model_card_markdown(name: str, config: dict, card: dict) -> str:
              "out = model(src, tgt)  # src (B, N, 3), tgt (B, M, 3) in the unit sphere; R src + t ~ tgt", "```", "",
              "## Model", ""]
     lines += [f"- {key}: `{value}`" for key, value in model.items() if key != "backend"]
+    if card.get("cells"):
+        lines += ["", "Serves the ModelNet40 cells " + ", ".join(card["cells"])
+                  + " (`vrnet eval --setting S --split P` picks it for them)."]
     lines += ["", "## Training", ""]
     lines += [f"- {key}: {value}" for key, value in card.get("training", {}).items() if not isinstance(value, dict)]
     if "validation" in card.get("training", {}):

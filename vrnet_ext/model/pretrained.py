@@ -25,6 +25,7 @@ FORMAT = "vrnet_ext.pretrained/1"
 
 KINDS = ("vrnet", "scene")
 MIXED_SETTING = "mixed"  # the training setting of a model for every setting (vrnet_ext.data.protocol.MIXED)
+PAPER_SETTINGS = ("CO", "PV", "RS", "PV+RS")  # vrnet_ext.data.protocol.SETTINGS
 
 
 def available(kind: str | None = None) -> list[str]:
@@ -41,14 +42,27 @@ def available(kind: str | None = None) -> list[str]:
     return [name for name in names if is_scene(name) == (kind == "scene")]
 
 
+def cells(name: str) -> list[str]:
+    """The ModelNet40 cells ("PV/UPC", "CO/UPC", ...) a shipped VRNet serves: those its card names
+    (chosen on validation pairs when a model serves more than the cell it was trained for), else the
+    setting and split it was trained for; a model trained on every setting (``"mixed"``) serves
+    every setting of its split unless its card says otherwise."""
+    state = read_checkpoint(weights_path(name))
+    if state.get("card", {}).get("cells"):
+        return list(state["card"]["cells"])
+    setting, split = state["config"].get("setting"), state["config"].get("split")
+    if setting == MIXED_SETTING:
+        return [f"{s}/{split}" for s in PAPER_SETTINGS]
+    return [f"{setting}/{split}"]
+
+
 def model_for(setting: str, split: str) -> str | None:
-    """The shipped ModelNet40 VRNet for (setting, split) (``"PV"``, ``"UPC"``): the one trained for
-    exactly that setting, else one trained on every setting (``"mixed"``) for that split, else None."""
-    trained_for = {}
-    for name in available("vrnet"):
-        config = read_checkpoint(WEIGHTS_DIR / f"{name}.pt")["config"]
-        trained_for.setdefault((config.get("setting"), config.get("split")), name)
-    return trained_for.get((setting, split)) or trained_for.get((MIXED_SETTING, split))
+    """The shipped ModelNet40 VRNet that serves (setting, split) (``"PV"``, ``"UPC"``; :func:`cells`),
+    one trained for that setting first, or None."""
+    serving = [name for name in available("vrnet") if f"{setting}/{split}" in cells(name)]
+    # a model trained for that very setting before one trained on every setting
+    serving.sort(key=lambda name: read_checkpoint(weights_path(name))["config"].get("setting") == MIXED_SETTING)
+    return serving[0] if serving else None
 
 
 def weights_path(name: str) -> Path:
@@ -96,5 +110,5 @@ def load_vrnet(checkpoint: str | os.PathLike, map_location: str | torch.device =
     return model, state
 
 
-__all__ = ["DEFAULT_MODEL", "DEFAULT_SCENE_MODEL", "available", "load_model", "load_pretrained", "load_vrnet",
+__all__ = ["DEFAULT_MODEL", "DEFAULT_SCENE_MODEL", "available", "cells", "load_model", "load_pretrained", "load_vrnet",
            "model_card", "model_for", "weights_path"]
