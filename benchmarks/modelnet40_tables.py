@@ -35,13 +35,12 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from vrnet_ext.model.pretrained import load_vrnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.data.protocol import MIXED, SETTINGS
 from vrnet_ext.registration.ransac import fpfh_ransac
 from vrnet_ext.geometry.metrics import summarize
 from vrnet_ext.ops import kabsch
-from vrnet_ext.model.pretrained import available
+from vrnet_ext.model.pretrained import available, cells, load_vrnet
 from vrnet_ext.registration import IcpFailure, icp
 
 METHODS = ("vrnet", "vcp", "icp", "fpfh")
@@ -111,8 +110,12 @@ def classical_estimates(data, method: str, icp_max_distance: float, fpfh_voxel: 
     return np.stack(rotations), np.stack(translations), seconds, failures
 
 
-def cells_of(config: dict) -> list[tuple[str, str]]:
-    """The (setting, split) cells a model serves: its own, or every setting for a mixed-setting model."""
+def cells_of(name: str, config: dict) -> list[tuple[str, str]]:
+    """The (setting, split) cells a model serves: a shipped model's per its card
+    (:func:`vrnet_ext.model.pretrained.cells`); a checkpoint's its own, or every setting for a
+    mixed-setting run."""
+    if name in available("vrnet"):
+        return [tuple(cell.split("/")) for cell in cells(name)]
     setting, split = config.get("setting", "PV"), config.get("split", "UPC")
     return [(s, split) for s in SETTINGS] if setting == MIXED else [(setting, split)]
 
@@ -120,7 +123,7 @@ def cells_of(config: dict) -> list[tuple[str, str]]:
 def evaluate_model(name: str, args) -> list[dict]:
     model, state = load_vrnet(name)
     return [evaluate_cell(name, model, state["config"], setting, split, args)
-            for setting, split in cells_of(state["config"]) if not args.settings or setting in args.settings]
+            for setting, split in cells_of(name, state["config"]) if not args.settings or setting in args.settings]
 
 
 def evaluate_cell(name: str, model, config: dict, setting: str, split: str, args) -> dict:
