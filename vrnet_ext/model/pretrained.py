@@ -36,6 +36,7 @@ def available(kind: str | None = None) -> list[str]:
         return names
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS} or None, got {kind!r}")
+
     def is_scene(name: str) -> bool:
         return read_checkpoint(WEIGHTS_DIR / f"{name}.pt").get("format") == SCENE_FORMAT
 
@@ -47,7 +48,10 @@ def cells(name: str) -> list[str]:
     (chosen on validation pairs when a model serves more than the cell it was trained for), else the
     setting and split it was trained for; a model trained on every setting (``"mixed"``) serves
     every setting of its split unless its card says otherwise."""
-    state = read_checkpoint(weights_path(name))
+    return _cells_of(read_checkpoint(weights_path(name)))
+
+
+def _cells_of(state: dict) -> list[str]:
     if state.get("card", {}).get("cells"):
         return list(state["card"]["cells"])
     setting, split = state["config"].get("setting"), state["config"].get("split")
@@ -58,11 +62,13 @@ def cells(name: str) -> list[str]:
 
 def model_for(setting: str, split: str) -> str | None:
     """The shipped ModelNet40 VRNet that serves (setting, split) (``"PV"``, ``"UPC"``; :func:`cells`),
-    one trained for that setting first, or None."""
-    serving = [name for name in available("vrnet") if f"{setting}/{split}" in cells(name)]
-    # a model trained for that very setting before one trained on every setting
-    serving.sort(key=lambda name: read_checkpoint(weights_path(name))["config"].get("setting") == MIXED_SETTING)
-    return serving[0] if serving else None
+    one trained for that setting before one trained on every setting, or None."""
+    serving = []
+    for name in available("vrnet"):
+        state = read_checkpoint(WEIGHTS_DIR / f"{name}.pt")  # each file read once
+        if f"{setting}/{split}" in _cells_of(state):
+            serving.append((state["config"].get("setting") == MIXED_SETTING, name))
+    return min(serving)[1] if serving else None
 
 
 def weights_path(name: str) -> Path:
@@ -87,7 +93,6 @@ def load_pretrained(name: str | None = None, device: str | torch.device = "cpu")
 
 def model_card(name: str | None = None) -> dict:
     """The training facts and metrics stored with a shipped model."""
-
     return dict(read_checkpoint(weights_path(name or DEFAULT_MODEL)).get("card", {}))
 
 
