@@ -33,15 +33,21 @@ def _enough_hypotheses(inlier_ratio: float, confidence: float) -> float:
     return math.log(1.0 - confidence) / math.log(1.0 - all_inliers)
 
 
+HYPOTHESES = 1_000_000  # enough for 3 % inliers: log(0.001) / log(1 - 0.03^3) = 256,000 hypotheses
+SCORED_AT_ONCE = 1 << 21  # hypothesis x match residuals held at a time while scoring (16 MB in float64)
+
+
 def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_distance: float,
-           iterations: int = 50_000, confidence: float = 0.999, batch: int = 512,
+           iterations: int = HYPOTHESES, confidence: float = 0.999, batch: int = 8192,
            seed: int = 0) -> tuple[torch.Tensor, int]:
     """Rigid transform from putative matches (C, 2) between src (N, 3) and tgt (M, 3).
 
     Up to ``iterations`` hypotheses from 3 random matches each, ``batch`` at a time (one Kabsch
-    call per batch), stopping early as Open3D's RANSAC does once the best inlier ratio w says an
-    all-inlier sample has been drawn with probability ``confidence`` (after log(1 - confidence) /
-    log(1 - w^3) hypotheses; 1.0 never stops early). Returns (4x4 transform refined on the best
+    call per batch for those passing the edge-length check), stopping early as Open3D's RANSAC does
+    once the best inlier ratio w says an all-inlier sample has been drawn with probability
+    ``confidence`` (after log(1 - confidence) / log(1 - w^3) hypotheses; 1.0 never stops early).
+    The cap matters on low-overlap scans, where 2-4 % of FPFH matches are right: the early stop
+    ends easy pairs after a few thousand hypotheses. Returns (4x4 transform refined on the best
     hypothesis' inliers, its inlier count).
     """
     if matches.shape[0] < 3:
@@ -61,11 +67,13 @@ def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_d
         if not bool(agree.any()):
             continue
         R, t = ops.kabsch(hp[agree], hq[agree])
-        residual = (move(p[None], R, t) - q[None]).norm(dim=-1)  # (H, C)
-        counts = (residual <= inlier_distance).sum(1)
-        top = int(counts.argmax())
-        if int(counts[top]) > best_count:
-            best_count, best = int(counts[top]), residual[top] <= inlier_distance
+        chunk = max(1, SCORED_AT_ONCE // p.shape[0])
+        for first in range(0, R.shape[0], chunk):
+            residual = (move(p[None], R[first:first + chunk], t[first:first + chunk]) - q[None]).norm(dim=-1)  # (H, C)
+            counts = (residual <= inlier_distance).sum(1)
+            top = int(counts.argmax())
+            if int(counts[top]) > best_count:
+                best_count, best = int(counts[top]), residual[top] <= inlier_distance
         if start + size >= _enough_hypotheses(best_count / p.shape[0], confidence):
             break
     if best is None or best_count < 3:
@@ -77,7 +85,7 @@ def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_d
     return transform, best_count
 
 
-def fpfh_ransac(src: torch.Tensor, tgt: torch.Tensor, voxel_size: float, iterations: int = 50_000,
+def fpfh_ransac(src: torch.Tensor, tgt: torch.Tensor, voxel_size: float, iterations: int = HYPOTHESES,
                 seed: int = 0) -> tuple[torch.Tensor, int]:
     """Initial estimate for two voxel-downsampled scans src (N, 3), tgt (M, 3) (same unit) ->
     (4x4 transform taking src onto tgt, RANSAC inlier count): :func:`voxel_fpfh` features,
