@@ -13,12 +13,14 @@ that search out while ours includes it; FPFH radius
 checkers and its 100,000 iterations / 0.999 confidence), ICP on about 50,000 points with reach 3
 ICP voxels. Rows:
 
+* ``ours default + point_to_plane``: ``vrnet register`` with its default method;
 * ``ours fpfh + <estimator>``: ``vrnet register --method fpfh --estimator E``;
 * ``ours vrnet + point_to_plane``: the shipped scene model (``--method vrnet``);
 * ``open3d fpfh + <estimator>``: Open3D's ``registration_ransac_based_on_feature_matching`` then
   ``registration_icp`` (point-to-point, point-to-plane) or ``registration_generalized_icp``.
 
-Open3D is optional: without it, its rows are skipped with the reason.
+Open3D is optional: without it, its rows are skipped with the reason. ``--beside-busy`` keeps one
+core busy with another process for the whole run (a shared machine).
 """
 from __future__ import annotations
 
@@ -115,6 +117,7 @@ def run_ours(pair: dict, method: str | None, estimator: str, out: Path, seed: in
         return {"error": (proc.stderr.strip().splitlines() or ["?"])[-1], "process_s": wall}
     result = json.loads(out.read_text())
     return {"transform": result["T_target_source"], "register_s": sum(result["seconds"].values()),
+            "stage_s": result["seconds"],
             "peak_rss_mb": result["peak_rss_mb"], "process_s": wall, "fitness": result["fitness"],
             "start": result.get("start", "")}
 
@@ -139,7 +142,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--estimators", nargs="+", default=["point_to_point", "point_to_plane", "gicp"])
     parser.add_argument("--json", default="bench_register.json")
     parser.add_argument("--markdown", default="bench_register.md")
+    parser.add_argument("--beside-busy", action="store_true",
+                        help="run beside another process that keeps one core busy (a shared machine)")
     args = parser.parse_args(argv)
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if args.beside_busy else None
+    try:
+        _run(args)
+    finally:
+        if busy is not None:
+            busy.kill()
+
+
+def _run(args: argparse.Namespace) -> None:
     have_open3d = importlib.util.find_spec("open3d") is not None
     rows: dict[tuple[str, str], list[dict]] = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -147,7 +161,8 @@ def main(argv: list[str] | None = None) -> None:
         todo = pairs(Path(args.data), workdir, args.pairs)
         if not todo:
             raise SystemExit(f"bench_register: no scan pairs under {args.data}")
-        runners = [(f"ours fpfh + {e}", lambda p, o, e=e: run_ours(p, "fpfh", e, o)) for e in args.estimators]
+        runners = [("ours default + point_to_plane", lambda p, o: run_ours(p, None, "point_to_plane", o))]
+        runners += [(f"ours fpfh + {e}", lambda p, o, e=e: run_ours(p, "fpfh", e, o)) for e in args.estimators]
         runners.append(("ours vrnet + point_to_plane", lambda p, o: run_ours(p, "vrnet", "point_to_plane", o)))
         if have_open3d:
             runners += [(f"open3d fpfh + {e}", lambda p, o, e=e: run_open3d(p, e, o)) for e in args.estimators]
@@ -186,12 +201,14 @@ def main(argv: list[str] | None = None) -> None:
         lines.append("\nOpen3D rows skipped: `open3d` is not installed (pip install open3d; needs libusb-1.0-0).")
     table = "\n".join(lines)
     meta = {"machine": f"{platform.machine()}, {os.cpu_count()} cpus", "date": time.strftime("%Y-%m-%d"),
-            "repeats": args.repeats, "threads": os.environ.get("OMP_NUM_THREADS", "default")}
+            "repeats": args.repeats, "threads": os.environ.get("OMP_NUM_THREADS", "default"),
+            "beside_busy": args.beside_busy}
     Path(args.json).write_text(json.dumps({"meta": meta, "summary": summary,
                                            "runs": {f"{p} | {n}": r for (p, n), r in rows.items()}}, indent=1))
     Path(args.markdown).write_text(table + "\n")
     print(table)
-    print(f"medians of {args.repeats} interleaved runs; wrote {args.json} and {args.markdown}")
+    busy = ", beside a process keeping one core busy" if args.beside_busy else ""
+    print(f"medians of {args.repeats} interleaved runs{busy}; wrote {args.json} and {args.markdown}")
 
 
 if __name__ == "__main__":

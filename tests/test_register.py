@@ -1,4 +1,5 @@
 import json
+import os
 import subprocess
 import sys
 
@@ -190,6 +191,24 @@ def test_the_vrnet_executable_writes_everything_and_keeps_its_exit_status(tmp_pa
     usage = subprocess.run(vrnet + ["register", "--estimator", "bogus"], capture_output=True, text=True, timeout=300)
     assert usage.returncode == 2 and "invalid choice" in usage.stderr
     assert subprocess.run(vrnet + ["--help"], capture_output=True, text=True, timeout=300).returncode == 0
+
+
+def test_short_commands_let_openmp_threads_sleep_unless_told_otherwise(tmp_path):
+    """OMP_WAIT_POLICY=PASSIVE for `vrnet register` (set before torch loads OpenMP); a value in the
+    environment is kept, and training commands leave it unset."""
+    probe = ("import os, sys; from vrnet_ext.cli import main; main(sys.argv[1:]); "
+             "print(os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules)")
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+
+    def policy(args: list[str], **extra: str) -> str:
+        done = subprocess.run([sys.executable, "-c", probe, *args], capture_output=True, text=True, timeout=300,
+                              env=dict(env, **extra))
+        return done.stdout.split()[-2:]
+
+    register = ["register", str(tmp_path / "a.ply"), str(tmp_path / "b.ply")]  # missing files: exits 2 after parsing
+    assert policy(register) == ["PASSIVE", "True"]
+    assert policy(register, OMP_WAIT_POLICY="ACTIVE") == ["ACTIVE", "True"]
+    assert policy(["train", "--data-dir", str(tmp_path / "none"), "--preset", "tiny"])[0] == "None"
 
 
 @requires_modelnet
