@@ -106,3 +106,26 @@ def test_raw_op_checks_its_arguments():
                                                 torch.zeros(40000, 3, dtype=torch.float64), 0.1, 0.1, 10, 5)
     torch.library.opcheck(torch.ops.vrnet_ext.spatial_consistency.default, (p, p + 1.0, 0.1, 0.1, 10, 5),
                           test_utils=("test_schema", "test_faketensor"))
+
+
+@requires_ext
+def test_the_vector_and_the_portable_graph_give_the_same_fit(tmp_path):
+    """Where the CPU has AVX-512 the graph is built by vector code; VRNET_CPU_DISPATCH=generic keeps
+    the portable loop. Same transform, same inliers (K = 2,000 and 1,003: full words and a tail)."""
+    import os
+    import subprocess
+    import sys
+
+    script = ("import sys, torch; sys.path.insert(0, sys.argv[1]); from test_spatial_consistency import correspondences; "
+              "from vrnet_ext import ops; out = [ops.spatial_consistency(*correspondences(K, 0.9, seed=K)[:2], 0.03, "
+              "0.03) for K in (2000, 1003)]; torch.save(out, sys.argv[2])")
+    results = []
+    for dispatch in ("default", "generic"):
+        env = dict(os.environ, VRNET_CPU_DISPATCH=dispatch)
+        path = tmp_path / f"{dispatch}.pt"
+        done = subprocess.run([sys.executable, "-c", script, os.path.dirname(__file__), str(path)], env=env,
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        results.append(torch.load(path))
+    for (T_vector, mask_vector), (T_generic, mask_generic) in zip(*results):
+        assert torch.equal(T_vector, T_generic) and torch.equal(mask_vector, mask_generic)
