@@ -26,7 +26,7 @@ from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.geometry.preprocessing import subsample, voxel_downsample, voxel_size_for
 from vrnet_ext.registration.fgr import fast_global_registration
 from vrnet_ext import ops
-from vrnet_ext.geometry.features import voxel_fpfh
+from vrnet_ext.geometry.features import nearest_features, voxel_fpfh
 from vrnet_ext.registration.ransac import fpfh_ransac, ransac
 from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import from_normalised, to_homogeneous
@@ -137,8 +137,8 @@ class SpatialConsistency(_OnDownsampledScans):
 
     def estimate(self, src, tgt, seed):
         src_down, tgt_down, voxel = self.downsampled(src, tgt)
-        _, nearest = ops.knn(voxel_fpfh(src_down, voxel)[None], voxel_fpfh(tgt_down, voxel)[None], 1)
-        transform, inliers = ops.spatial_consistency(src_down, tgt_down[nearest[0, :, 0]], 2.0 * voxel, 2.0 * voxel,
+        nearest = nearest_features(voxel_fpfh(src_down, voxel), voxel_fpfh(tgt_down, voxel))
+        transform, inliers = ops.spatial_consistency(src_down, tgt_down[nearest], 2.0 * voxel, 2.0 * voxel,
                                                      self.seeds, self.consensus)
         if int(inliers.sum()) < 3:
             raise ValueError("spatial consistency found no set of 3 or more consistent FPFH matches: the features "
