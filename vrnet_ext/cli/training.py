@@ -7,8 +7,9 @@ import typing
 from dataclasses import fields
 from pathlib import Path
 
-from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, nonnegative_int, output_folder, parse_bool,
-                                  positive_float, positive_int, train_device, view_points, writable_path, write_json)
+from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, existing_folder, nonnegative_int, output_folder,
+                                  parse_bool, positive_float, positive_int, train_device, unit_interval, view_points,
+                                  writable_path, write_json)
 from vrnet_ext.data.protocol import FAR_POINTS, MIXED, SETTINGS
 
 
@@ -282,12 +283,19 @@ def run_export(args) -> int:
 
 def add_train_scene(sub) -> None:
     p = sub.add_parser("train-scene", help="train the scene model (FPFH + VRNet head) on real scans",
-                       description="Self-supervised: each step cuts two overlapping views out of one of the scans, "
-                                   "turns each by a random rotation and resamples it on its own grid; the network "
-                                   "learns to match them. No pair of different scans is used. Resumes from --out "
-                                   "when it exists.",
+                       description="Self-supervised on SCANS: each step cuts two overlapping views out of one of the "
+                                   "scans, turns each by a random rotation and resamples it on its own grid; the "
+                                   "network learns to match them. With --real-pairs, also supervised by the ground "
+                                   "truth of real pairs (their training pairs; the validation pairs are never used). "
+                                   "Resumes from --out when it exists.",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("scans", nargs="+", help="point-cloud files (sensor at the origin), e.g. 3DMatch fragments")
+    p.add_argument("scans", nargs="*", help="point-cloud files (sensor at the origin), e.g. 3DMatch fragments")
+    p.add_argument("--real-pairs", type=existing_folder, default=None,
+                   help="a real_pairs folder (MANIFEST.tsv, clouds/, gt/): train on its training pairs "
+                        "(vrnet_ext.data.real_pairs.split)")
+    p.add_argument("--synthetic-share", type=unit_interval, default=0.5,
+                   help="with --real-pairs: share of steps on a self-supervised pair cut from a training pair's "
+                        "source scan")
     p.add_argument("--out", required=True, type=writable_path, help="checkpoint to write (and resume)")
     p.add_argument("--steps", type=positive_int, default=600, help="training pairs")
     p.add_argument("--points", type=view_points, default=3000,
@@ -301,10 +309,23 @@ def run_train_scene(args) -> int:
     from vrnet_ext.geometry.io import read_points
     from vrnet_ext.learning.scene_training import SceneTrainConfig, train_scene_model
 
+    if not args.scans and args.real_pairs is None:
+        raise ValueError("scans: give point-cloud files, --real-pairs, or both")
     scans = {Path(path).name: read_points(path) for path in args.scans}
     if len(scans) != len(args.scans):
         raise ValueError("scans: give each file once (file names must differ)")
     cfg = SceneTrainConfig(steps=args.steps, points=args.points, lr=args.lr, seed=args.seed)
-    path = train_scene_model(scans, args.out, cfg, progress=not args.no_progress)
+    provider = None
+    if args.real_pairs is not None:
+        from vrnet_ext.data.real_pairs import RealPairProvider, read_manifest, split
+
+        provider = RealPairProvider(split(read_manifest(args.real_pairs))[0], args.synthetic_share,
+                                    self_supervised=set(scans))
+        clash = set(scans) & {pair.pair_id for pair in provider.pairs}
+        if clash:
+            raise ValueError(f"scans: file names {sorted(clash)} clash with pair ids of --real-pairs")
+        scans.update(provider.scans())
+    path = train_scene_model(scans, args.out, cfg, progress=not args.no_progress,
+                             **({} if provider is None else {"pairs": provider}))
     print(f"wrote {path}")
     return 0

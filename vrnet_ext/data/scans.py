@@ -29,7 +29,9 @@ def _slab(points: np.ndarray, direction: np.ndarray, low: float, high: float) ->
     return points[(along >= lo) & (along <= hi)]
 
 
-def _view(points: np.ndarray, rotation: np.ndarray, voxel: float, rng: np.random.Generator) -> np.ndarray:
+def view(points: np.ndarray, rotation: np.ndarray, voxel: float, rng: np.random.Generator) -> np.ndarray:
+    """``points`` (N, 3) turned by ``rotation`` about the origin and voxel-downsampled on a grid
+    shifted by a random fraction of ``voxel`` -> (V, 3)."""
     shift = rng.uniform(0.0, voxel, 3)
     return voxel_downsample(move(points, rotation, shift), voxel) - shift
 
@@ -45,8 +47,8 @@ def synthetic_pair(scan: np.ndarray, voxel: float, rng: np.random.Generator) -> 
     tgt_points = _slab(scan, direction, split - overlap, 1.0)
     rotation_src, rotation_tgt = (Rotation.random(random_state=rng).as_matrix() for _ in range(2))
     size = voxel * rng.uniform(0.8, 1.25)
-    src_view = describe(_view(src_points, rotation_src, size, rng), size)
-    tgt_view = describe(_view(tgt_points, rotation_tgt, size, rng), size)
+    src_view = describe(view(src_points, rotation_src, size, rng), size)
+    tgt_view = describe(view(tgt_points, rotation_tgt, size, rng), size)
     T = np.eye(4)
     T[:3, :3] = rotation_tgt @ rotation_src.T
     return ScanPair(src_view, tgt_view, T)
