@@ -5,7 +5,8 @@
         [--json scene_validation.json]
 
 For each validation pair (:func:`vrnet_ext.data.real_pairs.split`) and seed: the global estimate
-alone (no ICP, no second start) of each checkpoint's scene network, of ``fpfh`` (FPFH + RANSAC)
+alone (no ICP, no second start) of each checkpoint's scene network (its RCPs fitted by RANSAC and
+by spatial consistency), of ``fpfh`` (FPFH + RANSAC)
 and of ``sc2`` (spatial consistency), on both scans voxel-downsampled to about 5,000 points.
 Success: RE < 15 deg and TE < 30 cm indoors, RE < 5 deg and TE < 2 m for KITTI. Prints recall per
 kind and overall, the median RE / TE of successes and the median seconds per estimate; writes JSON.
@@ -25,7 +26,7 @@ from vrnet_ext.data.real_pairs import read_manifest, split
 from vrnet_ext.geometry.io import read_points, read_transform
 from vrnet_ext.model.pretrained import load_model
 from vrnet_ext.registration import FpfhRansac, SpatialConsistency, transform_errors
-from vrnet_ext.registration.global_estimators import SceneNetwork
+from vrnet_ext.registration.global_estimators import ROBUST_FITS, SceneNetwork
 
 POINTS = 5000
 THRESHOLDS = {False: (15.0, 0.30), True: (5.0, 2.0)}  # outdoor -> (RE deg, TE m)
@@ -35,7 +36,8 @@ def estimators(checkpoints: list[str]) -> dict:
     found = {"fpfh": FpfhRansac(POINTS), "sc2": SpatialConsistency(POINTS)}
     for checkpoint in checkpoints:
         model, _ = load_model(checkpoint)
-        found[Path(checkpoint).stem] = SceneNetwork(model, POINTS)
+        for robust in ROBUST_FITS:
+            found[f"{Path(checkpoint).stem} + {robust}"] = SceneNetwork(model, POINTS, robust=robust)
     return found
 
 

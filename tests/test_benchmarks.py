@@ -35,6 +35,18 @@ def test_bench_train_step_runs(tmp_path):
     assert {(r["stage"], r["impl"]) for r in records} == {(1, "ext"), (1, "torch"), (2, "ext"), (2, "torch")}
 
 
+@requires_modelnet
+def test_bench_inference_times_every_variant_on_the_same_pairs(tmp_path):
+    out = tmp_path / "inference.json"
+    run([str(ROOT / "benchmarks" / "bench_inference.py"), "--batches", "1", "2", "--pairs", "4", "--repeats", "1",
+         "--data-dir", str(MODELNET_DIR), "--json", str(out)], tmp_path)
+    rows = json.loads(out.read_text())["rows"]
+    assert {(r["variant"], r["batch"]) for r in rows} == {(v, b) for v in ("torch", "ext", "ext + bf16") for b in (1, 2)}
+    by_variant = {r["variant"]: r for r in rows if r["batch"] == 1}
+    assert by_variant["torch"]["vs_reference"] == 1.0 and all(r["pairs_per_s"] > 0 for r in rows)
+    assert abs(by_variant["ext"]["rms_angle_deg"] - by_variant["torch"]["rms_angle_deg"]) < 0.01
+
+
 LIDAR = ROOT.parent / "shared" / "data" / "scenes" / "lidar_pair"
 
 

@@ -147,23 +147,31 @@ class SpatialConsistency(_OnDownsampledScans):
                                                   _counts(src_down, tgt_down))
 
 
-SCENE_PAIRS = 1000  # most confident (source, RCP) pairs the scene model hands to RANSAC
+SCENE_PAIRS = 1000  # most confident (source, RCP) pairs the scene model hands to its robust fit
+ROBUST_FITS = ("ransac", "sc2")
 
 
 @dataclass
 class SceneNetwork(GlobalEstimator):
     """The scene model (:mod:`vrnet_ext.model.scene`): both scans voxel-downsampled to about
-    ``points`` points, FPFH, VRNet's head, then RANSAC (inliers within 1.5 voxels) over the
-    ``SCENE_PAIRS`` (source point, RCP) pairs of highest confidence. It was trained on a few scans,
-    so ICP also starts from the default estimator's estimate (spatial consistency) and the better
-    fit wins."""
+    ``points`` points, FPFH, VRNet's head, then a robust fit over the ``pairs`` (source point, RCP)
+    pairs of highest confidence: ``robust="ransac"`` (inliers within 1.5 voxels) or ``"sc2"``
+    (spatial consistency, tolerance and inliers 2 voxels, as :class:`SpatialConsistency`). It was
+    trained on a few scans, so ICP also starts from the default estimator's estimate (spatial
+    consistency) and the better fit wins."""
 
     model: SceneVRNet
     points: int = 5000
     backend: str = "ext"
+    robust: str = "ransac"
+    pairs: int = SCENE_PAIRS
     name: ClassVar[str] = "vrnet"
     also_start_from: ClassVar[tuple[str, ...]] = ("sc2",)
     memory_profile: ClassVar[str | None] = "scene"
+
+    def __post_init__(self) -> None:
+        if self.robust not in ROBUST_FITS:
+            raise ValueError(f"robust must be one of {ROBUST_FITS}, got {self.robust!r}")
 
     @property
     def memory_scale(self) -> float:
@@ -181,12 +189,18 @@ class SceneNetwork(GlobalEstimator):
         with torch.no_grad():
             out = self.model(src_view.network_points()[None], src_view.descriptors[None],
                              tgt_view.network_points()[None], tgt_view.descriptors[None], backend=self.backend)
-        keep = out.confidence_logits[0].argsort(descending=True)[:SCENE_PAIRS]
+        keep = out.confidence_logits[0].argsort(descending=True)[:self.pairs]
         src_pairs = torch.as_tensor(src_view.points, dtype=torch.float64)[keep]
         rcp_pairs = out.rcp[0, keep].double() * voxel
-        pairs = torch.arange(len(keep)).unsqueeze(1).expand(-1, 2)
-        T, inliers = ransac(src_pairs, rcp_pairs, pairs, 1.5 * voxel, seed=seed)
-        return RegistrationResult.global_estimate(T.cpu().numpy(), self.name, inliers,
+        if self.robust == "sc2":
+            T, inliers = ops.spatial_consistency(src_pairs, rcp_pairs, 2.0 * voxel, 2.0 * voxel)
+            consensus = int(inliers.sum())
+            if consensus < 3:
+                raise ValueError("spatial consistency found no set of 3 or more consistent (source, RCP) pairs")
+        else:
+            pairs = torch.arange(len(keep)).unsqueeze(1).expand(-1, 2)
+            T, consensus = ransac(src_pairs, rcp_pairs, pairs, 1.5 * voxel, seed=seed)
+        return RegistrationResult.global_estimate(T.cpu().numpy(), self.name, consensus,
                                                   {"source_global": len(src_view.points),
                                                    "target_global": len(tgt_view.points)})
 

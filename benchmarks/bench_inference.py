@@ -1,0 +1,103 @@
+"""ModelNet40 inference speed of a shipped VRNet: pairs per second at several batch sizes, the
+compiled backend (float32 and under bfloat16 autocast) beside the pure-PyTorch reference backend,
+in one run, with the accuracy of each on the same pairs.
+
+    python benchmarks/bench_inference.py [--model vrnet-pv-upc-rcp] [--batches 1 16 64]
+                                         [--pairs 256] [--threads 2] [--json inference.json]
+
+Pairs: the first ``--pairs`` of the official test split (PV, UPC, 768-point views), the same for
+every variant; no_grad, eval mode. Each (variant, batch) is timed over whole passes through those
+pairs (median of ``--repeats``), variants taking turns within each repeat. Accuracy: the RMS of
+the rotation angle error (degrees; not the paper's Euler-angle RMSE(R)) and RMSE(t) over the pairs,
+so a faster variant can be seen to keep the numbers. Peak
+memory: the process's peak resident set after the run (all variants).
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import platform
+import resource
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from vrnet_ext.data.modelnet import ModelNet40Pairs
+from vrnet_ext.geometry.metrics import rotation_error_deg
+from vrnet_ext.model.pretrained import load_pretrained
+
+VARIANTS = {"torch": ("torch", False), "ext": ("ext", False), "ext + bf16": ("ext", True)}
+
+
+def load_pairs(count: int, data_dir: str | None) -> dict[str, torch.Tensor]:
+    dataset = ModelNet40Pairs(data_dir, partition="test", setting="PV", max_items=count)
+    items = [dataset[i] for i in range(len(dataset))]
+    return {key: torch.stack([item[key] for item in items]) for key in ("src", "tgt", "rotation", "translation")}
+
+
+def run_pass(model, pairs: dict[str, torch.Tensor], batch: int, backend: str, bf16: bool):
+    rotations, translations = [], []
+    autocast = torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
+    with torch.no_grad(), autocast:
+        for start in range(0, len(pairs["src"]), batch):
+            out = model(pairs["src"][start:start + batch], pairs["tgt"][start:start + batch], backend=backend)
+            rotations.append(out.rotation.float())
+            translations.append(out.translation.float())
+    return torch.cat(rotations), torch.cat(translations)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--model", default="vrnet-pv-upc-rcp")
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 16, 64])
+    parser.add_argument("--pairs", type=int, default=256, help="test pairs per pass (a multiple of every batch size)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--data-dir", default=None)
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    model = load_pretrained(args.model).eval()
+    pairs = load_pairs(args.pairs, args.data_dir)
+    count = len(pairs["src"])
+    seconds: dict[tuple[str, int], list[float]] = {}
+    accuracy: dict[str, dict[str, float]] = {}
+    for variant, (backend, bf16) in VARIANTS.items():  # warm-up and accuracy
+        R, t = run_pass(model, pairs, max(args.batches), backend, bf16)
+        accuracy[variant] = {
+            "rms_angle_deg": float(rotation_error_deg(R, pairs["rotation"]).square().mean().sqrt()),
+            "rmse_t": float((t - pairs["translation"]).norm(dim=-1).square().mean().sqrt())}
+    for _ in range(args.repeats):
+        for batch in args.batches:
+            for variant, (backend, bf16) in VARIANTS.items():
+                start = time.perf_counter()
+                run_pass(model, pairs, batch, backend, bf16)
+                seconds.setdefault((variant, batch), []).append(time.perf_counter() - start)
+    rows = []
+    for (variant, batch), times in seconds.items():
+        median = statistics.median(times)
+        reference = statistics.median(seconds[("torch", batch)])
+        rows.append({"variant": variant, "batch": batch, "pairs_per_s": count / median,
+                     "vs_reference": reference / median, **accuracy[variant]})
+    print("| variant | batch | pairs/s | x reference | RMS angle error (deg) | RMSE(t) |")
+    print("|---|---|---|---|---|---|")
+    for row in sorted(rows, key=lambda r: (r["batch"], r["variant"])):
+        print(f"| {row['variant']} | {row['batch']} | {row['pairs_per_s']:.1f} | {row['vs_reference']:.2f} | "
+              f"{row['rms_angle_deg']:.4f} | {row['rmse_t']:.6f} |")
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    meta = {"model": args.model, "pairs": count, "threads": args.threads, "repeats": args.repeats,
+            "torch": torch.__version__, "machine": f"{platform.machine()}, {os.cpu_count()} cpus",
+            "date": time.strftime("%Y-%m-%d"), "peak_rss_mb": peak_mb}
+    print(f"{count} test pairs (PV, UPC), {args.threads} threads, median of {args.repeats}; peak RSS {peak_mb:.0f} MB")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
