@@ -60,6 +60,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--data-dir", default=None)
     parser.add_argument("--json", default=None)
+    parser.add_argument("--markdown", default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     model = load_pretrained(args.model).eval()
@@ -84,16 +85,20 @@ def main(argv: list[str] | None = None) -> None:
         reference = statistics.median(seconds[("torch", batch)])
         rows.append({"variant": variant, "batch": batch, "pairs_per_s": count / median,
                      "vs_reference": reference / median, **accuracy[variant]})
-    print("| variant | batch | pairs/s | x reference | RMS angle error (deg) | RMSE(t) |")
-    print("|---|---|---|---|---|---|")
-    for row in sorted(rows, key=lambda r: (r["batch"], r["variant"])):
-        print(f"| {row['variant']} | {row['batch']} | {row['pairs_per_s']:.1f} | {row['vs_reference']:.2f} | "
-              f"{row['rms_angle_deg']:.4f} | {row['rmse_t']:.6f} |")
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     meta = {"model": args.model, "pairs": count, "threads": args.threads, "repeats": args.repeats,
             "torch": torch.__version__, "machine": f"{platform.machine()}, {os.cpu_count()} cpus",
             "date": time.strftime("%Y-%m-%d"), "peak_rss_mb": peak_mb}
-    print(f"{count} test pairs (PV, UPC), {args.threads} threads, median of {args.repeats}; peak RSS {peak_mb:.0f} MB")
+    lines = ["| variant | batch | pairs/s | x reference | RMS angle error (deg) | RMSE(t) |", "|---|---:|---:|---:|---:|---:|"]
+    lines += [f"| {row['variant']} | {row['batch']} | {row['pairs_per_s']:.1f} | {row['vs_reference']:.2f} | "
+              f"{row['rms_angle_deg']:.4f} | {row['rmse_t']:.6f} |"
+              for row in sorted(rows, key=lambda r: (r["batch"], r["variant"]))]
+    lines.append(f"\n`{args.model}`, {count} test pairs (PV, UPC), {args.threads} threads, {meta['machine']}, torch "
+                 f"{torch.__version__}, median of {args.repeats} passes; peak RSS {peak_mb:.0f} MB (all variants).")
+    table = "\n".join(lines)
+    print(table)
+    if args.markdown:
+        Path(args.markdown).write_text(table + "\n")
     if args.json:
         Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
         print(f"wrote {args.json}")
