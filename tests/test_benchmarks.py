@@ -48,6 +48,17 @@ def test_bench_inference_times_every_variant_on_the_same_pairs(tmp_path):
 
 
 LIDAR = ROOT.parent / "shared" / "data" / "scenes" / "lidar_pair"
+REAL_PAIRS = ROOT.parent / "shared" / "data" / "scenes" / "real_pairs"
+
+
+@pytest.mark.skipif(not (REAL_PAIRS / "MANIFEST.tsv").exists(), reason=f"real pairs not found under {REAL_PAIRS}")
+def test_bench_global_fit_times_both_fits_on_the_same_descriptors(tmp_path):
+    out = tmp_path / "fit.json"
+    run([str(ROOT / "benchmarks" / "bench_global_fit.py"), "--max-pairs", "1", "--seeds", "1", "--json", str(out),
+         "--markdown", str(tmp_path / "fit.md")], tmp_path)
+    result = json.loads(out.read_text())
+    assert [r["method"] for r in result["rows"]] == ["sc2", "fpfh"] and result["ratio"] > 0
+    assert {r["method"] for r in result["records"]} == {"sc2", "fpfh"} and (tmp_path / "fit.md").exists()
 
 
 @pytest.mark.skipif(not (LIDAR / "source.ply").exists(), reason=f"LiDAR pair not found under {LIDAR}")
