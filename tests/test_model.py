@@ -250,3 +250,18 @@ def test_a_confidence_trunk_keeps_the_offsets_loss_out_of_the_confidences():
     assert any(p.grad is not None and p.grad.any() for p in model.walk.net.parameters())
     with pytest.raises(ValueError, match="walk_confidence_trunk needs walk_confidence"):
         VRNetConfig.small(walk_confidence_trunk=True)
+
+
+def test_eval_mode_features_of_both_clouds_in_one_batch_equal_separate_passes():
+    """Clouds of one size go through DGCNN as one batch in eval mode: each cloud's features are the
+    same as from a pass of its own (BatchNorm on running statistics)."""
+    model = small_model()
+    model.train()
+    model(*clouds(B=4, N=40, M=40))  # running statistics that are not the initial ones
+    model.eval()
+    src, tgt = clouds(B=3, N=50, M=50)
+    with torch.no_grad():
+        batched = model._features(src, tgt, "torch")
+        separate = (model.features(src, "torch"), model.features(tgt, "torch"))
+    for one, other in zip(batched, separate):
+        torch.testing.assert_close(one, other, rtol=1e-5, atol=1e-6)

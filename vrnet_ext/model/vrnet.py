@@ -150,9 +150,16 @@ class VRNet(nn.Module):
         out.rotation, out.translation = rotation, translation
         return out
 
+    def _features(self, src: torch.Tensor, tgt: torch.Tensor, backend: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """DGCNN features of both clouds: in eval mode, clouds of one size go through as one batch
+        of 2B (BatchNorm then uses its running statistics, so each cloud's features are its own)."""
+        if not self.training and src.shape == tgt.shape:
+            return self.features(torch.cat([src, tgt]), backend).chunk(2)
+        return self.features(src, backend), self.features(tgt, backend)
+
     def _single_pass(self, src: torch.Tensor, tgt: torch.Tensor, backend: str,
                      return_matching: bool) -> VRNetOutput:
-        phi_x, phi_y = self.transformer(self.features(src, backend), self.features(tgt, backend))
+        phi_x, phi_y = self.transformer(*self._features(src, tgt, backend))
         # The soft matching decides where every VCP lands: it runs in float32 even under autocast
         # (a bfloat16 score carries ~3 significant digits, a visible error on sharp softmax rows).
         with torch.autocast(src.device.type, enabled=False):
