@@ -14,14 +14,12 @@ median seconds per pair of each method, and their ratio.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from vrnet_ext import ops
@@ -31,6 +29,7 @@ from vrnet_ext.geometry.io import read_points, read_transform
 from vrnet_ext.registration import transform_errors
 from vrnet_ext.registration.global_estimators import SpatialConsistency, downsampled_pair
 from vrnet_ext.registration.ransac import ransac
+from outputs import write_outputs  # benchmarks/, the script's folder
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_PAIRS = ROOT.parent / "shared" / "data" / "scenes" / "real_pairs"
@@ -101,13 +100,7 @@ def main(argv: list[str] | None = None) -> None:
     lines.append(f"\nsc2 / fpfh median time: {ratio:.2f}. {pairs} pairs x {args.seeds} seeds, global estimate only, "
                  f"{platform.machine()}, {os.cpu_count()} cpus, {torch.get_num_threads()} threads, torch "
                  f"{torch.__version__}, {time.strftime('%Y-%m-%d')}.")
-    table = "\n".join(lines)
-    print(table)
-    if args.markdown:
-        Path(args.markdown).write_text(table + "\n")
-    if args.json:
-        Path(args.json).write_text(json.dumps({"rows": rows, "ratio": ratio, "records": records}, indent=1))
-        print(f"wrote {args.json}")
+    write_outputs("\n".join(lines), {"rows": rows, "ratio": ratio, "records": records}, args.markdown, args.json)
 
 
 if __name__ == "__main__":

@@ -16,19 +16,18 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import platform
 import resource
 import statistics
 import time
-from pathlib import Path
 
 import torch
 
 from vrnet_ext.data.modelnet import ModelNet40Pairs
 from vrnet_ext.geometry.metrics import rotation_error_deg
 from vrnet_ext.model.pretrained import load_pretrained
+from outputs import write_outputs  # benchmarks/, the script's folder
 
 VARIANTS = {"torch": ("torch", False), "ext": ("ext", False), "ext + bf16": ("ext", True)}
 
@@ -95,13 +94,7 @@ def main(argv: list[str] | None = None) -> None:
               for row in sorted(rows, key=lambda r: (r["batch"], r["variant"]))]
     lines.append(f"\n`{args.model}`, {count} test pairs (PV, UPC), {args.threads} threads, {meta['machine']}, torch "
                  f"{torch.__version__}, median of {args.repeats} passes; peak RSS {peak_mb:.0f} MB (all variants).")
-    table = "\n".join(lines)
-    print(table)
-    if args.markdown:
-        Path(args.markdown).write_text(table + "\n")
-    if args.json:
-        Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
-        print(f"wrote {args.json}")
+    write_outputs("\n".join(lines), {"meta": meta, "rows": rows}, args.markdown, args.json)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,6 @@ kind and overall, the median RE / TE of successes and the median seconds per est
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from pathlib import Path
@@ -27,6 +26,7 @@ from vrnet_ext.geometry.io import read_points, read_transform
 from vrnet_ext.model.pretrained import load_model
 from vrnet_ext.registration import FpfhRansac, SpatialConsistency, transform_errors
 from vrnet_ext.registration.global_estimators import ROBUST_FITS, SceneNetwork
+from outputs import write_outputs  # benchmarks/, the script's folder
 
 POINTS = 5000
 THRESHOLDS = {False: (15.0, 0.30), True: (5.0, 2.0)}  # outdoor -> (RE deg, TE m)
@@ -93,14 +93,8 @@ def main(argv: list[str] | None = None) -> None:
               f"{100 * row['median_te_m']:.1f} | {row['median_s']:.3f} |" for row in rows]
     lines.append(f"\nRecall (share of runs) on the {len(validation)} validation pairs x {args.seeds} seeds, global "
                  f"estimate only (no ICP), {time.strftime('%Y-%m-%d')}.")
-    table = "\n".join(lines)
-    print(table)
-    if args.markdown:
-        Path(args.markdown).write_text(table + "\n")
-    if args.json:
-        Path(args.json).write_text(json.dumps({"pairs": [p.pair_id for p in validation], "seeds": args.seeds,
-                                               "summary": rows, "records": records}, indent=1))
-        print(f"wrote {args.json}")
+    write_outputs("\n".join(lines), {"pairs": [p.pair_id for p in validation], "seeds": args.seeds,
+                                               "summary": rows, "records": records}, args.markdown, args.json)
 
 
 if __name__ == "__main__":
