@@ -148,15 +148,17 @@ class SpatialConsistency(_OnDownsampledScans):
 
 
 SCENE_PAIRS = 1000  # most confident (source, RCP) pairs the scene model hands to its robust fit
-ROBUST_FITS = ("ransac", "sc2")
+ROBUST_FITS = ("ransac", "sc2", "sc2+fpfh")
 
 
 @dataclass
 class SceneNetwork(GlobalEstimator):
     """The scene model (:mod:`vrnet_ext.model.scene`): both scans voxel-downsampled to about
     ``points`` points, FPFH, VRNet's head, then a robust fit over the ``pairs`` (source point, RCP)
-    pairs of highest confidence: ``robust="ransac"`` (inliers within 1.5 voxels) or ``"sc2"``
-    (spatial consistency, tolerance and inliers 2 voxels, as :class:`SpatialConsistency`). It was
+    pairs of highest confidence: ``robust="ransac"`` (inliers within 1.5 voxels), ``"sc2"``
+    (spatial consistency, tolerance and inliers 2 voxels, as :class:`SpatialConsistency`) or
+    ``"sc2+fpfh"`` (spatial consistency over those pairs and every source point's nearest FPFH
+    match together: :class:`SpatialConsistency` with the network's correspondences added). It was
     trained on a few scans, so ICP also starts from the default estimator's estimate (spatial
     consistency) and the better fit wins."""
 
@@ -192,7 +194,12 @@ class SceneNetwork(GlobalEstimator):
         keep = out.confidence_logits[0].argsort(descending=True)[:self.pairs]
         src_pairs = torch.as_tensor(src_view.points, dtype=torch.float64)[keep]
         rcp_pairs = out.rcp[0, keep].double() * voxel
-        if self.robust == "sc2":
+        if self.robust != "ransac":
+            if self.robust == "sc2+fpfh":
+                src_points = torch.as_tensor(src_view.points, dtype=torch.float64)
+                nearest = nearest_features(src_view.descriptors, tgt_view.descriptors)
+                src_pairs = torch.cat([src_pairs, src_points])
+                rcp_pairs = torch.cat([rcp_pairs, torch.as_tensor(tgt_view.points, dtype=torch.float64)[nearest]])
             T, inliers = ops.spatial_consistency(src_pairs, rcp_pairs, 2.0 * voxel, 2.0 * voxel)
             consensus = int(inliers.sum())
             if consensus < 3:
