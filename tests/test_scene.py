@@ -237,3 +237,16 @@ def test_scene_training_takes_a_pair_provider(tmp_path):
     train_scene_model({"a": box_scan(4000), "b": box_scan(4000) * 1.5}, tmp_path / "s.pt", cfg,
                       SceneConfig(hidden=16, emb_dims=8, neighbours=6, walk_hidden=8), progress=False, pairs=provider)
     assert calls == ["a", "b", "a"]
+
+
+def test_scene_network_fits_its_rcps_by_each_robust_estimator_and_refuses_others():
+    from vrnet_ext.registration.global_estimators import ROBUST_FITS, SceneNetwork
+
+    truth = np.eye(4)
+    truth[:3, :3] = Rotation.from_euler("z", 25, degrees=True).as_matrix()
+    src, tgt = box_scan(6000), box_scan(6000, seed=1) @ truth[:3, :3].T
+    with pytest.raises(ValueError, match="robust must be one of"):
+        SceneNetwork(small_model(), 800, robust="magsac")
+    for robust in ROBUST_FITS:
+        estimate = SceneNetwork(small_model(), 800, robust=robust).estimate(src, tgt, seed=0)
+        assert np.isfinite(estimate.T_target_source).all() and estimate.consensus >= 3, robust
