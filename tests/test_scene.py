@@ -245,8 +245,9 @@ def test_scene_network_fits_its_rcps_by_each_robust_estimator_and_refuses_others
     truth = np.eye(4)
     truth[:3, :3] = Rotation.from_euler("z", 25, degrees=True).as_matrix()
     src, tgt = box_scan(6000), box_scan(6000, seed=1) @ truth[:3, :3].T
+    model = load_model("scene-fpfh-vrnet-kitchen")[0]
     with pytest.raises(ValueError, match="robust must be one of"):
-        SceneNetwork(small_model(), 800, robust="magsac")
+        SceneNetwork(model, 800, robust="magsac")
     for robust in ROBUST_FITS:
-        estimate = SceneNetwork(small_model(), 800, robust=robust).estimate(src, tgt, seed=0)
+        estimate = SceneNetwork(model, 2000, robust=robust).estimate(src, tgt, seed=0)
         assert np.isfinite(estimate.T_target_source).all() and estimate.consensus >= 3, robust
