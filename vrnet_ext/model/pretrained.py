@@ -19,7 +19,7 @@ from vrnet_ext.model.scene import SCENE_FORMAT, SceneVRNet
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
 DEFAULT_MODEL = "vrnet-pv-upc-rcp"
-DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-kitchen"  # vrnet register --method vrnet (vrnet_ext.model.scene)
+DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-real"  # vrnet register --method vrnet (vrnet_ext.model.scene)
 FORMAT = "vrnet_ext.pretrained/1"
 
 
