@@ -81,7 +81,7 @@ def test_bench_real_pairs_runs_turned_pairs(tmp_path):
 
     if not (DATA_DIR / "scenes" / "real_pairs" / "MANIFEST.tsv").exists():
         pytest.skip(f"real pairs not found under {DATA_DIR / 'scenes'}")
-    run([str(ROOT / "benchmarks" / "bench_real_pairs.py"), "--pairs", "kitti00_0_4", "--seeds", "1", "--methods",
+    run([str(ROOT / "benchmarks" / "bench_real_pairs.py"), "--pairs", "kitti01_0_4", "--seeds", "1", "--methods",
          "default", "--extra-rotation", "180", "--out-dir", str(tmp_path)], tmp_path)
     record = json.loads((tmp_path / "real_pairs.json").read_text())
     (only,) = record["runs"]
