@@ -12,15 +12,16 @@ from pathlib import Path
 
 SUBSETS = ("3DMatch", "3DLoMatch", "KITTI", "kitchen/LiDAR", "all")
 # "default" repeats whichever method was the default when the JSON was measured: the table names the
-# methods themselves, the current default marked.
-LABELS = {"fpfh": "`--method fpfh`", "sc2": "`--method sc2` (the default)",
+# methods themselves, the current default marked; a JSON without an sc2 row measured the default as sc2.
+LABELS = {"default": "`vrnet register` (the default, `sc2`)", "fpfh": "`--method fpfh`", "sc2": "`--method sc2` (the default)",
           "vrnet": "`--method vrnet`", "fgr": "`--method fgr`", "open3d-ransac": "Open3D RANSAC + ICP",
           "open3d-fgr": "Open3D FGR + ICP"}
 
 
 def render(record: dict) -> str:
     rows = {(r["method"], r["subset"]): r for r in record["summary"]}
-    methods = [m for m in dict.fromkeys(r["method"] for r in record["summary"]) if m != "default"]
+    measured = list(dict.fromkeys(r["method"] for r in record["summary"]))
+    methods = [m for m in measured if m != "default" or "sc2" not in measured]
     lines = ["| method | " + " | ".join(f"{s} recall" for s in SUBSETS) + " | RE median (°) | s / pair |",
              "|---|" + "---:|" * (len(SUBSETS) + 2)]
     for method in methods:
