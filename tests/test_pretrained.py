@@ -77,9 +77,11 @@ def test_eval_picks_the_shipped_model_of_the_setting_and_split(tmp_path, capsys)
     assert model_for("PV", "UPC") == "vrnet-pv-upc-rcp" and model_for("PV", "ND") == "vrnet-pv-nd-rcp"
     assert model_for("CO", "UPC") == "vrnet-pv-upc-rcp"  # chosen on validation pairs (its card names the cell)
     assert model_for("RS", "UPC") == model_for("PV+RS", "UPC") == "vrnet-mixed-upc-rcp"
-    assert model_for("RS", "UC") is None
-    assert main(["eval", "--setting", "RS", "--split", "UC"]) == 2
-    assert "no shipped model is trained for setting RS / split UC" in capsys.readouterr().err
+    assert model_for("RS", "UC") == model_for("PV+RS", "UC") == "vrnet-mixed-uc-rcp"
+    assert model_for("CO", "UC") == model_for("PV", "UC") == "vrnet-pv-uc-rcp"
+    assert model_for("RS", "ND") is None
+    assert main(["eval", "--setting", "RS", "--split", "ND"]) == 2
+    assert "no shipped model is trained for setting RS / split ND" in capsys.readouterr().err
     if not (MODELNET_DIR / "modelnet40_1024_test.h5").exists():
         pytest.skip("ModelNet40 not found")
     out = tmp_path / "e.json"
