@@ -158,9 +158,9 @@ class SceneNetwork(GlobalEstimator):
     pairs of highest confidence: ``robust="ransac"`` (inliers within 1.5 voxels), ``"sc2"``
     (spatial consistency, tolerance and inliers 2 voxels, as :class:`SpatialConsistency`) or
     ``"sc2+fpfh"`` (spatial consistency over those pairs and every source point's nearest FPFH
-    match together: :class:`SpatialConsistency` with the network's correspondences added). It was
-    trained on a few scans, so ICP also starts from the default estimator's estimate (spatial
-    consistency) and the better fit wins."""
+    match together: :class:`SpatialConsistency` with the network's correspondences added). A
+    network may not transfer to scans unlike its training pairs, so ICP also starts from the
+    default estimator's estimate (spatial consistency) and the better fit wins."""
 
     model: SceneVRNet
     points: int = 5000
@@ -192,21 +192,20 @@ class SceneNetwork(GlobalEstimator):
             out = self.model(src_view.network_points()[None], src_view.descriptors[None],
                              tgt_view.network_points()[None], tgt_view.descriptors[None], backend=self.backend)
         keep = out.confidence_logits[0].argsort(descending=True)[:self.pairs]
-        src_pairs = torch.as_tensor(src_view.points, dtype=torch.float64)[keep]
-        rcp_pairs = out.rcp[0, keep].double() * voxel
+        src_points = torch.as_tensor(src_view.points, dtype=torch.float64)
+        src_pairs, tgt_pairs = src_points[keep], out.rcp[0, keep].double() * voxel  # (source point, its RCP)
         if self.robust != "ransac":
-            if self.robust == "sc2+fpfh":
-                src_points = torch.as_tensor(src_view.points, dtype=torch.float64)
+            if self.robust == "sc2+fpfh":  # and (source point, its nearest target descriptor's point)
                 nearest = nearest_features(src_view.descriptors, tgt_view.descriptors)
                 src_pairs = torch.cat([src_pairs, src_points])
-                rcp_pairs = torch.cat([rcp_pairs, torch.as_tensor(tgt_view.points, dtype=torch.float64)[nearest]])
-            T, inliers = ops.spatial_consistency(src_pairs, rcp_pairs, 2.0 * voxel, 2.0 * voxel)
+                tgt_pairs = torch.cat([tgt_pairs, torch.as_tensor(tgt_view.points, dtype=torch.float64)[nearest]])
+            T, inliers = ops.spatial_consistency(src_pairs, tgt_pairs, 2.0 * voxel, 2.0 * voxel)
             consensus = int(inliers.sum())
             if consensus < 3:
                 raise ValueError("spatial consistency found no set of 3 or more consistent (source, RCP) pairs")
         else:
             pairs = torch.arange(len(keep)).unsqueeze(1).expand(-1, 2)
-            T, consensus = ransac(src_pairs, rcp_pairs, pairs, 1.5 * voxel, seed=seed)
+            T, consensus = ransac(src_pairs, tgt_pairs, pairs, 1.5 * voxel, seed=seed)
         return RegistrationResult.global_estimate(T.cpu().numpy(), self.name, consensus,
                                                   {"source_global": len(src_view.points),
                                                    "target_global": len(tgt_view.points)})
