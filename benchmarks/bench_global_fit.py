@@ -7,8 +7,8 @@
 Per pair: both scans voxel-downsampled to about 5,000 points and described by FPFH once (not
 timed); then, per seed, each method's matching + fit is timed: ``sc2`` = every source point's
 nearest target descriptor + ``ops.spatial_consistency``; ``fpfh`` = mutual nearest descriptors +
-``ransac`` (up to 1,000,000 hypotheses, Open3D's early stop). Success of the estimate: RE < 15 deg
-and TE < 30 cm indoors, RE < 5 deg and TE < 2 m for KITTI. Reports recall per subset and the
+``ransac`` (up to 1,000,000 hypotheses, Open3D's early stop). Success of the estimate:
+``RealPair.registered`` (RE < 15 deg and TE < 30 cm indoors, RE < 5 deg and TE < 2 m for KITTI). Reports recall per subset and the
 median seconds per pair of each method, and their ratio.
 """
 from __future__ import annotations
@@ -34,8 +34,6 @@ from outputs import write_outputs  # benchmarks/, the script's folder
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_PAIRS = ROOT.parent / "shared" / "data" / "scenes" / "real_pairs"
 POINTS = 5000
-THRESHOLDS = {False: (15.0, 0.30), True: (5.0, 2.0)}  # outdoor -> (RE deg, TE m)
-SUBSETS = {"indoor-3DMatch": "3DMatch", "indoor-3DLoMatch": "3DLoMatch", "outdoor-lidar-kitti": "KITTI"}
 
 
 def fit_sc2(src, tgt, src_features, tgt_features, voxel, seed):
@@ -67,16 +65,15 @@ def main(argv: list[str] | None = None) -> None:
         src, tgt, voxel = downsampled_pair(read_points(pair.source), read_points(pair.target), POINTS)
         src_features, tgt_features = voxel_fpfh(src, voxel), voxel_fpfh(tgt, voxel)
         truth = read_transform(pair.gt)
-        max_re, max_te = THRESHOLDS[pair.outdoor]
         for seed in range(args.seeds):
             for method, fit in METHODS.items():  # in turns, pair by pair
                 start = time.perf_counter()
                 transform = fit(src, tgt, src_features, tgt_features, voxel, seed)
                 seconds = time.perf_counter() - start
                 errors = transform_errors(transform.numpy(), truth)
-                records.append({"pair": pair.pair_id, "subset": SUBSETS.get(pair.kind, pair.kind), "seed": seed,
-                                "method": method, "seconds": seconds,
-                                "success": errors["rotation_error_deg"] < max_re and errors["translation_error"] < max_te})
+                records.append({"pair": pair.pair_id, "subset": pair.subset, "seed": seed, "method": method,
+                                "seconds": seconds,
+                                "success": pair.registered(errors["rotation_error_deg"], errors["translation_error"])})
         print(pair.pair_id, {m: round(statistics.median(r["seconds"] for r in records
                                                         if r["pair"] == pair.pair_id and r["method"] == m), 4)
                              for m in METHODS}, flush=True)

@@ -20,7 +20,6 @@ Writes real_pairs.json, real_pairs.md and real_pairs.png (recall against overlap
 from __future__ import annotations
 
 import argparse
-import csv
 import importlib.util
 import json
 import os
@@ -38,6 +37,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_large_scene import DEFAULT_DATA, pairs as shared_pairs  # noqa: E402
 from bench_register import errors, run_open3d, run_ours  # noqa: E402
 
+from vrnet_ext.data.real_pairs import SUCCESS_THRESHOLDS, read_manifest  # noqa: E402
+
 METHODS = ("default", "fpfh", "sc2", "vrnet", "fgr", "open3d-ransac", "open3d-fgr")
 
 
@@ -46,23 +47,15 @@ def scene_model_training_pairs() -> set[str]:
     from vrnet_ext.model.pretrained import DEFAULT_SCENE_MODEL, model_card
 
     return set(model_card(DEFAULT_SCENE_MODEL)["training"]["scans"].split(", "))
-THRESHOLDS = {"indoor": (15.0, 0.30), "outdoor": (5.0, 2.0)}
 
 
 def real_pairs(data: Path, workdir: Path) -> list[dict]:
     """The pairs of real_pairs/MANIFEST.tsv and the kitchen / LiDAR pairs, with subset and overlap."""
     found = []
-    manifest = data / "real_pairs" / "MANIFEST.tsv"
-    if manifest.exists():
-        with manifest.open() as f:
-            for row in csv.DictReader(f, delimiter="\t"):
-                kind = row["kind"]
-                subset = {"indoor-3DMatch": "3DMatch", "indoor-3DLoMatch": "3DLoMatch"}.get(kind, "KITTI")
-                found.append({"name": row["pair_id"], "source": data / "real_pairs" / row["source_file"],
-                              "target": data / "real_pairs" / row["target_file"],
-                              "gt": data / "real_pairs" / row["gt_file"], "subset": subset,
-                              "overlap": float(row["overlap_frac"]),
-                              "outdoor": subset == "KITTI"})
+    if (data / "real_pairs" / "MANIFEST.tsv").exists():
+        found = [{"name": pair.pair_id, "source": pair.source, "target": pair.target, "gt": pair.gt,
+                  "subset": pair.subset, "overlap": pair.overlap, "outdoor": pair.outdoor}
+                 for pair in read_manifest(data / "real_pairs")]
     for pair in shared_pairs(data, workdir):
         outdoor = pair["name"] == "LiDAR"
         found.append(dict(pair, subset="kitchen/LiDAR", overlap=float("nan"), outdoor=outdoor))
@@ -190,7 +183,7 @@ def main(argv: list[str] | None = None) -> None:
         total = len(todo) * args.seeds * len(methods)
         trained_on = scene_model_training_pairs()
         for pair in todo:
-            max_re, max_te = THRESHOLDS["outdoor" if pair["outdoor"] else "indoor"]
+            max_re, max_te = SUCCESS_THRESHOLDS["outdoor" if pair["outdoor"] else "indoor"]
             for seed in range(args.seeds):
                 case = rotated(pair, args.extra_rotation, seed, workdir) if args.extra_rotation else pair
                 truth = np.loadtxt(case["gt"])
@@ -211,7 +204,7 @@ def main(argv: list[str] | None = None) -> None:
     rows = summarise(records, methods)
     meta = {"machine": f"{platform.machine()}, {os.cpu_count()} cpus", "date": time.strftime("%Y-%m-%d"),
             "seeds": args.seeds, "extra_rotation": args.extra_rotation, "pairs": len(todo),
-            "thresholds": THRESHOLDS}
+            "thresholds": SUCCESS_THRESHOLDS}
     stem = out_dir / args.name
     Path(f"{stem}.json").write_text(json.dumps({"meta": meta, "summary": rows, "runs": records}, indent=1))
     Path(f"{stem}.md").write_text(markdown(rows, meta))

@@ -8,7 +8,7 @@ For each validation pair (:func:`vrnet_ext.data.real_pairs.split`) and seed: the
 alone (no ICP, no second start) of each checkpoint's scene network (its RCPs fitted by RANSAC and
 by spatial consistency), of ``fpfh`` (FPFH + RANSAC)
 and of ``sc2`` (spatial consistency), on both scans voxel-downsampled to about 5,000 points.
-Success: RE < 15 deg and TE < 30 cm indoors, RE < 5 deg and TE < 2 m for KITTI. Prints recall per
+Success: ``RealPair.registered`` (RE < 15 deg and TE < 30 cm indoors, RE < 5 deg and TE < 2 m for KITTI). Prints recall per
 kind and overall, the median RE / TE of successes and the median seconds per estimate; writes JSON.
 """
 from __future__ import annotations
@@ -29,7 +29,6 @@ from vrnet_ext.registration.global_estimators import ROBUST_FITS, SceneNetwork
 from outputs import write_outputs  # benchmarks/, the script's folder
 
 POINTS = 5000
-THRESHOLDS = {False: (15.0, 0.30), True: (5.0, 2.0)}  # outdoor -> (RE deg, TE m)
 
 
 def estimators(checkpoints: list[str]) -> dict:
@@ -46,9 +45,9 @@ def summary(records: list[dict]) -> list[dict]:
     for method in dict.fromkeys(r["method"] for r in records):
         mine = [r for r in records if r["method"] == method]
         row = {"method": method}
-        for kind in ("indoor-3DMatch", "indoor-3DLoMatch", "outdoor-lidar-kitti", "all"):
-            runs = [r for r in mine if kind == "all" or r["kind"] == kind]
-            row[kind] = sum(r["success"] for r in runs) / len(runs) if runs else float("nan")
+        for subset in ("3DMatch", "3DLoMatch", "KITTI", "all"):
+            runs = [r for r in mine if subset == "all" or r["subset"] == subset]
+            row[subset] = sum(r["success"] for r in runs) / len(runs) if runs else float("nan")
         good = [r for r in mine if r["success"]]
         row["median_re_deg"] = statistics.median(r["re_deg"] for r in good) if good else float("nan")
         row["median_te_m"] = statistics.median(r["te_m"] for r in good) if good else float("nan")
@@ -71,7 +70,6 @@ def main(argv: list[str] | None = None) -> None:
     records = []
     for pair in validation:
         src, tgt, truth = read_points(pair.source), read_points(pair.target), read_transform(pair.gt)
-        max_re, max_te = THRESHOLDS[pair.outdoor]
         for seed in range(args.seeds):
             for name, estimator in methods.items():
                 torch.manual_seed(seed)
@@ -79,17 +77,17 @@ def main(argv: list[str] | None = None) -> None:
                 estimate = estimator.estimate(src, tgt, seed=seed).T_target_source
                 seconds = time.perf_counter() - start
                 errors = transform_errors(np.asarray(estimate), truth)
-                records.append({"pair": pair.pair_id, "kind": pair.kind, "seed": seed, "method": name,
+                records.append({"pair": pair.pair_id, "subset": pair.subset, "seed": seed, "method": name,
                                 "re_deg": errors["rotation_error_deg"], "te_m": errors["translation_error"],
-                                "success": errors["rotation_error_deg"] < max_re and errors["translation_error"] < max_te,
+                                "success": pair.registered(errors["rotation_error_deg"], errors["translation_error"]),
                                 "seconds": seconds})
         done = {m: sum(r["success"] for r in records if r["pair"] == pair.pair_id and r["method"] == m) for m in methods}
         print(pair.pair_id, done, flush=True)
     rows = summary(records)
     lines = ["| global estimate | 3DMatch | 3DLoMatch | KITTI | all | median RE (deg) | median TE (cm) | median s |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    lines += [f"| {row['method']} | {row['indoor-3DMatch']:.3f} | {row['indoor-3DLoMatch']:.3f} | "
-              f"{row['outdoor-lidar-kitti']:.3f} | {row['all']:.3f} | {row['median_re_deg']:.3f} | "
+    lines += [f"| {row['method']} | {row['3DMatch']:.3f} | {row['3DLoMatch']:.3f} | "
+              f"{row['KITTI']:.3f} | {row['all']:.3f} | {row['median_re_deg']:.3f} | "
               f"{100 * row['median_te_m']:.1f} | {row['median_s']:.3f} |" for row in rows]
     lines.append(f"\nRecall (share of runs) on the {len(validation)} validation pairs x {args.seeds} seeds, global "
                  f"estimate only (no ICP), {time.strftime('%Y-%m-%d')}.")

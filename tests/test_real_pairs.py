@@ -96,3 +96,15 @@ def test_the_shared_real_pairs_split_keeps_kinds_on_both_sides():
     assert len(training) + len(validation) == 45 and not {p.pair_id for p in training} & {p.pair_id for p in validation}
     for kind in ("indoor-3DMatch", "indoor-3DLoMatch", "outdoor-lidar-kitti"):
         assert any(p.kind == kind for p in training) and any(p.kind == kind for p in validation), kind
+
+
+def test_success_follows_the_kind_and_a_bad_overlap_names_the_pair(tmp_path):
+    fake_real_pairs(tmp_path, indoor=1)
+    indoor, _, outdoor = read_manifest(tmp_path)
+    assert indoor.subset == "3DMatch" and outdoor.subset == "KITTI"
+    assert indoor.registered(14.0, 0.29) and not indoor.registered(14.0, 0.31) and not indoor.registered(16.0, 0.1)
+    assert outdoor.registered(4.9, 1.9) and not outdoor.registered(5.1, 0.1)
+    text = (tmp_path / "MANIFEST.tsv").read_text().replace("\t0.5\n", "\tabout half\n", 1)
+    (tmp_path / "MANIFEST.tsv").write_text(text)
+    with pytest.raises(ValueError, match="pair '3dmatch_rk_0_1' has overlap_frac 'about half', not a number"):
+        read_manifest(tmp_path)

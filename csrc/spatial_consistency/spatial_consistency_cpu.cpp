@@ -66,6 +66,8 @@ struct Columns {
       }
     px = data.data(), py = px + K, pz = py + K, qx = pz + K, qy = qx + K, qz = qy + K;
   }
+  Columns(const Columns&) = delete;  // the pointers point into this object's own vector
+  Columns& operator=(const Columns&) = delete;
 };
 
 // | |p_i - p_j| - |q_i - q_j| | < tolerance without square roots: with a, b the squared distances

@@ -23,6 +23,10 @@ from vrnet_ext.geometry.io import read_points, read_transform
 
 MAX_MANIFEST_ROWS = 10_000
 MANIFEST_COLUMNS = ("pair_id", "source_file", "target_file", "gt_file", "kind")
+SUBSETS = {"indoor-3DMatch": "3DMatch", "indoor-3DLoMatch": "3DLoMatch", "outdoor-lidar-kitti": "KITTI"}
+# A registration succeeds below these (rotation error in degrees, translation error in metres): the
+# registration literature's thresholds for indoor (3DMatch) and outdoor (KITTI) scans.
+SUCCESS_THRESHOLDS = {"indoor": (15.0, 0.30), "outdoor": (5.0, 2.0)}
 
 
 @dataclass(frozen=True)
@@ -39,6 +43,16 @@ class RealPair:
     @property
     def outdoor(self) -> bool:
         return self.kind.startswith("outdoor")
+
+    @property
+    def subset(self) -> str:
+        """3DMatch, 3DLoMatch or KITTI (the kind itself for any other)."""
+        return SUBSETS.get(self.kind, self.kind)
+
+    def registered(self, rotation_error_deg: float, translation_error: float) -> bool:
+        """Whether an estimate with these errors counts as a success (:data:`SUCCESS_THRESHOLDS`)."""
+        max_re, max_te = SUCCESS_THRESHOLDS["outdoor" if self.outdoor else "indoor"]
+        return rotation_error_deg < max_re and translation_error < max_te
 
 
 def read_manifest(folder: str | Path) -> list[RealPair]:
@@ -57,9 +71,13 @@ def read_manifest(folder: str | Path) -> list[RealPair]:
         for row in reader:
             if len(pairs) >= MAX_MANIFEST_ROWS:
                 raise ValueError(f"{manifest}: more than {MAX_MANIFEST_ROWS} pairs")
-            overlap = row.get("overlap_frac") or "nan"
+            try:
+                overlap = float(row.get("overlap_frac") or "nan")
+            except ValueError:
+                raise ValueError(f"{manifest}: pair {row['pair_id']!r} has overlap_frac {row['overlap_frac']!r}, "
+                                 f"not a number") from None
             pairs.append(RealPair(row["pair_id"], folder / row["source_file"], folder / row["target_file"],
-                                  folder / row["gt_file"], row["kind"], float(overlap)))
+                                  folder / row["gt_file"], row["kind"], overlap))
     return pairs
 
 
