@@ -42,12 +42,31 @@ def test_recovers_the_motion_under_outliers(backend, K, ratio):
 @requires_ext
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("K,ratio,seeds,consensus", [(300, 0.8, 100, 30), (64, 0.5, 5, 2), (200, 0.97, 20, 10)])
-def test_compiled_op_matches_the_reference(seed, K, ratio, seeds, consensus):
+@pytest.mark.parametrize("tolerance", [0.03, 0.012])  # the graph in float32; in float64 (extent > 128 tolerances)
+def test_compiled_op_matches_the_reference(seed, K, ratio, seeds, consensus, tolerance):
     p, q, *_ = correspondences(K, ratio, seed)
-    T, mask = ops.spatial_consistency(p, q, 0.03, 0.03, seeds, consensus)
-    T_ref, mask_ref = spatial_consistency_reference(p, q, 0.03, 0.03, seeds, consensus)
+    T, mask = ops.spatial_consistency(p, q, tolerance, 0.03, seeds, consensus)
+    T_ref, mask_ref = spatial_consistency_reference(p, q, tolerance, 0.03, seeds, consensus)
     assert torch.equal(mask, mask_ref)
     torch.testing.assert_close(T, T_ref, rtol=1e-9, atol=1e-9)
+
+
+def test_the_float32_graph_decides_as_float64_away_from_the_boundary():
+    """The graph is decided in float32 when the points span at most FLOAT_GRAPH_EXTENT tolerances:
+    at that extent, far from the origin, a pair may only change sides within 1 % of the tolerance
+    of the boundary | |p_i - p_j| - |q_i - q_j| | = tolerance."""
+    from vrnet_ext.ops.spatial_consistency import FLOAT_GRAPH_EXTENT, _compatibility
+
+    g = torch.Generator().manual_seed(3)
+    tolerance = 0.05
+    p = torch.rand(1500, 3, generator=g, dtype=torch.float64) * FLOAT_GRAPH_EXTENT * tolerance + 1e5
+    q = p + torch.randn(1500, 3, generator=g, dtype=torch.float64) * tolerance - 3e4
+    in_float32 = _compatibility(p, q, tolerance)
+    in_float64 = _compatibility(p, q, tolerance / (1 + 1e-12))  # just past the extent: float64
+    gap = (torch.cdist(p, p) - torch.cdist(q, q)).abs()
+    changed = in_float32 != in_float64
+    assert in_float64.sum() > 1000 and in_float32.sum() > 1000
+    assert bool(((gap[changed] - tolerance).abs() < 0.01 * tolerance).all())
 
 
 @pytest.mark.parametrize("backend", ["ext", "torch"])
@@ -111,14 +130,15 @@ def test_raw_op_checks_its_arguments():
 @requires_ext
 def test_the_vector_and_the_portable_graph_give_the_same_fit(tmp_path):
     """Where the CPU has AVX-512 the graph is built by vector code; VRNET_CPU_DISPATCH=generic keeps
-    the portable loop. Same transform, same inliers (K = 2,000 and 1,003: full words and a tail)."""
+    the portable loop. Same transform, same inliers (K = 2,000 and 1,003: full words and a tail;
+    the graph in float32 and, at tolerance 0.012, in float64)."""
     import os
     import subprocess
     import sys
 
     script = ("import sys, torch; sys.path.insert(0, sys.argv[1]); from test_spatial_consistency import correspondences; "
-              "from vrnet_ext import ops; out = [ops.spatial_consistency(*correspondences(K, 0.9, seed=K)[:2], 0.03, "
-              "0.03) for K in (2000, 1003)]; torch.save(out, sys.argv[2])")
+              "from vrnet_ext import ops; out = [ops.spatial_consistency(*correspondences(K, 0.9, seed=K)[:2], tolerance, "
+              "0.03) for K in (2000, 1003) for tolerance in (0.03, 0.012)]; torch.save(out, sys.argv[2])")
     results = []
     for dispatch in ("default", "generic"):
         env = dict(os.environ, VRNET_CPU_DISPATCH=dispatch)

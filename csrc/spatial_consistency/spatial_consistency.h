@@ -8,6 +8,11 @@ namespace vrnet {
 // Correspondences at most: the compatibility graph is K^2 / 8 bytes (8 MB at 8192).
 constexpr int64_t kMaxCorrespondences = 1 << 15;
 
+// The graph is decided in float32 (on coordinates relative to the first correspondence) when the
+// points' extent is at most this many tolerances: float32 then moves the boundary of the test by
+// well under 1 % of the tolerance; larger extents are decided in float64.
+constexpr double kFloatGraphExtent = 128;
+
 inline void check_spatial_consistency_inputs(const at::Tensor& src, const at::Tensor& tgt, double tolerance,
                                              double inlier_threshold, int64_t seeds, int64_t consensus) {
   TORCH_CHECK_TYPE(src.scalar_type() == at::kDouble, "src must be float64, got ", src.scalar_type());

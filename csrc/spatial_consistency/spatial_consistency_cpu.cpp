@@ -3,7 +3,10 @@
 // agree, | |p_i - p_j| - |q_i - q_j| | < tolerance. Inliers of the true motion are all compatible
 // with each other; outliers rarely are.
 //
-//   1. The compatibility graph as a bitset (K rows of ceil(K / 64) words; K^2 / 8 bytes).
+//   1. The compatibility graph as a bitset (K rows of ceil(K / 64) words; K^2 / 8 bytes), symmetric:
+//      each 64 x 64 block above the diagonal is computed once and mirrored. Decided in float32 on
+//      coordinates relative to the first correspondence when the points span at most
+//      kFloatGraphExtent tolerances, else in float64.
 //   2. Seeds: the correspondences of highest degree, none within `tolerance` (source side) of a seed
 //      already chosen.
 //   3. Per seed, the second-order score of each compatible j: how many correspondences are compatible
@@ -14,10 +17,11 @@
 //      count stops growing.
 // Deterministic: seeds in parallel, the best picked in seed order.
 //
-// On x86-64 CPUs with AVX-512 the graph's rows are built 8 pairs per instruction and the popcounts
-// use the POPCNT instruction (chosen at run time; the package is built without -march flags). The
-// vector test performs the scalar test's operations in the same order (no FMA contraction), so
-// both give the same bits (tests/test_spatial_consistency.py runs both).
+// On x86-64 CPUs with AVX-512 the graph is built 16 (float32) or 8 (float64) pairs per instruction and the second-order
+// popcounts take 8 words per instruction (AVX512-VPOPCNTDQ, else POPCNT; chosen at run time; the
+// package is built without -march flags). The vector test performs the scalar test's operations in
+// the same order (no FMA contraction), so both give the same bits (tests/test_spatial_consistency.py
+// runs both).
 #include <ATen/ops/empty.h>
 #include <ATen/ops/zeros.h>
 #include <torch/library.h>
@@ -28,6 +32,7 @@
 #include <cstdlib>
 #include <numeric>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "kabsch/procrustes.h"
@@ -46,7 +51,6 @@ struct Graph {
   std::vector<uint64_t> bits;  // row i: bits[i * words, (i + 1) * words)
 
   const uint64_t* row(int64_t i) const { return bits.data() + i * words; }
-  bool test(int64_t i, int64_t j) const { return (row(i)[j >> 6] >> (j & 63)) & 1u; }
 };
 
 double distance(const double* a, const double* b) {
@@ -54,15 +58,18 @@ double distance(const double* a, const double* b) {
   return std::sqrt(dx * dx + dy * dy + dz * dz);
 }
 
-// Coordinates of the correspondences, one array per axis (px, py, pz, qx, qy, qz), for the graph.
+// Coordinates of the correspondences, one array per axis (px, py, pz, qx, qy, qz), in double as
+// given, or in float relative to the first correspondence (p - p_0, q - q_0: lengths unchanged).
+template <typename T>
 struct Columns {
-  std::vector<double> data;
-  const double *px, *py, *pz, *qx, *qy, *qz;
+  std::vector<T> data;
+  const T *px, *py, *pz, *qx, *qy, *qz;
   Columns(const double* p, const double* q, int64_t K) : data(6 * K) {
+    const bool about_first = !std::is_same_v<T, double>;
     for (int64_t k = 0; k < K; ++k)
       for (int a = 0; a < 3; ++a) {
-        data[a * K + k] = p[3 * k + a];
-        data[(3 + a) * K + k] = q[3 * k + a];
+        data[a * K + k] = static_cast<T>(about_first ? p[3 * k + a] - p[a] : p[3 * k + a]);
+        data[(3 + a) * K + k] = static_cast<T>(about_first ? q[3 * k + a] - q[a] : q[3 * k + a]);
       }
     px = data.data(), py = px + K, pz = py + K, qx = pz + K, qy = qx + K, qz = qy + K;
   }
@@ -73,65 +80,137 @@ struct Columns {
 // | |p_i - p_j| - |q_i - q_j| | < tolerance without square roots: with a, b the squared distances
 // and s = a + b - tolerance^2, it holds iff s < 0 or s^2 < 4 a b. Bits of correspondences
 // [j0, j0 + count) compatible with i.
-uint64_t compatible_word(const Columns& c, int64_t i, int64_t j0, int64_t count, double t2) {
+template <typename T>
+uint64_t compatible_word(const Columns<T>& c, int64_t i, int64_t j0, int64_t count, T t2) {
   uint64_t bits = 0;
   for (int64_t l = 0; l < count; ++l) {
     const int64_t j = j0 + l;
-    const double dpx = c.px[j] - c.px[i], dpy = c.py[j] - c.py[i], dpz = c.pz[j] - c.pz[i];
-    const double dqx = c.qx[j] - c.qx[i], dqy = c.qy[j] - c.qy[i], dqz = c.qz[j] - c.qz[i];
-    const double a = dpx * dpx + dpy * dpy + dpz * dpz, b = dqx * dqx + dqy * dqy + dqz * dqz;
-    const double s = a + b - t2;
+    const T dpx = c.px[j] - c.px[i], dpy = c.py[j] - c.py[i], dpz = c.pz[j] - c.pz[i];
+    const T dqx = c.qx[j] - c.qx[i], dqy = c.qy[j] - c.qy[i], dqz = c.qz[j] - c.qz[i];
+    const T a = dpx * dpx + dpy * dpy + dpz * dpz, b = dqx * dqx + dqy * dqy + dqz * dqz;
+    const T s = a + b - t2;
     bits |= static_cast<uint64_t>((s < 0) | (s * s < 4 * a * b)) << l;
   }
   return bits;
 }
 
-void compatible_rows(const Columns& c, int64_t K, int64_t words, int64_t begin, int64_t end, double t2,
-                     uint64_t* bits) {
-  for (int64_t i = begin; i < end; ++i)
-    for (int64_t w = 0; w < words; ++w)
-      bits[i * words + w] = compatible_word(c, i, 64 * w, std::min<int64_t>(64, K - 64 * w), t2);
+// Bits of the 64 x 64 block of rows [64 I, 64 I + 64) and columns [64 J, 64 J + 64), both cut at K:
+// out[r] holds row 64 I + r (zero past K).
+template <typename T>
+void compatible_block(const Columns<T>& c, int64_t K, int64_t I, int64_t J, T t2, uint64_t* out) {
+  const int64_t rows = std::min<int64_t>(64, K - 64 * I), cols = std::min<int64_t>(64, K - 64 * J);
+  for (int64_t r = 0; r < 64; ++r) out[r] = r < rows ? compatible_word(c, 64 * I + r, 64 * J, cols, t2) : 0;
+}
+
+// In place: bit c of word r moves to bit r of word c. Swaps the off-diagonal halves of ever smaller
+// blocks (32, 16, ..., 1 bits), with bit 0 the first column.
+void transpose64(uint64_t* a) {
+  uint64_t low = 0x00000000FFFFFFFFull;  // the first `half` bits of every 2 * half
+  for (int half = 32; half != 0; half >>= 1, low ^= low << half)
+    for (int k = 0; k < 64; k = ((k | half) + 1) & ~half) {
+      const uint64_t swap = ((a[k] >> half) ^ a[k | half]) & low;
+      a[k | half] ^= swap;
+      a[k] ^= swap << half;
+    }
 }
 
 #ifdef VRNET_X86_DISPATCH
-__attribute__((target("avx512f"))) void compatible_rows_avx512(const Columns& c, int64_t K, int64_t words,
-                                                               int64_t begin, int64_t end, double t2,
-                                                               uint64_t* bits) {
+// The vector forms of compatible_block: 8 doubles or 16 floats per instruction.
+__attribute__((target("avx512f"))) void compatible_block_avx512(const Columns<double>& c, int64_t K, int64_t I,
+                                                                int64_t J, double t2, uint64_t* out) {
+  if (K - 64 * J < 64) return compatible_block(c, K, I, J, t2, out);  // the last, partial column block
   const __m512d tol2 = _mm512_set1_pd(t2), zero = _mm512_setzero_pd(), four = _mm512_set1_pd(4.0);
-  const int64_t full = K / 64;
-  for (int64_t i = begin; i < end; ++i) {
+  const int64_t rows = std::min<int64_t>(64, K - 64 * I);
+  for (int64_t r = 0; r < 64; ++r) {
+    if (r >= rows) {
+      out[r] = 0;
+      continue;
+    }
+    const int64_t i = 64 * I + r;
     const __m512d pxi = _mm512_set1_pd(c.px[i]), pyi = _mm512_set1_pd(c.py[i]), pzi = _mm512_set1_pd(c.pz[i]);
     const __m512d qxi = _mm512_set1_pd(c.qx[i]), qyi = _mm512_set1_pd(c.qy[i]), qzi = _mm512_set1_pd(c.qz[i]);
-    for (int64_t w = 0; w < full; ++w) {
-      uint64_t word = 0;
-      for (int v = 0; v < 8; ++v) {
-        const int64_t j = 64 * w + 8 * v;
-        const __m512d dpx = _mm512_sub_pd(_mm512_loadu_pd(c.px + j), pxi);
-        const __m512d dpy = _mm512_sub_pd(_mm512_loadu_pd(c.py + j), pyi);
-        const __m512d dpz = _mm512_sub_pd(_mm512_loadu_pd(c.pz + j), pzi);
-        const __m512d dqx = _mm512_sub_pd(_mm512_loadu_pd(c.qx + j), qxi);
-        const __m512d dqy = _mm512_sub_pd(_mm512_loadu_pd(c.qy + j), qyi);
-        const __m512d dqz = _mm512_sub_pd(_mm512_loadu_pd(c.qz + j), qzi);
-        const __m512d a = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(dpx, dpx), _mm512_mul_pd(dpy, dpy)),
-                                        _mm512_mul_pd(dpz, dpz));
-        const __m512d b = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(dqx, dqx), _mm512_mul_pd(dqy, dqy)),
-                                        _mm512_mul_pd(dqz, dqz));
-        const __m512d s = _mm512_sub_pd(_mm512_add_pd(a, b), tol2);
-        const __mmask8 close = _mm512_cmp_pd_mask(s, zero, _CMP_LT_OQ) |
-                               _mm512_cmp_pd_mask(_mm512_mul_pd(s, s), _mm512_mul_pd(_mm512_mul_pd(four, a), b),
-                                                  _CMP_LT_OQ);
-        word |= static_cast<uint64_t>(close) << (8 * v);
-      }
-      bits[i * words + w] = word;
+    uint64_t word = 0;
+    for (int v = 0; v < 8; ++v) {
+      const int64_t j = 64 * J + 8 * v;
+      const __m512d dpx = _mm512_sub_pd(_mm512_loadu_pd(c.px + j), pxi);
+      const __m512d dpy = _mm512_sub_pd(_mm512_loadu_pd(c.py + j), pyi);
+      const __m512d dpz = _mm512_sub_pd(_mm512_loadu_pd(c.pz + j), pzi);
+      const __m512d dqx = _mm512_sub_pd(_mm512_loadu_pd(c.qx + j), qxi);
+      const __m512d dqy = _mm512_sub_pd(_mm512_loadu_pd(c.qy + j), qyi);
+      const __m512d dqz = _mm512_sub_pd(_mm512_loadu_pd(c.qz + j), qzi);
+      const __m512d a = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(dpx, dpx), _mm512_mul_pd(dpy, dpy)),
+                                      _mm512_mul_pd(dpz, dpz));
+      const __m512d b = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(dqx, dqx), _mm512_mul_pd(dqy, dqy)),
+                                      _mm512_mul_pd(dqz, dqz));
+      const __m512d s = _mm512_sub_pd(_mm512_add_pd(a, b), tol2);
+      const __mmask8 close = _mm512_cmp_pd_mask(s, zero, _CMP_LT_OQ) |
+                             _mm512_cmp_pd_mask(_mm512_mul_pd(s, s), _mm512_mul_pd(_mm512_mul_pd(four, a), b),
+                                                _CMP_LT_OQ);
+      word |= static_cast<uint64_t>(close) << (8 * v);
     }
-    if (full < words) bits[i * words + full] = compatible_word(c, i, 64 * full, K - 64 * full, t2);
+    out[r] = word;
   }
 }
 
-__attribute__((target("popcnt"))) int64_t popcount_and_hw(const uint64_t* a, const uint64_t* b, int64_t words) {
+__attribute__((target("avx512f"))) void compatible_block_avx512(const Columns<float>& c, int64_t K, int64_t I,
+                                                                int64_t J, float t2, uint64_t* out) {
+  const int64_t cols = std::min<int64_t>(64, K - 64 * J);  // the last column block: masked lanes
+  const __m512 tol2 = _mm512_set1_ps(t2), zero = _mm512_setzero_ps(), four = _mm512_set1_ps(4.0f);
+  const int64_t rows = std::min<int64_t>(64, K - 64 * I);
+  for (int64_t r = 0; r < 64; ++r) {
+    if (r >= rows) {
+      out[r] = 0;
+      continue;
+    }
+    const int64_t i = 64 * I + r;
+    const __m512 pxi = _mm512_set1_ps(c.px[i]), pyi = _mm512_set1_ps(c.py[i]), pzi = _mm512_set1_ps(c.pz[i]);
+    const __m512 qxi = _mm512_set1_ps(c.qx[i]), qyi = _mm512_set1_ps(c.qy[i]), qzi = _mm512_set1_ps(c.qz[i]);
+    uint64_t word = 0;
+    for (int v = 0; v < 4 && 16 * v < cols; ++v) {
+      const int64_t j = 64 * J + 16 * v;
+      const __mmask16 lanes = cols - 16 * v >= 16 ? 0xFFFF : static_cast<__mmask16>((1u << (cols - 16 * v)) - 1);
+      const __m512 dpx = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.px + j), pxi);
+      const __m512 dpy = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.py + j), pyi);
+      const __m512 dpz = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.pz + j), pzi);
+      const __m512 dqx = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.qx + j), qxi);
+      const __m512 dqy = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.qy + j), qyi);
+      const __m512 dqz = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.qz + j), qzi);
+      const __m512 a = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(dpx, dpx), _mm512_mul_ps(dpy, dpy)),
+                                     _mm512_mul_ps(dpz, dpz));
+      const __m512 b = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(dqx, dqx), _mm512_mul_ps(dqy, dqy)),
+                                     _mm512_mul_ps(dqz, dqz));
+      const __m512 s = _mm512_sub_ps(_mm512_add_ps(a, b), tol2);
+      const __mmask16 close = lanes & (_mm512_cmp_ps_mask(s, zero, _CMP_LT_OQ) |
+                                       _mm512_cmp_ps_mask(_mm512_mul_ps(s, s), _mm512_mul_ps(_mm512_mul_ps(four, a), b),
+                                                          _CMP_LT_OQ));
+      word |= static_cast<uint64_t>(close) << (16 * v);
+    }
+    out[r] = word;
+  }
+}
+
+__attribute__((target("popcnt"))) int64_t popcount_and_popcnt(const uint64_t* a, const uint64_t* b, int64_t words) {
   int64_t count = 0;
   for (int64_t w = 0; w < words; ++w) count += __builtin_popcountll(a[w] & b[w]);
   return count;
+}
+
+// 8 words per instruction (AVX512-VPOPCNTDQ).
+__attribute__((target("avx512f,avx512vpopcntdq"))) int64_t popcount_and_avx512(const uint64_t* a, const uint64_t* b,
+                                                                               int64_t words) {
+  __m512i sum = _mm512_setzero_si512();
+  int64_t w = 0;
+  for (; w + 8 <= words; w += 8)
+    sum = _mm512_add_epi64(sum, _mm512_popcnt_epi64(_mm512_and_si512(_mm512_loadu_si512(a + w),
+                                                                     _mm512_loadu_si512(b + w))));
+  if (w < words) {
+    const __mmask8 tail = static_cast<__mmask8>((1u << (words - w)) - 1);
+    sum = _mm512_add_epi64(sum, _mm512_popcnt_epi64(_mm512_and_si512(_mm512_maskz_loadu_epi64(tail, a + w),
+                                                                     _mm512_maskz_loadu_epi64(tail, b + w))));
+  }
+  alignas(64) int64_t lanes[8];  // (_mm512_reduce_add_epi64 trips a false warning in GCC 12's header)
+  _mm512_store_si512(lanes, sum);
+  return std::accumulate(lanes, lanes + 8, int64_t{0});
 }
 
 // VRNET_CPU_DISPATCH=generic (read when the library loads) keeps the portable code, for tests.
@@ -141,32 +220,55 @@ bool generic_requested() {
 }
 
 const bool kHasAvx512 = __builtin_cpu_supports("avx512f") && !generic_requested();
+const bool kHasVpopcnt = kHasAvx512 && __builtin_cpu_supports("avx512vpopcntdq");
 const bool kHasPopcnt = __builtin_cpu_supports("popcnt") && !generic_requested();
 #endif
 
-Graph compatibility(const double* p, const double* q, int64_t K, double tolerance) {
+// The graph is symmetric: each 64 x 64 block above the diagonal is computed once and stored
+// transposed below it. Row block I (one task, the longest first) computes blocks J >= I.
+template <typename T>
+Graph compatibility(const Columns<T>& columns, int64_t K, double tolerance) {
   Graph g{K, (K + 63) / 64, {}};
   g.bits.assign(static_cast<size_t>(K * g.words), 0);
-  const Columns columns(p, q, K);
-  const double t2 = tolerance * tolerance;
-  parallel_ranges(K, 64, [&](int64_t begin, int64_t end) {
+  const T t2 = static_cast<T>(tolerance * tolerance);
+  parallel_tasks(g.words, [&](int64_t I) {
+    uint64_t block[64];
+    for (int64_t J = I; J < g.words; ++J) {
 #ifdef VRNET_X86_DISPATCH
-    if (kHasAvx512) {
-      compatible_rows_avx512(columns, K, g.words, begin, end, t2, g.bits.data());
-    } else {
-      compatible_rows(columns, K, g.words, begin, end, t2, g.bits.data());
-    }
+      if (kHasAvx512) {
+        compatible_block_avx512(columns, K, I, J, t2, block);
+      } else {
+        compatible_block(columns, K, I, J, t2, block);
+      }
 #else
-    compatible_rows(columns, K, g.words, begin, end, t2, g.bits.data());
+      compatible_block(columns, K, I, J, t2, block);
 #endif
-    for (int64_t i = begin; i < end; ++i) g.bits[i * g.words + (i >> 6)] &= ~(uint64_t{1} << (i & 63));
+      for (int64_t r = 0; r < 64 && 64 * I + r < K; ++r) g.bits[(64 * I + r) * g.words + J] = block[r];
+      if (J == I) continue;
+      transpose64(block);
+      for (int64_t r = 0; r < 64 && 64 * J + r < K; ++r) g.bits[(64 * J + r) * g.words + I] = block[r];
+    }
+    for (int64_t i = 64 * I; i < std::min(K, 64 * I + 64); ++i) g.bits[i * g.words + I] &= ~(uint64_t{1} << (i & 63));
   });
   return g;
 }
 
+// The largest coordinate range over the axes of both point sets.
+double extent(const double* p, const double* q, int64_t K) {
+  double largest = 0;
+  for (const double* x : {p, q})
+    for (int a = 0; a < 3; ++a) {
+      double lo = x[a], hi = x[a];
+      for (int64_t k = 1; k < K; ++k) lo = std::min(lo, x[3 * k + a]), hi = std::max(hi, x[3 * k + a]);
+      largest = std::max(largest, hi - lo);
+    }
+  return largest;
+}
+
 int64_t popcount_and(const uint64_t* a, const uint64_t* b, int64_t words) {
 #ifdef VRNET_X86_DISPATCH
-  if (kHasPopcnt) return popcount_and_hw(a, b, words);
+  if (kHasVpopcnt) return popcount_and_avx512(a, b, words);
+  if (kHasPopcnt) return popcount_and_popcnt(a, b, words);
 #endif
   int64_t count = 0;
   for (int64_t w = 0; w < words; ++w) count += __builtin_popcountll(a[w] & b[w]);
@@ -196,18 +298,76 @@ Fit kabsch_on(const double* p, const double* q, const std::vector<int64_t>& memb
   return fit;
 }
 
-// Indices of the correspondences the fit maps within `threshold` of their target.
-std::vector<int64_t> inliers_of(const Fit& fit, const double* p, const double* q, int64_t K, double threshold) {
-  std::vector<int64_t> out;
-  for (int64_t k = 0; k < K; ++k) {
-    double r2 = 0;
-    for (int a = 0; a < 3; ++a) {
-      const double moved = fit.R[3 * a] * p[3 * k] + fit.R[3 * a + 1] * p[3 * k + 1] + fit.R[3 * a + 2] * p[3 * k + 2] +
-                           fit.t[a];
-      r2 += (moved - q[3 * k + a]) * (moved - q[3 * k + a]);
-    }
-    if (r2 < threshold * threshold) out.push_back(k);
+// Bits of the correspondences [k0, k0 + count) that the fit maps within sqrt(threshold2) of their
+// target.
+uint64_t inlier_word(const Fit& fit, const Columns<double>& c, int64_t k0, int64_t count, double threshold2) {
+  uint64_t bits = 0;
+  for (int64_t l = 0; l < count; ++l) {
+    const int64_t k = k0 + l;
+    const double x = fit.R[0] * c.px[k] + fit.R[1] * c.py[k] + fit.R[2] * c.pz[k] + fit.t[0] - c.qx[k];
+    const double y = fit.R[3] * c.px[k] + fit.R[4] * c.py[k] + fit.R[5] * c.pz[k] + fit.t[1] - c.qy[k];
+    const double z = fit.R[6] * c.px[k] + fit.R[7] * c.py[k] + fit.R[8] * c.pz[k] + fit.t[2] - c.qz[k];
+    bits |= static_cast<uint64_t>(x * x + y * y + z * z < threshold2) << l;
   }
+  return bits;
+}
+
+#ifdef VRNET_X86_DISPATCH
+// inlier_word for 64 correspondences, 8 per instruction, the same operations in the same order.
+__attribute__((target("avx512f"))) uint64_t inlier_word_avx512(const Fit& fit, const Columns<double>& c, int64_t k0,
+                                                                double threshold2) {
+  __m512d R[9], t[3];
+  for (int e = 0; e < 9; ++e) R[e] = _mm512_set1_pd(fit.R[e]);
+  for (int a = 0; a < 3; ++a) t[a] = _mm512_set1_pd(fit.t[a]);
+  const __m512d limit = _mm512_set1_pd(threshold2);
+  uint64_t bits = 0;
+  for (int v = 0; v < 8; ++v) {
+    const int64_t k = k0 + 8 * v;
+    const __m512d px = _mm512_loadu_pd(c.px + k), py = _mm512_loadu_pd(c.py + k), pz = _mm512_loadu_pd(c.pz + k);
+    const __m512d target[3] = {_mm512_loadu_pd(c.qx + k), _mm512_loadu_pd(c.qy + k), _mm512_loadu_pd(c.qz + k)};
+    __m512d r2 = _mm512_setzero_pd();
+    for (int a = 0; a < 3; ++a) {
+      const __m512d moved = _mm512_add_pd(
+          _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(R[3 * a], px), _mm512_mul_pd(R[3 * a + 1], py)),
+                        _mm512_mul_pd(R[3 * a + 2], pz)),
+          t[a]);
+      const __m512d d = _mm512_sub_pd(moved, target[a]);
+      r2 = a == 0 ? _mm512_mul_pd(d, d) : _mm512_add_pd(r2, _mm512_mul_pd(d, d));
+    }
+    bits |= static_cast<uint64_t>(_mm512_cmp_pd_mask(r2, limit, _CMP_LT_OQ)) << (8 * v);
+  }
+  return bits;
+}
+#endif
+
+// The correspondences the fit maps within `threshold` of their target, as ceil(K / 64) words of bits.
+std::vector<uint64_t> inlier_mask(const Fit& fit, const Columns<double>& c, int64_t K, double threshold) {
+  std::vector<uint64_t> words((K + 63) / 64);
+  for (int64_t w = 0; w < static_cast<int64_t>(words.size()); ++w) {
+    const int64_t count = std::min<int64_t>(64, K - 64 * w);
+#ifdef VRNET_X86_DISPATCH
+    if (kHasAvx512 && count == 64) {
+      words[w] = inlier_word_avx512(fit, c, 64 * w, threshold * threshold);
+      continue;
+    }
+#endif
+    words[w] = inlier_word(fit, c, 64 * w, count, threshold * threshold);
+  }
+  return words;
+}
+
+int64_t count_inliers(const Fit& fit, const Columns<double>& c, int64_t K, double threshold) {
+  int64_t count = 0;
+  for (uint64_t word : inlier_mask(fit, c, K, threshold)) count += __builtin_popcountll(word);
+  return count;
+}
+
+// Indices of the correspondences the fit maps within `threshold` of their target, ascending.
+std::vector<int64_t> inliers_of(const Fit& fit, const Columns<double>& c, int64_t K, double threshold) {
+  const std::vector<uint64_t> words = inlier_mask(fit, c, K, threshold);
+  std::vector<int64_t> out;
+  for (int64_t w = 0; w < static_cast<int64_t>(words.size()); ++w)
+    for (uint64_t bits = words[w]; bits != 0; bits &= bits - 1) out.push_back(64 * w + __builtin_ctzll(bits));
   return out;
 }
 
@@ -229,8 +389,11 @@ std::vector<int64_t> choose_seeds(const Graph& g, const double* p, int64_t wante
 std::vector<int64_t> consensus_of(const Graph& g, int64_t seed, int64_t consensus) {
   std::vector<std::pair<int64_t, int64_t>> scored;  // (-score, j)
   const uint64_t* row = g.row(seed);
-  for (int64_t j = 0; j < g.K; ++j)
-    if (g.test(seed, j)) scored.emplace_back(-popcount_and(row, g.row(j), g.words), j);
+  for (int64_t w = 0; w < g.words; ++w)
+    for (uint64_t bits = row[w]; bits != 0; bits &= bits - 1) {
+      const int64_t j = 64 * w + __builtin_ctzll(bits);
+      scored.emplace_back(-popcount_and(row, g.row(j), g.words), j);
+    }
   const size_t keep = std::min<size_t>(scored.size(), static_cast<size_t>(consensus));
   std::partial_sort(scored.begin(), scored.begin() + keep, scored.end());
   std::vector<int64_t> members{seed};
@@ -247,22 +410,24 @@ std::tuple<at::Tensor, at::Tensor> spatial_consistency_cpu(const at::Tensor& src
   check_finite(tgt, "tgt");
   const int64_t K = src.size(0);
   const double *p = src.const_data_ptr<double>(), *q = tgt.const_data_ptr<double>();
-  const Graph graph = compatibility(p, q, K, tolerance);
+  const Columns<double> columns(p, q, K);
+  const Graph graph = extent(p, q, K) <= kFloatGraphExtent * tolerance ? compatibility(Columns<float>(p, q, K), K, tolerance)
+                                                                        : compatibility(columns, K, tolerance);
   const std::vector<int64_t> chosen = choose_seeds(graph, p, seeds, tolerance);
   std::vector<Fit> fits(chosen.size());
   parallel_tasks(static_cast<int64_t>(chosen.size()), [&](int64_t s) {
     const std::vector<int64_t> members = consensus_of(graph, chosen[s], consensus);
     if (members.size() < 3) return;
     fits[s] = kabsch_on(p, q, members);
-    fits[s].inliers = static_cast<int64_t>(inliers_of(fits[s], p, q, K, inlier_threshold).size());
+    fits[s].inliers = count_inliers(fits[s], columns, K, inlier_threshold);
   });
   Fit best;
   for (const Fit& fit : fits)
     if (fit.inliers > best.inliers) best = fit;
-  std::vector<int64_t> members = best.inliers >= 3 ? inliers_of(best, p, q, K, inlier_threshold) : std::vector<int64_t>{};
+  std::vector<int64_t> members = best.inliers >= 3 ? inliers_of(best, columns, K, inlier_threshold) : std::vector<int64_t>{};
   for (int round = 0; round < 10 && members.size() >= 3; ++round) {  // refit on the inliers while they grow
     Fit refit = kabsch_on(p, q, members);
-    std::vector<int64_t> grown = inliers_of(refit, p, q, K, inlier_threshold);
+    std::vector<int64_t> grown = inliers_of(refit, columns, K, inlier_threshold);
     if (grown.size() < members.size()) break;
     const bool same = grown == members;
     best = refit;

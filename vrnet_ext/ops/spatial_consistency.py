@@ -5,7 +5,9 @@ distances they span agree: ``| |p_i - p_j| - |q_i - q_j| | < tolerance``. The in
 motion are compatible with each other; outliers rarely are. Following SC^2-PCR (Chen et al.,
 CVPR 2022):
 
-1. the compatibility graph (K x K bits);
+1. the compatibility graph (K x K bits; decided in float32 when the points span at most
+   ``FLOAT_GRAPH_EXTENT`` tolerances, which moves its boundary by well under 1 % of the tolerance,
+   else in float64);
 2. ``seeds`` correspondences of highest degree, none within ``tolerance`` of another on the source
    side;
 3. for each seed, the second-order score of each compatible j (how many correspondences are
@@ -30,6 +32,7 @@ from vrnet_ext.ops._checks import check_finite
 from vrnet_ext.ops.kabsch import kabsch_reference
 
 MAX_CORRESPONDENCES = 1 << 15
+FLOAT_GRAPH_EXTENT = 128  # the compiled op's kFloatGraphExtent
 
 
 def _validate(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, inlier_threshold: float, seeds: int,
@@ -65,6 +68,27 @@ def _inliers(T: torch.Tensor, p: torch.Tensor, q: torch.Tensor, threshold: float
     return ((p @ T[:3, :3].T + T[:3, 3] - q).square().sum(1) < threshold * threshold)
 
 
+def _squared_distances(x: torch.Tensor) -> torch.Tensor:
+    """(K, 3) -> (K, K): [i, j] = |x_j - x_i|^2, summed x, y, z in that order (as the compiled op)."""
+    d = x[None] - x[:, None]
+    return d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]
+
+
+def _compatibility(p: torch.Tensor, q: torch.Tensor, tolerance: float) -> torch.Tensor:
+    """(K, K) bool: | |p_i - p_j| - |q_i - q_j| | < tolerance, decided as the compiled op decides it:
+    without square roots, in float32 on coordinates relative to the first correspondence when the
+    points span at most FLOAT_GRAPH_EXTENT tolerances, else in float64; False on the diagonal."""
+    extent = float(torch.cat([p.amax(0) - p.amin(0), q.amax(0) - q.amin(0)]).max())
+    dtype = torch.float32 if extent <= FLOAT_GRAPH_EXTENT * tolerance else torch.float64
+    if dtype == torch.float32:
+        p, q = (p - p[0]).float(), (q - q[0]).float()
+    a, b = _squared_distances(p), _squared_distances(q)
+    s = a + b - torch.tensor(tolerance * tolerance, dtype=dtype)
+    compatible = (s < 0) | (s * s < 4 * a * b)
+    compatible.fill_diagonal_(False)
+    return compatible
+
+
 def spatial_consistency_reference(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, inlier_threshold: float,
                                   seeds: int = 100, consensus: int = 30) -> tuple[torch.Tensor, torch.Tensor]:
     """Pure PyTorch, dense K x K matrices (the same steps and tie-breaking as the compiled op)."""
@@ -72,12 +96,7 @@ def spatial_consistency_reference(src: torch.Tensor, tgt: torch.Tensor, toleranc
     check_finite(p, "src")
     check_finite(q, "tgt")
     K = p.shape[0]
-    # | |p_i - p_j| - |q_i - q_j| | < tolerance, as the compiled op decides it (no square roots)
-    a = (p[None] - p[:, None]).square().sum(-1)
-    b = (q[None] - q[:, None]).square().sum(-1)
-    s = a + b - tolerance * tolerance
-    compatible = (s < 0) | (s * s < 4 * a * b)
-    compatible.fill_diagonal_(False)
+    compatible = _compatibility(p, q, tolerance)
     degree = compatible.sum(1)
     order = torch.sort(-degree, stable=True).indices
     chosen: list[int] = []
