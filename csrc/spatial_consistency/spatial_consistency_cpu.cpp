@@ -371,33 +371,49 @@ std::vector<int64_t> inliers_of(const Fit& fit, const Columns<double>& c, int64_
   return out;
 }
 
-std::vector<int64_t> choose_seeds(const Graph& g, const double* p, int64_t wanted, double tolerance) {
-  std::vector<int64_t> degree(g.K), order(g.K);
-  for (int64_t i = 0; i < g.K; ++i) degree[i] = popcount_and(g.row(i), g.row(i), g.words);
-  std::iota(order.begin(), order.end(), 0);
-  std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return degree[a] > degree[b]; });
+// Each correspondence's degree in the graph, and the correspondences by degree, highest first
+// (ties: lower index).
+struct Degrees {
+  std::vector<int64_t> degree, order;
+  explicit Degrees(const Graph& g) : degree(g.K), order(g.K) {
+    for (int64_t i = 0; i < g.K; ++i) degree[i] = popcount_and(g.row(i), g.row(i), g.words);
+    std::iota(order.begin(), order.end(), 0);
+    std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return degree[a] > degree[b]; });
+  }
+};
+
+std::vector<int64_t> choose_seeds(const Degrees& d, const double* p, int64_t wanted, double tolerance) {
   std::vector<int64_t> seeds;
-  for (int64_t i : order) {
-    if (static_cast<int64_t>(seeds.size()) >= wanted || degree[i] < 2) break;
+  for (int64_t i : d.order) {
+    if (static_cast<int64_t>(seeds.size()) >= wanted || d.degree[i] < 2) break;
     const bool near = std::any_of(seeds.begin(), seeds.end(), [&](int64_t s) { return distance(p + 3 * i, p + 3 * s) < tolerance; });
     if (!near) seeds.push_back(i);
   }
   return seeds;
 }
 
-// The seed and its `consensus` compatible neighbours of highest second-order score (ties: lower index).
-std::vector<int64_t> consensus_of(const Graph& g, int64_t seed, int64_t consensus) {
-  std::vector<std::pair<int64_t, int64_t>> scored;  // (-score, j)
+// The seed and its `consensus` compatible neighbours of highest second-order score (ties: lower
+// index), best first. A score is at most the neighbour's degree, so the neighbours are visited by
+// degree and the visit stops once no later one can enter the best `consensus`.
+std::vector<int64_t> consensus_of(const Graph& g, const Degrees& d, int64_t seed, int64_t consensus) {
+  std::vector<std::pair<int64_t, int64_t>> best;  // (-score, j), a max-heap: the worst kept on top
   const uint64_t* row = g.row(seed);
-  for (int64_t w = 0; w < g.words; ++w)
-    for (uint64_t bits = row[w]; bits != 0; bits &= bits - 1) {
-      const int64_t j = 64 * w + __builtin_ctzll(bits);
-      scored.emplace_back(-popcount_and(row, g.row(j), g.words), j);
+  for (int64_t j : d.order) {
+    const bool full = static_cast<int64_t>(best.size()) == consensus;
+    if (full && d.degree[j] < -best.front().first) break;
+    if (!((row[j >> 6] >> (j & 63)) & 1u)) continue;
+    const std::pair<int64_t, int64_t> candidate{-popcount_and(row, g.row(j), g.words), j};
+    if (full && !(candidate < best.front())) continue;
+    if (full) {
+      std::pop_heap(best.begin(), best.end());
+      best.pop_back();
     }
-  const size_t keep = std::min<size_t>(scored.size(), static_cast<size_t>(consensus));
-  std::partial_sort(scored.begin(), scored.begin() + keep, scored.end());
+    best.push_back(candidate);
+    std::push_heap(best.begin(), best.end());
+  }
+  std::sort_heap(best.begin(), best.end());
   std::vector<int64_t> members{seed};
-  for (size_t i = 0; i < keep; ++i) members.push_back(scored[i].second);
+  for (const auto& scored : best) members.push_back(scored.second);
   return members;
 }
 
@@ -413,10 +429,11 @@ std::tuple<at::Tensor, at::Tensor> spatial_consistency_cpu(const at::Tensor& src
   const Columns<double> columns(p, q, K);
   const Graph graph = extent(p, q, K) <= kFloatGraphExtent * tolerance ? compatibility(Columns<float>(p, q, K), K, tolerance)
                                                                         : compatibility(columns, K, tolerance);
-  const std::vector<int64_t> chosen = choose_seeds(graph, p, seeds, tolerance);
+  const Degrees degrees(graph);
+  const std::vector<int64_t> chosen = choose_seeds(degrees, p, seeds, tolerance);
   std::vector<Fit> fits(chosen.size());
   parallel_tasks(static_cast<int64_t>(chosen.size()), [&](int64_t s) {
-    const std::vector<int64_t> members = consensus_of(graph, chosen[s], consensus);
+    const std::vector<int64_t> members = consensus_of(graph, degrees, chosen[s], consensus);
     if (members.size() < 3) return;
     fits[s] = kabsch_on(p, q, members);
     fits[s].inliers = count_inliers(fits[s], columns, K, inlier_threshold);
