@@ -115,75 +115,78 @@ void transpose64(uint64_t* a) {
 }
 
 #ifdef VRNET_X86_DISPATCH
-// The vector forms of compatible_block: 8 doubles or 16 floats per instruction.
-__attribute__((target("avx512f"))) void compatible_block_avx512(const Columns<double>& c, int64_t K, int64_t I,
-                                                                int64_t J, double t2, uint64_t* out) {
-  if (K - 64 * J < 64) return compatible_block(c, K, I, J, t2, out);  // the last, partial column block
-  const __m512d tol2 = _mm512_set1_pd(t2), zero = _mm512_setzero_pd(), four = _mm512_set1_pd(4.0);
-  const int64_t rows = std::min<int64_t>(64, K - 64 * I);
-  for (int64_t r = 0; r < 64; ++r) {
-    if (r >= rows) {
-      out[r] = 0;
-      continue;
-    }
-    const int64_t i = 64 * I + r;
-    const __m512d pxi = _mm512_set1_pd(c.px[i]), pyi = _mm512_set1_pd(c.py[i]), pzi = _mm512_set1_pd(c.pz[i]);
-    const __m512d qxi = _mm512_set1_pd(c.qx[i]), qyi = _mm512_set1_pd(c.qy[i]), qzi = _mm512_set1_pd(c.qz[i]);
-    uint64_t word = 0;
-    for (int v = 0; v < 8; ++v) {
-      const int64_t j = 64 * J + 8 * v;
-      const __m512d dpx = _mm512_sub_pd(_mm512_loadu_pd(c.px + j), pxi);
-      const __m512d dpy = _mm512_sub_pd(_mm512_loadu_pd(c.py + j), pyi);
-      const __m512d dpz = _mm512_sub_pd(_mm512_loadu_pd(c.pz + j), pzi);
-      const __m512d dqx = _mm512_sub_pd(_mm512_loadu_pd(c.qx + j), qxi);
-      const __m512d dqy = _mm512_sub_pd(_mm512_loadu_pd(c.qy + j), qyi);
-      const __m512d dqz = _mm512_sub_pd(_mm512_loadu_pd(c.qz + j), qzi);
-      const __m512d a = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(dpx, dpx), _mm512_mul_pd(dpy, dpy)),
-                                      _mm512_mul_pd(dpz, dpz));
-      const __m512d b = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(dqx, dqx), _mm512_mul_pd(dqy, dqy)),
-                                      _mm512_mul_pd(dqz, dqz));
-      const __m512d s = _mm512_sub_pd(_mm512_add_pd(a, b), tol2);
-      const __mmask8 close = _mm512_cmp_pd_mask(s, zero, _CMP_LT_OQ) |
-                             _mm512_cmp_pd_mask(_mm512_mul_pd(s, s), _mm512_mul_pd(_mm512_mul_pd(four, a), b),
-                                                _CMP_LT_OQ);
-      word |= static_cast<uint64_t>(close) << (8 * v);
-    }
-    out[r] = word;
-  }
+#define VRNET_AVX512 __attribute__((target("avx512f"), always_inline)) static inline
+
+// The AVX-512 operations compatible_block needs, for 8 doubles or 16 floats per register.
+template <typename T>
+struct Avx512;
+
+template <>
+struct Avx512<double> {
+  using Vec = __m512d;
+  using Mask = __mmask8;
+  static constexpr int kLanes = 8;
+  VRNET_AVX512 Vec set1(double x) { return _mm512_set1_pd(x); }
+  VRNET_AVX512 Vec load(Mask lanes, const double* x) { return _mm512_maskz_loadu_pd(lanes, x); }
+  VRNET_AVX512 Vec add(Vec a, Vec b) { return _mm512_add_pd(a, b); }
+  VRNET_AVX512 Vec sub(Vec a, Vec b) { return _mm512_sub_pd(a, b); }
+  VRNET_AVX512 Vec mul(Vec a, Vec b) { return _mm512_mul_pd(a, b); }
+  VRNET_AVX512 Mask less(Vec a, Vec b) { return _mm512_cmp_pd_mask(a, b, _CMP_LT_OQ); }
+};
+
+template <>
+struct Avx512<float> {
+  using Vec = __m512;
+  using Mask = __mmask16;
+  static constexpr int kLanes = 16;
+  VRNET_AVX512 Vec set1(float x) { return _mm512_set1_ps(x); }
+  VRNET_AVX512 Vec load(Mask lanes, const float* x) { return _mm512_maskz_loadu_ps(lanes, x); }
+  VRNET_AVX512 Vec add(Vec a, Vec b) { return _mm512_add_ps(a, b); }
+  VRNET_AVX512 Vec sub(Vec a, Vec b) { return _mm512_sub_ps(a, b); }
+  VRNET_AVX512 Vec mul(Vec a, Vec b) { return _mm512_mul_ps(a, b); }
+  VRNET_AVX512 Mask less(Vec a, Vec b) { return _mm512_cmp_ps_mask(a, b, _CMP_LT_OQ); }
+};
+
+// Bits of the kLanes pairs (i, j), (i, j + 1), ... whose lanes are set; `at_i` holds p_i and q_i
+// (px, py, pz, qx, qy, qz) in every lane. The operations of compatible_word, in the same order.
+template <typename T>
+VRNET_AVX512 uint64_t compatible_lanes(const Columns<T>& c, const typename Avx512<T>::Vec* at_i, int64_t j,
+                                       typename Avx512<T>::Mask lanes, T t2) {
+  using V = Avx512<T>;
+  const typename V::Vec dpx = V::sub(V::load(lanes, c.px + j), at_i[0]), dpy = V::sub(V::load(lanes, c.py + j), at_i[1]),
+                        dpz = V::sub(V::load(lanes, c.pz + j), at_i[2]);
+  const typename V::Vec dqx = V::sub(V::load(lanes, c.qx + j), at_i[3]), dqy = V::sub(V::load(lanes, c.qy + j), at_i[4]),
+                        dqz = V::sub(V::load(lanes, c.qz + j), at_i[5]);
+  const typename V::Vec a = V::add(V::add(V::mul(dpx, dpx), V::mul(dpy, dpy)), V::mul(dpz, dpz));
+  const typename V::Vec b = V::add(V::add(V::mul(dqx, dqx), V::mul(dqy, dqy)), V::mul(dqz, dqz));
+  const typename V::Vec s = V::sub(V::add(a, b), V::set1(t2));
+  return lanes & (V::less(s, V::set1(0)) | V::less(V::mul(s, s), V::mul(V::mul(V::set1(4), a), b)));
 }
 
-__attribute__((target("avx512f"))) void compatible_block_avx512(const Columns<float>& c, int64_t K, int64_t I,
-                                                                int64_t J, float t2, uint64_t* out) {
-  const int64_t cols = std::min<int64_t>(64, K - 64 * J);  // the last column block: masked lanes
-  const __m512 tol2 = _mm512_set1_ps(t2), zero = _mm512_setzero_ps(), four = _mm512_set1_ps(4.0f);
-  const int64_t rows = std::min<int64_t>(64, K - 64 * I);
+// compatible_block, kLanes pairs per instruction (the last column block loads only the lanes below K).
+template <typename T>
+__attribute__((target("avx512f"))) void compatible_block_avx512(const Columns<T>& c, int64_t K, int64_t I, int64_t J,
+                                                                T t2, uint64_t* out) {
+  using V = Avx512<T>;
+  using Mask = typename V::Mask;
+  const int64_t rows = std::min<int64_t>(64, K - 64 * I), cols = std::min<int64_t>(64, K - 64 * J);
   for (int64_t r = 0; r < 64; ++r) {
     if (r >= rows) {
       out[r] = 0;
       continue;
     }
     const int64_t i = 64 * I + r;
-    const __m512 pxi = _mm512_set1_ps(c.px[i]), pyi = _mm512_set1_ps(c.py[i]), pzi = _mm512_set1_ps(c.pz[i]);
-    const __m512 qxi = _mm512_set1_ps(c.qx[i]), qyi = _mm512_set1_ps(c.qy[i]), qzi = _mm512_set1_ps(c.qz[i]);
+    const typename V::Vec at_i[6] = {V::set1(c.px[i]), V::set1(c.py[i]), V::set1(c.pz[i]),
+                                     V::set1(c.qx[i]), V::set1(c.qy[i]), V::set1(c.qz[i])};
     uint64_t word = 0;
-    for (int v = 0; v < 4 && 16 * v < cols; ++v) {
-      const int64_t j = 64 * J + 16 * v;
-      const __mmask16 lanes = cols - 16 * v >= 16 ? 0xFFFF : static_cast<__mmask16>((1u << (cols - 16 * v)) - 1);
-      const __m512 dpx = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.px + j), pxi);
-      const __m512 dpy = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.py + j), pyi);
-      const __m512 dpz = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.pz + j), pzi);
-      const __m512 dqx = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.qx + j), qxi);
-      const __m512 dqy = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.qy + j), qyi);
-      const __m512 dqz = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, c.qz + j), qzi);
-      const __m512 a = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(dpx, dpx), _mm512_mul_ps(dpy, dpy)),
-                                     _mm512_mul_ps(dpz, dpz));
-      const __m512 b = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(dqx, dqx), _mm512_mul_ps(dqy, dqy)),
-                                     _mm512_mul_ps(dqz, dqz));
-      const __m512 s = _mm512_sub_ps(_mm512_add_ps(a, b), tol2);
-      const __mmask16 close = lanes & (_mm512_cmp_ps_mask(s, zero, _CMP_LT_OQ) |
-                                       _mm512_cmp_ps_mask(_mm512_mul_ps(s, s), _mm512_mul_ps(_mm512_mul_ps(four, a), b),
-                                                          _CMP_LT_OQ));
-      word |= static_cast<uint64_t>(close) << (16 * v);
+    if (cols == 64) {
+      for (int v = 0; v < 64 / V::kLanes; ++v)
+        word |= compatible_lanes(c, at_i, 64 * J + V::kLanes * v, static_cast<Mask>(~Mask{0}), t2) << (V::kLanes * v);
+    } else {
+      for (int64_t first = 0; first < cols; first += V::kLanes) {
+        const int64_t lanes = std::min<int64_t>(V::kLanes, cols - first);
+        word |= compatible_lanes(c, at_i, 64 * J + first, static_cast<Mask>((uint64_t{1} << lanes) - 1), t2) << first;
+      }
     }
     out[r] = word;
   }
