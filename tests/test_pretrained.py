@@ -70,7 +70,8 @@ def test_vrnet_demo_runs_without_data(tmp_path, capsys):
     assert len(result["pairs"]) == 2 and "rotation error" in capsys.readouterr().out
 
 
-def test_eval_picks_the_shipped_model_of_the_setting_and_split(tmp_path, capsys):
+def test_eval_picks_the_shipped_model_of_the_setting_and_split(tmp_path, capsys, monkeypatch):
+    import vrnet_ext.model.pretrained as pretrained
     from vrnet_ext.cli import main
     from vrnet_ext.model.pretrained import model_for
 
@@ -79,9 +80,11 @@ def test_eval_picks_the_shipped_model_of_the_setting_and_split(tmp_path, capsys)
     assert model_for("RS", "UPC") == model_for("PV+RS", "UPC") == "vrnet-mixed-upc-rcp"
     assert model_for("RS", "UC") == model_for("PV+RS", "UC") == "vrnet-mixed-uc-rcp"
     assert model_for("CO", "UC") == model_for("PV", "UC") == "vrnet-pv-uc-rcp"
-    assert model_for("RS", "ND") is None
-    assert main(["eval", "--setting", "RS", "--split", "ND"]) == 2
-    assert "no shipped model is trained for setting RS / split ND" in capsys.readouterr().err
+    assert model_for("CO", "ND") == model_for("RS", "ND") == model_for("PV+RS", "ND") == "vrnet-mixed-nd-rcp"
+    with monkeypatch.context() as patched:  # a cell without a shipped model: a clear error
+        patched.setattr(pretrained, "WEIGHTS_DIR", tmp_path)
+        assert main(["eval", "--setting", "RS", "--split", "ND"]) == 2
+        assert "no shipped model is trained for setting RS / split ND" in capsys.readouterr().err
     if not (MODELNET_DIR / "modelnet40_1024_test.h5").exists():
         pytest.skip("ModelNet40 not found")
     out = tmp_path / "e.json"
