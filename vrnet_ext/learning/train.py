@@ -62,7 +62,8 @@ class _Run:
         self.device = torch.device(f"cuda:{local_rank}" if device == "cuda" and self.world > 1 else device)
         if self.device.type == "cuda":
             torch.cuda.set_device(self.device)
-        if self.world > 1 and not dist.is_initialized():
+        self.owns_group = self.world > 1 and not dist.is_initialized()
+        if self.owns_group:
             dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
 
     @property
@@ -72,6 +73,12 @@ class _Run:
     def barrier(self) -> None:
         if self.world > 1:
             dist.barrier()
+
+    def close(self) -> None:
+        """Ends the process group this run started: its communication threads must stop before the
+        process exits (left running, a rank can abort at exit)."""
+        if self.owns_group and dist.is_initialized():
+            dist.destroy_process_group()
 
 
 def _datasets(cfg: TrainConfig):
@@ -233,6 +240,7 @@ def train(cfg: TrainConfig, datasets: tuple[Dataset, Dataset] | None = None) -> 
         return _train_stages(setup, state, progress)
     finally:
         stop.restore()
+        run.close()
 
 
 @dataclass
