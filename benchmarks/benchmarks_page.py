@@ -34,6 +34,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "global_fit": "Spatial consistency vs RANSAC, matching + fit on the same descriptors (`bench_global_fit.py`)",
     "scene_validation": "Scene models on the validation pairs (`scene_validation.py`)",
     "ops": "Op timings (`bench_ops.py`)",
+    "ops_spatial_consistency": "Spatial consistency op timings (`bench_ops.py --only spatial_consistency`)",
     "busy": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
     "busy_1": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
     "busy_2": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",

@@ -10,7 +10,7 @@ constexpr int64_t kMaxCorrespondences = 1 << 15;
 
 // The graph is decided in float32 (on coordinates relative to the first correspondence) when the
 // points' extent is at most this many tolerances: float32 then moves the boundary of the test by
-// well under 1 % of the tolerance; larger extents are decided in float64.
+// under 1 % of the tolerance (tested); larger extents are decided in float64.
 constexpr double kFloatGraphExtent = 128;
 
 inline void check_spatial_consistency_inputs(const at::Tensor& src, const at::Tensor& tgt, double tolerance,

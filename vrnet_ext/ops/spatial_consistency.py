@@ -6,7 +6,7 @@ motion are compatible with each other; outliers rarely are. Following SC^2-PCR (
 CVPR 2022):
 
 1. the compatibility graph (K x K bits; decided in float32 when the points span at most
-   ``FLOAT_GRAPH_EXTENT`` tolerances, which moves its boundary by well under 1 % of the tolerance,
+   ``FLOAT_GRAPH_EXTENT`` tolerances, which moves its boundary by under 1 % of the tolerance,
    else in float64);
 2. ``seeds`` correspondences of highest degree, none within ``tolerance`` of another on the source
    side;
