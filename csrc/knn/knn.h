@@ -76,6 +76,14 @@ struct Reservoir {
     items.reserve(capacity);
     threshold = std::numeric_limits<scalar_t>::infinity();
   }
+  // Lowers the threshold to the k-th smallest of `count` distances of distinct candidates (+ 2 slack):
+  // the k-th smallest of all candidates lies at or under it.
+  void bound(scalar_t* distances, int64_t count) {
+    if (count < k) return;
+    std::nth_element(distances, distances + (k - 1), distances + count);
+    const scalar_t limit = distances[k - 1] + 2 * slack;
+    if (limit < threshold) threshold = limit;
+  }
   void add(scalar_t d, int64_t j) {
     items.emplace_back(d, j);
     if (items.size() >= capacity) shrink();
@@ -83,7 +91,7 @@ struct Reservoir {
   void shrink() {
     if (items.size() <= static_cast<size_t>(k)) return;
     std::nth_element(items.begin(), items.begin() + (k - 1), items.end());
-    threshold = items[k - 1].first + 2 * slack;
+    threshold = std::min(threshold, items[k - 1].first + 2 * slack);
     if (!std::isfinite(threshold)) {  // overflowing norms: keep k (valid indices, no longer the nearest)
       items.resize(k);
       return;

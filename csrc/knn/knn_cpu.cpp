@@ -19,6 +19,7 @@
 #include <vector>
 
 #include "common/common.h"
+#include "common/cpu_dispatch.h"
 #include "knn/knn.h"
 
 namespace vrnet {
@@ -250,6 +251,124 @@ void knn_grid(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool ex
 constexpr int64_t kQueryBlock = 256;
 constexpr int64_t kRefBlock = 1024;
 
+// One query's row of a tile: dist[j] = (|q|^2 + |r_j|^2) - 2 q.r_j from the tile's dot products,
+// clamped at 0, +inf where not finite, NaN at column `self` (or -1: none), which then never passes
+// a threshold and never counts as a minimum.
+template <typename scalar_t>
+void row_distances_portable(const scalar_t* dots, const scalar_t* r_norms, scalar_t q_norm, int64_t width,
+                            int64_t self, scalar_t* dist) {
+  for (int64_t j = 0; j < width; ++j) {
+    const scalar_t d = q_norm + r_norms[j] - 2 * dots[j];
+    dist[j] = std::isfinite(d) ? std::max<scalar_t>(d, 0) : std::numeric_limits<scalar_t>::infinity();
+  }
+  if (self >= 0) dist[self] = std::numeric_limits<scalar_t>::quiet_NaN();
+}
+
+// Minimum of each of kBoundSubsets interleaved subsets of the row (column j in subset j % kBoundSubsets).
+constexpr int64_t kBoundSubsets = 16;
+
+template <typename scalar_t>
+void subset_minima_portable(const scalar_t* dist, int64_t width, scalar_t* minima) {
+  std::fill(minima, minima + kBoundSubsets, std::numeric_limits<scalar_t>::infinity());
+  for (int64_t j = 0; j < width; ++j)
+    if (dist[j] < minima[j % kBoundSubsets]) minima[j % kBoundSubsets] = dist[j];
+}
+
+// Offers the row's columns at or under the reservoir's threshold, in column order.
+template <typename scalar_t>
+void offer_row_portable(const scalar_t* dist, int64_t width, int64_t r0, Reservoir<scalar_t>& res) {
+  for (int64_t j = 0; j < width; ++j)
+    if (dist[j] <= res.threshold) res.add(dist[j], r0 + j);
+}
+
+#ifdef VRNET_X86_DISPATCH
+// The three row functions above, kLanes columns per instruction, with the same operations in the
+// same order (the same distances, minima and offers; the offers of one vector are checked again
+// against the threshold, which an earlier offer may have lowered).
+template <typename scalar_t>
+VRNET_AVX512 typename Avx512<scalar_t>::Mask lanes_below(int64_t count) {
+  using Mask = typename Avx512<scalar_t>::Mask;
+  return count >= Avx512<scalar_t>::kLanes ? static_cast<Mask>(~Mask{0}) : static_cast<Mask>((uint64_t{1} << count) - 1);
+}
+
+template <typename scalar_t>
+__attribute__((target("avx512f"))) void row_distances_avx512(const scalar_t* dots, const scalar_t* r_norms,
+                                                             scalar_t q_norm, int64_t width, int64_t self,
+                                                             scalar_t* dist) {
+  using V = Avx512<scalar_t>;
+  const typename V::Vec qn = V::set1(q_norm), two = V::set1(2), zero = V::set1(0);
+  const typename V::Vec inf = V::set1(std::numeric_limits<scalar_t>::infinity());
+  for (int64_t j0 = 0; j0 < width; j0 += V::kLanes) {
+    const typename V::Mask valid = lanes_below<scalar_t>(width - j0);
+    const typename V::Vec d = V::sub(V::add(qn, V::load(valid, r_norms + j0)), V::mul(two, V::load(valid, dots + j0)));
+    const typename V::Vec clamped = V::blend(V::less(d, zero), d, zero);  // std::max(d, 0)
+    V::store(valid, dist + j0, V::blend(V::finite(d), inf, clamped));
+  }
+  if (self >= 0) dist[self] = std::numeric_limits<scalar_t>::quiet_NaN();
+}
+
+template <typename scalar_t>
+__attribute__((target("avx512f"))) void subset_minima_avx512(const scalar_t* dist, int64_t width, scalar_t* minima) {
+  using V = Avx512<scalar_t>;
+  static_assert(kBoundSubsets % V::kLanes == 0, "a subset per lane of whole registers");
+  constexpr int kParts = kBoundSubsets / V::kLanes;
+  const typename V::Vec inf = V::set1(std::numeric_limits<scalar_t>::infinity());
+  typename V::Vec lowest[kParts];
+  for (int p = 0; p < kParts; ++p) lowest[p] = inf;
+  for (int64_t j0 = 0; j0 < width; j0 += kBoundSubsets)
+    for (int p = 0; p < kParts; ++p) {
+      const int64_t first = j0 + p * V::kLanes;
+      if (first >= width) break;
+      const typename V::Vec d = V::blend(lanes_below<scalar_t>(width - first), inf,
+                                         V::load(lanes_below<scalar_t>(width - first), dist + first));
+      lowest[p] = V::blend(V::less(d, lowest[p]), lowest[p], d);
+    }
+  for (int p = 0; p < kParts; ++p) V::store(minima + p * V::kLanes, lowest[p]);
+}
+
+template <typename scalar_t>
+__attribute__((target("avx512f"))) void offer_row_avx512(const scalar_t* dist, int64_t width, int64_t r0,
+                                                         Reservoir<scalar_t>& res) {
+  using V = Avx512<scalar_t>;
+  for (int64_t j0 = 0; j0 < width; j0 += V::kLanes) {
+    const typename V::Mask valid = lanes_below<scalar_t>(width - j0);
+    for (uint64_t pass = valid & V::less_equal(V::load(valid, dist + j0), V::set1(res.threshold)); pass != 0;
+         pass &= pass - 1) {
+      const int64_t j = j0 + __builtin_ctzll(pass);
+      if (dist[j] <= res.threshold) res.add(dist[j], r0 + j);
+    }
+  }
+}
+#endif
+
+// Offers one query's candidates of a tile to its reservoir (`row` is scratch of `width` values).
+// A fresh reservoir first takes as its threshold the k-th smallest of the row's kBoundSubsets subset
+// minima (+ 2 slack): k distinct columns lie at or under it, so it bounds the k-th smallest
+// distance, and most of the row is then rejected in one compare instead of being buffered.
+template <typename scalar_t>
+void scan_row(const scalar_t* dots, const scalar_t* r_norms, scalar_t q_norm, int64_t width, int64_t r0, int64_t self,
+              scalar_t* row, Reservoir<scalar_t>& res) {
+  scalar_t minima[kBoundSubsets];
+  const bool bound = res.items.empty() && res.k <= kBoundSubsets;
+#ifdef VRNET_X86_DISPATCH
+  if (kHasAvx512) {
+    row_distances_avx512(dots, r_norms, q_norm, width, self, row);
+    if (bound) {
+      subset_minima_avx512(row, width, minima);
+      res.bound(minima, kBoundSubsets);
+    }
+    offer_row_avx512(row, width, r0, res);
+    return;
+  }
+#endif
+  row_distances_portable(dots, r_norms, q_norm, width, self, row);
+  if (bound) {
+    subset_minima_portable(row, width, minima);
+    res.bound(minima, kBoundSubsets);
+  }
+  offer_row_portable(row, width, r0, res);
+}
+
 // Exact k nearest of one query row among all M reference rows (exhaustive scan with exact
 // differences), for clouds whose squared norms overflow the dtype.
 template <typename scalar_t>
@@ -268,8 +387,7 @@ void knn_row_exhaustive(const scalar_t* q, const scalar_t* refs, int64_t M, int6
   }
 }
 
-// GEMM-tiled kNN for any C. Both clouds are first shifted by the reference cloud's mean (computed
-// in double), so that |q|^2 + |r|^2 - 2 q.r does not cancel catastrophically for clouds far from
+// GEMM-tiled kNN for any C. Both clouds are first shifted by the reference cloud's mean, so that |q|^2 + |r|^2 - 2 q.r does not cancel catastrophically for clouds far from
 // the origin; the reservoir then keeps every candidate within the rounding bound of that formula
 // and re-ranks the survivors by exact distance (see Reservoir).
 //
@@ -284,13 +402,16 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
   // Rounding of the expanded formula: a few units in the last place of (|q|^2 + |r|^2) per term of
   // the dot product; 8 (C + 2) eps is a generous bound for any summation order the GEMM picks.
   const scalar_t relative_error = static_cast<scalar_t>(8 * (C + 2)) * std::numeric_limits<scalar_t>::epsilon();
-  const at::Tensor shift = ref.to(at::kDouble).mean(1, /*keepdim=*/true);
-  const at::Tensor q_centred = at::sub(query.to(at::kDouble), shift).to(query.scalar_type()).contiguous();
-  const at::Tensor r_centred = at::sub(ref.to(at::kDouble), shift).to(ref.scalar_type()).contiguous();
-  const at::Tensor q_norms = q_centred.square().sum(2).contiguous();   // (B, N)
-  const at::Tensor r_norms = r_centred.square().sum(2).contiguous();   // (B, M)
+  // The same shift for both clouds, rounded once to their dtype: a distance does not depend on it,
+  // and each centred coordinate is then exact to half an ulp of its own (small) size.
+  const bool same = query.is_same(ref);  // a cloud's own graph (DGCNN): centre and norms once
+  const at::Tensor shift = ref.mean(1, /*keepdim=*/true, at::kDouble).to(ref.scalar_type());
+  const at::Tensor q_centred = at::sub(query, shift).contiguous();
+  const at::Tensor r_centred = same ? q_centred : at::sub(ref, shift).contiguous();
+  const at::Tensor q_norms = q_centred.square().sum(2).contiguous();             // (B, N)
+  const at::Tensor r_norms = same ? q_norms : r_centred.square().sum(2).contiguous();  // (B, M)
   const at::Tensor r_norm_max = std::get<0>(r_norms.max(1)).contiguous();
-  const at::Tensor q_norm_max = std::get<0>(q_norms.max(1)).contiguous();
+  const at::Tensor q_norm_max = same ? r_norm_max : std::get<0>(q_norms.max(1)).contiguous();
   const scalar_t* qn_all = q_norms.const_data_ptr<scalar_t>();
   const scalar_t* rn_all = r_norms.const_data_ptr<scalar_t>();
   const scalar_t* rn_max = r_norm_max.const_data_ptr<scalar_t>();
@@ -300,7 +421,7 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
   const int64_t blocks = (N + kQueryBlock - 1) / kQueryBlock;
   parallel_tasks(B * blocks, [&](int64_t task) {
     std::vector<Reservoir<scalar_t>> reservoirs(std::min(N, kQueryBlock));
-    std::vector<scalar_t> row_dist(std::min(M, kRefBlock));
+    std::vector<scalar_t> row(std::min(M, kRefBlock));
     const int64_t b = task / blocks, q0 = (task % blocks) * kQueryBlock, q1 = std::min(N, q0 + kQueryBlock);
     const scalar_t* q_rows = q_all + b * N * C;
     const scalar_t* r_rows = r_all + b * M * C;
@@ -322,22 +443,12 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
     const at::Tensor q_tile = q_centred.select(0, b).narrow(0, q0, q1 - q0);
     for (int64_t r0 = 0; r0 < M; r0 += kRefBlock) {
       const int64_t r1 = std::min(M, r0 + kRefBlock), width = r1 - r0;
-      // dots[n, j] = q_n . r_j (single-threaded inside this task); d ~ |q|^2 + |r|^2 - 2 q.r,
-      // clamped at 0, +inf where not finite.
+      // dots[n, j] = q_n . r_j (single-threaded inside this task)
       const at::Tensor dots = at::mm(q_tile, r_centred.select(0, b).narrow(0, r0, width).t());
       const scalar_t* dp = dots.const_data_ptr<scalar_t>();
       for (int64_t n = q0; n < q1; ++n) {
-        const scalar_t* row = dp + (n - q0) * width;
-        scalar_t* dst = row_dist.data();
-        for (int64_t j = 0; j < width; ++j) {
-          const scalar_t d = qn[n] + rn[r0 + j] - 2 * row[j];
-          dst[j] = std::isfinite(d) ? std::max<scalar_t>(d, 0) : std::numeric_limits<scalar_t>::infinity();
-        }
-        // NaN never passes `<= threshold`: the query itself is skipped without a per-candidate test.
-        if (exclude_self && n >= r0 && n < r1) dst[n - r0] = std::numeric_limits<scalar_t>::quiet_NaN();
-        Reservoir<scalar_t>& res = reservoirs[n - q0];
-        for (int64_t j = 0; j < width; ++j)
-          if (dst[j] <= res.threshold) res.add(dst[j], r0 + j);
+        const int64_t self = exclude_self && n >= r0 && n < r1 ? n - r0 : -1;
+        scan_row(dp + (n - q0) * width, rn + r0, qn[n], width, r0, self, row.data(), reservoirs[n - q0]);
       }
     }
     for (int64_t n = q0; n < q1; ++n)
@@ -349,7 +460,8 @@ std::tuple<at::Tensor, at::Tensor> knn_cpu(const at::Tensor& query_in, const at:
                                            int64_t k, bool exclude_self) {
   check_knn_inputs(query_in, ref_in, k, exclude_self);
   const int64_t B = query_in.size(0), N = query_in.size(1), C = query_in.size(2);
-  const at::Tensor query = query_in.contiguous(), ref = ref_in.contiguous();
+  const at::Tensor query = query_in.contiguous();
+  const at::Tensor ref = ref_in.is_same(query_in) ? query : ref_in.contiguous();
   check_finite(query, "query");
   check_finite(ref, "ref");
   at::Tensor dist = at::empty({B, N, k}, query.options());

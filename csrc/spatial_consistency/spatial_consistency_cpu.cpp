@@ -29,19 +29,14 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
-#include <cstdlib>
 #include <numeric>
-#include <string>
 #include <type_traits>
 #include <vector>
 
+#include "common/cpu_dispatch.h"
 #include "kabsch/procrustes.h"
 #include "spatial_consistency/spatial_consistency.h"
 
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-#include <immintrin.h>
-#define VRNET_X86_DISPATCH 1
-#endif
 
 namespace vrnet {
 namespace {
@@ -115,38 +110,6 @@ void transpose64(uint64_t* a) {
 }
 
 #ifdef VRNET_X86_DISPATCH
-#define VRNET_AVX512 __attribute__((target("avx512f"), always_inline)) static inline
-
-// The AVX-512 operations compatible_block needs, for 8 doubles or 16 floats per register.
-template <typename T>
-struct Avx512;
-
-template <>
-struct Avx512<double> {
-  using Vec = __m512d;
-  using Mask = __mmask8;
-  static constexpr int kLanes = 8;
-  VRNET_AVX512 Vec set1(double x) { return _mm512_set1_pd(x); }
-  VRNET_AVX512 Vec load(Mask lanes, const double* x) { return _mm512_maskz_loadu_pd(lanes, x); }
-  VRNET_AVX512 Vec add(Vec a, Vec b) { return _mm512_add_pd(a, b); }
-  VRNET_AVX512 Vec sub(Vec a, Vec b) { return _mm512_sub_pd(a, b); }
-  VRNET_AVX512 Vec mul(Vec a, Vec b) { return _mm512_mul_pd(a, b); }
-  VRNET_AVX512 Mask less(Vec a, Vec b) { return _mm512_cmp_pd_mask(a, b, _CMP_LT_OQ); }
-};
-
-template <>
-struct Avx512<float> {
-  using Vec = __m512;
-  using Mask = __mmask16;
-  static constexpr int kLanes = 16;
-  VRNET_AVX512 Vec set1(float x) { return _mm512_set1_ps(x); }
-  VRNET_AVX512 Vec load(Mask lanes, const float* x) { return _mm512_maskz_loadu_ps(lanes, x); }
-  VRNET_AVX512 Vec add(Vec a, Vec b) { return _mm512_add_ps(a, b); }
-  VRNET_AVX512 Vec sub(Vec a, Vec b) { return _mm512_sub_ps(a, b); }
-  VRNET_AVX512 Vec mul(Vec a, Vec b) { return _mm512_mul_ps(a, b); }
-  VRNET_AVX512 Mask less(Vec a, Vec b) { return _mm512_cmp_ps_mask(a, b, _CMP_LT_OQ); }
-};
-
 // Bits of the kLanes pairs (i, j), (i, j + 1), ... whose lanes are set; `at_i` holds p_i and q_i
 // (px, py, pz, qx, qy, qz) in every lane. The operations of compatible_word, in the same order.
 template <typename T>
@@ -216,15 +179,6 @@ __attribute__((target("avx512f,avx512vpopcntdq"))) int64_t popcount_and_avx512(c
   return std::accumulate(lanes, lanes + 8, int64_t{0});
 }
 
-// VRNET_CPU_DISPATCH=generic (read when the library loads) keeps the portable code, for tests.
-bool generic_requested() {
-  const char* value = std::getenv("VRNET_CPU_DISPATCH");
-  return value != nullptr && std::string(value) == "generic";
-}
-
-const bool kHasAvx512 = __builtin_cpu_supports("avx512f") && !generic_requested();
-const bool kHasVpopcnt = kHasAvx512 && __builtin_cpu_supports("avx512vpopcntdq");
-const bool kHasPopcnt = __builtin_cpu_supports("popcnt") && !generic_requested();
 #endif
 
 // The graph is symmetric: each 64 x 64 block above the diagonal is computed once and stored
