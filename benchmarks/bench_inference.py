@@ -1,6 +1,7 @@
 """ModelNet40 inference speed of a shipped VRNet: pairs per second at several batch sizes, the
-compiled backend (float32 and under bfloat16 autocast) beside the pure-PyTorch reference backend,
-in one run, with the accuracy of each on the same pairs.
+compiled backend beside the pure-PyTorch reference backend, each with the Transformer in float32
+and in bfloat16 (``VRNetConfig.transformer_precision``; the default "auto" takes bf16 on a CPU with
+native bf16), in one run, with the accuracy of each on the same pairs.
 
     python benchmarks/bench_inference.py [--model vrnet-pv-upc-rcp] [--batches 1 16 64]
                                          [--pairs 256] [--threads 2] [--json inference.json]
@@ -9,13 +10,14 @@ Pairs: the first ``--pairs`` of the official test split (PV, UPC, 768-point view
 every variant; no_grad, eval mode. Each (variant, batch) is timed over whole passes through those
 pairs (median of ``--repeats``), variants taking turns within each repeat. Accuracy: the RMS of
 the rotation angle error (degrees; not the paper's Euler-angle RMSE(R)) and RMSE(t) over the pairs,
-so a faster variant can be seen to keep the numbers. Peak
-memory: the process's peak resident set after the run (all variants).
+so a faster variant can be seen to keep the numbers. "x reference": against the reference backend
+with everything in float32 (the plain-PyTorch model); "x same precision": against the reference
+backend with the same Transformer precision. Peak memory: the process's peak resident set after
+the run (all variants).
 """
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import platform
 import resource
@@ -29,7 +31,10 @@ from vrnet_ext.geometry.metrics import rotation_error_deg
 from vrnet_ext.model.pretrained import load_pretrained
 from outputs import write_outputs  # benchmarks/, the script's folder
 
-VARIANTS = {"torch": ("torch", False), "ext": ("ext", False), "ext + bf16": ("ext", True)}
+# name: (backend, transformer_precision)
+VARIANTS = {"torch": ("torch", "fp32"), "torch, bf16 Transformer": ("torch", "bf16"),
+            "ext": ("ext", "fp32"), "ext, bf16 Transformer": ("ext", "bf16")}
+SAME_PRECISION_REFERENCE = {"fp32": "torch", "bf16": "torch, bf16 Transformer"}
 
 
 def load_pairs(count: int, data_dir: str | None) -> dict[str, torch.Tensor]:
@@ -38,10 +43,10 @@ def load_pairs(count: int, data_dir: str | None) -> dict[str, torch.Tensor]:
     return {key: torch.stack([item[key] for item in items]) for key in ("src", "tgt", "rotation", "translation")}
 
 
-def run_pass(model, pairs: dict[str, torch.Tensor], batch: int, backend: str, bf16: bool):
+def run_pass(model, pairs: dict[str, torch.Tensor], batch: int, backend: str, transformer_precision: str):
+    model.config.transformer_precision = transformer_precision
     rotations, translations = [], []
-    autocast = torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
-    with torch.no_grad(), autocast:
+    with torch.no_grad():
         for start in range(0, len(pairs["src"]), batch):
             out = model(pairs["src"][start:start + batch], pairs["tgt"][start:start + batch], backend=backend)
             rotations.append(out.rotation.float())
@@ -67,29 +72,33 @@ def main(argv: list[str] | None = None) -> None:
     count = len(pairs["src"])
     seconds: dict[tuple[str, int], list[float]] = {}
     accuracy: dict[str, dict[str, float]] = {}
-    for variant, (backend, bf16) in VARIANTS.items():  # warm-up and accuracy
-        R, t = run_pass(model, pairs, max(args.batches), backend, bf16)
+    for variant, settings in VARIANTS.items():  # warm-up and accuracy
+        R, t = run_pass(model, pairs, max(args.batches), *settings)
         accuracy[variant] = {
             "rms_angle_deg": float(rotation_error_deg(R, pairs["rotation"]).square().mean().sqrt()),
             "rmse_t": float((t - pairs["translation"]).norm(dim=-1).square().mean().sqrt())}
     for _ in range(args.repeats):
         for batch in args.batches:
-            for variant, (backend, bf16) in VARIANTS.items():
+            for variant, settings in VARIANTS.items():
                 start = time.perf_counter()
-                run_pass(model, pairs, batch, backend, bf16)
+                run_pass(model, pairs, batch, *settings)
                 seconds.setdefault((variant, batch), []).append(time.perf_counter() - start)
     rows = []
     for (variant, batch), times in seconds.items():
         median = statistics.median(times)
         reference = statistics.median(seconds[("torch", batch)])
+        same_precision = statistics.median(seconds[(SAME_PRECISION_REFERENCE[VARIANTS[variant][1]], batch)])
         rows.append({"variant": variant, "batch": batch, "pairs_per_s": count / median,
-                     "vs_reference": reference / median, **accuracy[variant]})
+                     "vs_reference": reference / median, "vs_same_precision": same_precision / median,
+                     **accuracy[variant]})
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     meta = {"model": args.model, "pairs": count, "threads": args.threads, "repeats": args.repeats,
             "torch": torch.__version__, "machine": f"{platform.machine()}, {os.cpu_count()} cpus",
             "date": time.strftime("%Y-%m-%d"), "peak_rss_mb": peak_mb}
-    lines = ["| variant | batch | pairs/s | x reference | RMS angle error (deg) | RMSE(t) |", "|---|---:|---:|---:|---:|---:|"]
+    lines = ["| variant | batch | pairs/s | x reference | x same precision | RMS angle error (deg) | RMSE(t) |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     lines += [f"| {row['variant']} | {row['batch']} | {row['pairs_per_s']:.1f} | {row['vs_reference']:.2f} | "
+              f"{row['vs_same_precision']:.2f} | "
               f"{row['rms_angle_deg']:.4f} | {row['rmse_t']:.6f} |"
               for row in sorted(rows, key=lambda r: (r["batch"], r["variant"]))]
     lines.append(f"\n`{args.model}`, {count} test pairs (PV, UPC), {args.threads} threads, {meta['machine']}, torch "

@@ -41,10 +41,13 @@ def test_bench_inference_times_every_variant_on_the_same_pairs(tmp_path):
     run([str(ROOT / "benchmarks" / "bench_inference.py"), "--batches", "1", "2", "--pairs", "4", "--repeats", "1",
          "--data-dir", str(MODELNET_DIR), "--json", str(out)], tmp_path)
     rows = json.loads(out.read_text())["rows"]
-    assert {(r["variant"], r["batch"]) for r in rows} == {(v, b) for v in ("torch", "ext", "ext + bf16") for b in (1, 2)}
+    variants = ("torch", "torch, bf16 Transformer", "ext", "ext, bf16 Transformer")
+    assert {(r["variant"], r["batch"]) for r in rows} == {(v, b) for v in variants for b in (1, 2)}
     by_variant = {r["variant"]: r for r in rows if r["batch"] == 1}
     assert by_variant["torch"]["vs_reference"] == 1.0 and all(r["pairs_per_s"] > 0 for r in rows)
+    assert by_variant["torch, bf16 Transformer"]["vs_same_precision"] == 1.0
     assert abs(by_variant["ext"]["rms_angle_deg"] - by_variant["torch"]["rms_angle_deg"]) < 0.01
+    assert abs(by_variant["ext, bf16 Transformer"]["rms_angle_deg"] - by_variant["ext"]["rms_angle_deg"]) < 0.05
 
 
 LIDAR = ROOT.parent / "shared" / "data" / "scenes" / "lidar_pair"

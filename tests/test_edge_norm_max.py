@@ -193,3 +193,35 @@ def test_a_negative_slope_is_refused_everywhere():
         torch.ops.vrnet_ext.edge_norm_max(projections, idx, None, None, None, None, 1e-5, -0.5)
     with pytest.raises(ValueError, match="negative_slope must be a finite number >= 0"):
         EdgeConv(3, 8, negative_slope=-0.1)
+
+
+@requires_ext
+def test_the_vector_and_the_portable_pass_agree(tmp_path):
+    """Where the CPU has AVX-512 the neighbour pass runs on 64-byte registers; VRNET_CPU_DISPATCH=generic
+    keeps 16-byte ones. The same operations per lane: outputs and statistics equal bit for bit
+    (batch and running statistics, both precisions, channel counts with and without a remainder)."""
+    import os
+    import subprocess
+    import sys
+
+    script = ("import sys, torch; from vrnet_ext import ops; g = torch.Generator().manual_seed(3); out = []\n"
+              "for dtype in (torch.float32, torch.float64):\n"
+              "    for O in (16, 37, 64):\n"
+              "        p = torch.randn(2, 2 * O, 150, generator=g, dtype=dtype)\n"
+              "        idx = torch.randint(0, 150, (2, 150, 10), generator=g)\n"
+              "        w, b = torch.randn(O, generator=g, dtype=dtype), torch.randn(O, generator=g, dtype=dtype)\n"
+              "        rm, rv = torch.randn(O, generator=g, dtype=dtype), torch.rand(O, generator=g, dtype=dtype) + 0.5\n"
+              "        out += [ops.edge_norm_max(p, idx, w, b, None, None, 1e-5, 0.2),\n"
+              "                ops.edge_norm_max(p, idx, w, b, rm, rv, 1e-5, 0.2)]\n"
+              "torch.save(out, sys.argv[1])")
+    results = []
+    for dispatch in ("default", "generic"):
+        env = dict(os.environ, VRNET_CPU_DISPATCH=dispatch)
+        path = tmp_path / f"{dispatch}.pt"
+        done = subprocess.run([sys.executable, "-c", script, str(path)], env=env, capture_output=True, text=True,
+                              timeout=300)
+        assert done.returncode == 0, done.stderr
+        results.append(torch.load(path))
+    for vector, generic in zip(*results):
+        for a, b in zip(vector, generic):
+            assert torch.equal(a, b)

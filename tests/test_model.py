@@ -3,6 +3,7 @@ import torch
 
 from conftest import compile_fullgraph, requires_ext
 from vrnet_ext import VRNet, VRNetConfig, has_extension
+from vrnet_ext.geometry.metrics import rotation_error_deg
 
 
 def small_model(**overrides):
@@ -50,7 +51,7 @@ def test_backends_agree(device, train):
 
 
 def test_permutation_equivariance_sanity(device):
-    model = small_model().eval()
+    model = small_model(transformer_precision="fp32").eval()  # the function itself, to float32 rounding
     src, tgt = clouds()
     perm_src, perm_tgt = torch.randperm(60), torch.randperm(50)
     with torch.no_grad():
@@ -265,3 +266,39 @@ def test_eval_mode_features_of_both_clouds_in_one_batch_equal_separate_passes():
         separate = (model.features(src, "torch"), model.features(tgt, "torch"))
     for one, other in zip(batched, separate):
         torch.testing.assert_close(one, other, rtol=1e-5, atol=1e-6)
+
+
+def test_transformer_precision_choice(monkeypatch):
+    import vrnet_ext.model.vrnet as vrnet_module
+
+    src = clouds()[0]
+    for native in (True, False):
+        monkeypatch.setattr(vrnet_module, "cpu_has_native_bf16", lambda native=native: native)
+        model = small_model()
+        assert model.train().transformer_in_bf16(src) is False  # training: its own autocast decides
+        assert model.eval().transformer_in_bf16(src) is native
+        assert model.transformer_in_bf16(src.double()) is False
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            assert model.transformer_in_bf16(src) is False  # an enclosing region decides
+        model.config.transformer_precision = "fp32"
+        assert model.transformer_in_bf16(src) is False
+        model.config.transformer_precision = "bf16"
+        assert model.train().transformer_in_bf16(src) is True
+    with pytest.raises(ValueError, match="transformer_precision"):
+        VRNetConfig.small(transformer_precision="half")
+
+
+def test_bf16_transformer_stays_close_to_float32():
+    """The bf16 Transformer changes the features by bfloat16 rounding only: the estimate moves by a
+    small fraction of a degree, the outputs stay float32."""
+    model = small_model().eval()
+    src, tgt = clouds()
+    with torch.no_grad():
+        model.config.transformer_precision = "fp32"
+        exact = model(src, tgt)
+        model.config.transformer_precision = "bf16"
+        fast = model(src, tgt)
+    assert fast.rotation.dtype == torch.float32 and fast.src_embedding.dtype == torch.float32
+    assert not torch.equal(fast.src_embedding, exact.src_embedding)  # bfloat16 did run
+    torch.testing.assert_close(fast.src_embedding, exact.src_embedding, rtol=0.05, atol=0.05)
+    assert float(rotation_error_deg(fast.rotation, exact.rotation).max()) < 1.0

@@ -1,4 +1,4 @@
-"""Process-wide numeric settings."""
+"""Process-wide numeric settings and what the CPU offers."""
 from __future__ import annotations
 
 import torch
@@ -17,3 +17,18 @@ def set_flush_denormal(enabled: bool = True) -> bool:
     if has_extension():
         return bool(torch.ops.vrnet_ext.set_flush_denormal(enabled))
     return torch.set_flush_denormal(enabled)
+
+
+def _detect_native_bf16() -> bool:
+    checks = [getattr(torch.cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
+    return any(check is not None and bool(check()) for check in checks)
+
+
+_NATIVE_BF16 = _detect_native_bf16()  # decided once at import (a constant for torch.compile)
+
+
+def cpu_has_native_bf16() -> bool:
+    """True where the CPU multiplies bfloat16 matrices in hardware (AVX512-BF16 or AMX-BF16):
+    there a bfloat16 product runs several times faster than a float32 one; elsewhere it is
+    emulated and slower."""
+    return _NATIVE_BF16

@@ -20,6 +20,7 @@
 #include <memory>
 #include <type_traits>
 
+#include "common/cpu_dispatch.h"
 #include "edge_norm_max/edge_norm_max.h"
 
 namespace vrnet {
@@ -41,18 +42,23 @@ struct Task {
       : batch(task / L.chunks()), begin((task % L.chunks()) * kChunk), end(std::min(L.N, begin + kChunk)) {}
 };
 
-// SIMD registers as GCC/Clang vector types (16 bytes: SSE2 on x86-64, NEON on arm64), so the loops
-// over a channel block vectorise without -march flags.
-template <typename scalar_t>
+// SIMD registers as GCC/Clang vector types (16 bytes by default: SSE2 on x86-64, NEON on arm64), so
+// the loops over a channel block vectorise without -march flags; 64 bytes inside functions compiled
+// for AVX-512 (neighbour_pass_avx512).
+// (-Wpsabi, up to neighbour_pass: GCC notes that a 64-byte vector return has another ABI without
+// AVX-512; these helpers are always inlined into the AVX-512 function, so no such call exists.)
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wpsabi"
+template <typename scalar_t, int Bytes = 16>
 struct Simd {
-  typedef scalar_t vec __attribute__((vector_size(16)));
-  static constexpr int64_t lanes = 16 / sizeof(scalar_t);
-  static vec load(const scalar_t* p) {
+  typedef scalar_t vec __attribute__((vector_size(Bytes)));
+  static constexpr int64_t lanes = Bytes / sizeof(scalar_t);
+  __attribute__((always_inline)) static vec load(const scalar_t* p) {
     vec v;
     std::memcpy(&v, p, sizeof(vec));
     return v;
   }
-  static void store(scalar_t* p, vec v) { std::memcpy(p, &v, sizeof(vec)); }
+  __attribute__((always_inline)) static void store(scalar_t* p, vec v) { std::memcpy(p, &v, sizeof(vec)); }
 };
 
 // Per-channel normalisation y = scale * (z - mean) + bias (scale = weight * invstd), and the sign of
@@ -94,11 +100,12 @@ inline void normalise_point(const scalar_t* extreme, const scalar_t* centre, con
 // One point: over its k neighbours, per channel, the extreme of direction * a and its first slot (NaN
 // wins and propagates like torch.max, at the first NaN's slot), and the sum and sum of squares of
 // a - shift_a. Full blocks of kBlock channels run on SIMD vectors, the rest lane by lane.
-template <typename scalar_t>
-void neighbour_pass(const scalar_t* points, const int64_t* nb, int64_t O, int64_t k, const scalar_t* direction,
-                    const scalar_t* shift_a, scalar_t* extreme, int32_t* slot_out, scalar_t* sum,
-                    scalar_t* squares) {
-  using S = Simd<scalar_t>;
+template <typename scalar_t, int Bytes>
+__attribute__((always_inline)) inline void neighbour_pass_body(const scalar_t* points, const int64_t* nb, int64_t O,
+                                                               int64_t k, const scalar_t* direction,
+                                                               const scalar_t* shift_a, scalar_t* extreme,
+                                                               int32_t* slot_out, scalar_t* sum, scalar_t* squares) {
+  using S = Simd<scalar_t, Bytes>;
   constexpr int64_t vectors = kBlock / S::lanes;
   const int64_t stride = 2 * O, full = O - O % kBlock;
   for (int64_t o0 = 0; o0 < full; o0 += kBlock) {
@@ -148,6 +155,28 @@ void neighbour_pass(const scalar_t* points, const int64_t* nb, int64_t O, int64_
     }
   }
 }
+
+#ifdef VRNET_X86_DISPATCH
+// The same pass with 64-byte registers: the same operations per lane, so the same results.
+template <typename scalar_t>
+__attribute__((target("avx512f"))) void neighbour_pass_avx512(const scalar_t* points, const int64_t* nb, int64_t O,
+                                                              int64_t k, const scalar_t* direction,
+                                                              const scalar_t* shift_a, scalar_t* extreme,
+                                                              int32_t* slot_out, scalar_t* sum, scalar_t* squares) {
+  neighbour_pass_body<scalar_t, 64>(points, nb, O, k, direction, shift_a, extreme, slot_out, sum, squares);
+}
+#endif
+
+template <typename scalar_t>
+void neighbour_pass(const scalar_t* points, const int64_t* nb, int64_t O, int64_t k, const scalar_t* direction,
+                    const scalar_t* shift_a, scalar_t* extreme, int32_t* slot_out, scalar_t* sum,
+                    scalar_t* squares) {
+#ifdef VRNET_X86_DISPATCH
+  if (kHasAvx512) return neighbour_pass_avx512(points, nb, O, k, direction, shift_a, extreme, slot_out, sum, squares);
+#endif
+  neighbour_pass_body<scalar_t, 16>(points, nb, O, k, direction, shift_a, extreme, slot_out, sum, squares);
+}
+#pragma GCC diagnostic pop
 
 // Means over the task's points of the neighbour terms (a) and the centre terms (b): shifts that keep
 // float differences of large values near their typical value exact.

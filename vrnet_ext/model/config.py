@@ -39,6 +39,17 @@ class VRNetConfig:
       current estimate, s = 3 x the median residual (at least ``irls_min_scale``), and Procrustes is
       solved again (not in the paper; 0: a single solve).
     * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.
+
+    Run-time choices (no effect on the weights):
+
+    * ``backend``: ``"ext"`` (compiled ops) or ``"torch"`` (the pure-PyTorch references).
+    * ``transformer_precision``: the Transformer's matrix products (attention, projections) in
+      ``"bf16"`` (bfloat16 with float32 accumulation; its residual stream and LayerNorms stay float32,
+      as under autocast) or ``"fp32"``; ``"auto"`` (the default) takes bf16 for float32 inputs on a
+      CPU that multiplies bfloat16 in hardware (AVX512-BF16 / AMX), in eval mode only, and fp32
+      otherwise. The shipped models were trained under bfloat16 autocast, so ``"auto"`` computes the
+      Transformer as in training. The DGCNN, the soft matching, the walk and the Procrustes solve
+      stay in the input's dtype; an enclosing autocast region decides for itself.
     """
 
     k: int = 20
@@ -63,6 +74,7 @@ class VRNetConfig:
     irls_min_scale: float = 1e-3
     iterations: int = 1
     backend: str = "ext"
+    transformer_precision: str = "auto"
 
     def __post_init__(self) -> None:
         self.dgcnn_channels = tuple(int(c) for c in self.dgcnn_channels)
@@ -81,6 +93,8 @@ class VRNetConfig:
             raise ValueError("irls_iterations must be >= 0 and irls_min_scale > 0")
         if self.backend not in ("ext", "torch"):
             raise ValueError(f"backend must be 'ext' or 'torch', got {self.backend!r}")
+        if self.transformer_precision not in ("auto", "bf16", "fp32"):
+            raise ValueError(f"transformer_precision must be 'auto', 'bf16' or 'fp32', got {self.transformer_precision!r}")
 
     def to_dict(self) -> dict:
         """Plain-type dict (lists, not tuples): safe for ``torch.load(weights_only=True)`` and JSON."""

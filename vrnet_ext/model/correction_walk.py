@@ -6,6 +6,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from vrnet_ext.nn import PointwiseMLP
+
 
 @dataclass
 class WalkOutput:
@@ -70,7 +72,7 @@ class CorrectionWalk(nn.Module):
 
 
 def _mlp(in_channels: int, channels: tuple[int, ...], outputs: int, zero_init: bool, gate_bias: float | None = None,
-         gate_channel: int = 0) -> nn.Sequential:
+         gate_channel: int = 0) -> PointwiseMLP:
     """1x1 convs of the widths ``channels[:-1]`` (BatchNorm + ReLU), then a linear layer with
     ``outputs`` channels; ``zero_init`` zeroes that layer, and ``gate_bias`` then sets the bias of
     its channel ``gate_channel``."""
@@ -86,4 +88,4 @@ def _mlp(in_channels: int, channels: tuple[int, ...], outputs: int, zero_init: b
         if gate_bias is not None:
             nn.init.constant_(last.bias[gate_channel:gate_channel + 1], gate_bias)
     layers.append(last)
-    return nn.Sequential(*layers)
+    return PointwiseMLP(*layers)

@@ -5,7 +5,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from vrnet_ext.nn import EdgeConv
+from vrnet_ext.nn import EdgeConv, folded_affine
+from vrnet_ext.nn.pointwise import can_fold
 from vrnet_ext.ops import knn
 
 
@@ -39,5 +40,9 @@ class DGCNN(nn.Module):
             idx = knn(features, features, self.k, backend=backend)[1]
             x = layer(x, idx, backend=backend)
             outputs.append(x)
-        z = self.projection_bn(self.projection(torch.cat(outputs, dim=1)))
+        concatenated = torch.cat(outputs, dim=1)
+        if can_fold(self.projection_bn):  # eval: conv + BatchNorm as one product on the points' rows
+            rows = F.linear(concatenated.transpose(1, 2), *folded_affine(self.projection, self.projection_bn))
+            return F.leaky_relu(rows, self.negative_slope).transpose(1, 2)
+        z = self.projection_bn(self.projection(concatenated))
         return F.leaky_relu(z, self.negative_slope)

@@ -1,6 +1,7 @@
 """VRNet: soft matching -> virtual corresponding points -> correction walk -> weighted Procrustes."""
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -14,6 +15,7 @@ from vrnet_ext.model.transformer import Transformer
 from vrnet_ext.ops import kabsch, soft_match
 from vrnet_ext.geometry.transforms import compose, move
 from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
+from vrnet_ext.runtime import cpu_has_native_bf16
 
 
 @dataclass
@@ -157,9 +159,23 @@ class VRNet(nn.Module):
             return self.features(torch.cat([src, tgt]), backend).chunk(2)
         return self.features(src, backend), self.features(tgt, backend)
 
+    def transformer_in_bf16(self, src: torch.Tensor) -> bool:
+        """Whether this forward runs the Transformer's products in bfloat16 (see
+        ``VRNetConfig.transformer_precision``); False inside an enclosing autocast region."""
+        precision = self.config.transformer_precision
+        if precision == "fp32" or torch.is_autocast_enabled(src.device.type):
+            return False
+        if precision == "bf16":
+            return True
+        return (src.device.type == "cpu" and src.dtype == torch.float32 and not self.training
+                and cpu_has_native_bf16())
+
     def _single_pass(self, src: torch.Tensor, tgt: torch.Tensor, backend: str,
                      return_matching: bool) -> VRNetOutput:
-        phi_x, phi_y = self.transformer(*self._features(src, tgt, backend))
+        features = self._features(src, tgt, backend)
+        bf16 = self.transformer_in_bf16(src)
+        with torch.autocast(src.device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
+            phi_x, phi_y = self.transformer(*features)
         # The soft matching decides where every VCP lands: it runs in float32 even under autocast
         # (a bfloat16 score carries ~3 significant digits, a visible error on sharp softmax rows).
         with torch.autocast(src.device.type, enabled=False):
@@ -168,12 +184,14 @@ class VRNet(nn.Module):
         if self.walk is None:
             offset, gate_logits, confidence_logits = torch.zeros_like(match.vcp), None, None
         else:
-            seeds = [phi_x, match.matched_features]
+            # Seeds built point-major, (B, N, C) in memory: the walk's folded eval-mode products
+            # then read them as plain rows.
+            seeds = [phi_x.transpose(1, 2), match.matched_features.transpose(1, 2)]
             if self.config.walk_coordinates:
-                seeds += [src.transpose(1, 2), match.vcp.transpose(1, 2)]
+                seeds += [src, match.vcp]
             if self.config.walk_match_stats:
-                seeds += [torch.stack([match.peak, match.entropy], dim=1).to(phi_x.dtype)]
-            walk = self.walk(torch.cat(seeds, dim=1))
+                seeds += [torch.stack([match.peak, match.entropy], dim=-1).to(phi_x.dtype)]
+            walk = self.walk(torch.cat(seeds, dim=-1).transpose(1, 2))
             offset, gate_logits, confidence_logits = walk.offset, walk.gate_logits, walk.confidence_logits
         vcp, matching = match.vcp, match.matching
         rcp = vcp + offset
