@@ -131,6 +131,9 @@ def add_eval(sub) -> None:
                         "direction for each cloud; mixed = one of the two per pair")
     p.add_argument("--backend", choices=("ext", "torch"), default="ext",
                    help="ext: the compiled kernels; torch: the pure-PyTorch references")
+    p.add_argument("--transformer-precision", choices=("auto", "bf16", "fp32"), default="auto",
+                   help="the Transformer's products: auto = bfloat16 on a CPU with native bf16 (AVX512-BF16 / AMX), "
+                        "else float32 (default: auto)")
     p.add_argument("--device", default="cpu", help="torch device to run on, e.g. cpu or cuda")
     p.add_argument("--json", default=None,
                    help="output JSON path (default: eval_SETTING_SPLIT.json beside a checkpoint file, or in the "
@@ -154,6 +157,7 @@ def run_eval(args) -> int:
     cfg = state["config"]
     if args.iterations:
         model.config.iterations = args.iterations
+    model.config.transformer_precision = args.transformer_precision
     # the paper's protocol unless the checkpoint says otherwise (shipped weights carry no data path)
     setting, split = args.setting or cfg.get("setting", "PV"), args.split or cfg.get("split", "UPC")
     if setting == MIXED:
@@ -166,7 +170,8 @@ def run_eval(args) -> int:
     result = evaluate(model, data, args.batch_size, args.device, args.backend)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
     result.update(setting=setting, split=split, far_points=args.far_points, checkpoint=str(args.checkpoint),
-                  iterations=model.config.iterations)
+                  iterations=model.config.iterations, transformer_precision=args.transformer_precision,
+                  transformer_bf16=model.eval().transformer_in_bf16(data[0]["src"].to(args.device)))
     print(format_table({k: v for k, v in result.items() if isinstance(v, (int, float))}, f"VRNet {setting} {split}"))
     out = Path(args.json) if args.json else Path(args.checkpoint).with_name(f"eval_{setting}_{split}.json".replace("+", ""))
     write_json(out, result)
