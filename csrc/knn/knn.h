@@ -52,6 +52,24 @@ inline void check_knn_backward_inputs(const at::Tensor& grad, const at::Tensor& 
   check_index_range(idx, ref.size(1), "idx");
 }
 
+// sum_c (q_c - r_c)^2 in 8 interleaved partial sums (channel c into sum c % 8) added pairwise at
+// the end: a fixed order, and 8 independent chains instead of one C-long chain of dependent adds.
+template <typename scalar_t>
+scalar_t squared_distance(const scalar_t* q, const scalar_t* r, int64_t C) {
+  scalar_t partial[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+  int64_t c = 0;
+  for (; c + 8 <= C; c += 8)
+    for (int l = 0; l < 8; ++l) {
+      const scalar_t diff = q[c + l] - r[c + l];
+      partial[l] += diff * diff;
+    }
+  for (int l = 0; c < C; ++c, ++l) {
+    const scalar_t diff = q[c] - r[c];
+    partial[l] += diff * diff;
+  }
+  return ((partial[0] + partial[1]) + (partial[2] + partial[3])) + ((partial[4] + partial[5]) + (partial[6] + partial[7]));
+}
+
 // Candidate buffer for the GEMM-tiled CPU search. Candidates arrive with *approximate* squared
 // distances (|q|^2 + |r|^2 - 2 q.r on centred coordinates, wrong by up to `slack`); the buffer keeps
 // every candidate that could still be among the k nearest: those at or below the k-th smallest
@@ -76,13 +94,21 @@ struct Reservoir {
     items.reserve(capacity);
     threshold = std::numeric_limits<scalar_t>::infinity();
   }
-  // Lowers the threshold to the k-th smallest of `count` distances of distinct candidates (+ 2 slack):
-  // the k-th smallest of all candidates lies at or under it.
-  void bound(scalar_t* distances, int64_t count) {
+  // Lowers the threshold to the k-th smallest of `count` (a few) distances of distinct candidates
+  // (+ 2 slack): the k-th smallest of all candidates lies at or under it. The k-th smallest is the
+  // value with k - 1 others before it in (value, position) order: count^2 compares, no branches.
+  void bound(const scalar_t* distances, int64_t count) {
     if (count < k) return;
-    std::nth_element(distances, distances + (k - 1), distances + count);
-    const scalar_t limit = distances[k - 1] + 2 * slack;
-    if (limit < threshold) threshold = limit;
+    for (int64_t i = 0; i < count; ++i) {
+      int64_t before = 0;
+      for (int64_t j = 0; j < count; ++j)
+        before += (distances[j] < distances[i]) | ((distances[j] == distances[i]) & (j < i));
+      if (before == k - 1) {
+        const scalar_t limit = distances[i] + 2 * slack;
+        if (limit < threshold) threshold = limit;
+        return;
+      }
+    }
   }
   void add(scalar_t d, int64_t j) {
     items.emplace_back(d, j);
@@ -104,17 +130,17 @@ struct Reservoir {
   }
   // Writes the k best by exact distance (ties by lower index) for the query row `q` of C values;
   // `ref` holds the reference rows (C values each) that the candidates index.
+  // Every buffered candidate over the threshold is dropped first (the threshold never lies under
+  // the k-th approximate distance + 2 slack, so the k nearest stay).
   void finish(const scalar_t* q, const scalar_t* ref, int64_t C, scalar_t* dist, int64_t* idx) {
-    shrink();
-    for (auto& item : items) {
-      const scalar_t* r = ref + item.second * C;
-      scalar_t acc = 0;
-      for (int64_t c = 0; c < C; ++c) {
-        const scalar_t diff = q[c] - r[c];
-        acc += diff * diff;
-      }
-      item.first = acc;
+    if (std::isfinite(threshold)) {
+      items.erase(std::remove_if(items.begin(), items.end(),
+                                 [this](const std::pair<scalar_t, int64_t>& item) { return !(item.first <= threshold); }),
+                  items.end());
+    } else {
+      shrink();
     }
+    for (auto& item : items) item.first = squared_distance(q, ref + item.second * C, C);
     std::partial_sort(items.begin(), items.begin() + k, items.end());
     for (int64_t i = 0; i < k; ++i) {
       dist[i] = items[i].first;

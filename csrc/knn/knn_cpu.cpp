@@ -377,13 +377,7 @@ void knn_row_exhaustive(const scalar_t* q, const scalar_t* refs, int64_t M, int6
   TopK<scalar_t> top{dist, idx, k};
   top.reset(M);
   for (int64_t j = 0; j < M; ++j) {
-    if (j == self) continue;
-    scalar_t acc = 0;
-    for (int64_t c = 0; c < C; ++c) {
-      const scalar_t diff = q[c] - refs[j * C + c];
-      acc += diff * diff;
-    }
-    top.push(acc, j);
+    if (j != self) top.push(squared_distance(q, refs + j * C, C), j);
   }
 }
 
