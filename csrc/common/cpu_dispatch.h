@@ -3,6 +3,7 @@
 // (read when the library loads) keeps the portable code, so tests can compare the two paths.
 #pragma once
 
+#include <cstdint>
 #include <cstdlib>
 #include <string>
 
@@ -66,6 +67,13 @@ struct Avx512<float> {
   VRNET_AVX512 Mask less_equal(Vec a, Vec b) { return _mm512_cmp_ps_mask(a, b, _CMP_LE_OQ); }
   VRNET_AVX512 Mask finite(Vec a) { return _mm512_cmp_ps_mask(_mm512_sub_ps(a, a), _mm512_setzero_ps(), _CMP_EQ_OQ); }
 };
+
+// The first `count` lanes of a register (all of them when count >= kLanes).
+template <typename T>
+VRNET_AVX512 typename Avx512<T>::Mask lanes_below(int64_t count) {
+  using Mask = typename Avx512<T>::Mask;
+  return count >= Avx512<T>::kLanes ? static_cast<Mask>(~Mask{0}) : static_cast<Mask>((uint64_t{1} << count) - 1);
+}
 #endif
 
 }  // namespace vrnet

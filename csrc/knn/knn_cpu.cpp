@@ -286,12 +286,6 @@ void offer_row_portable(const scalar_t* dist, int64_t width, int64_t r0, Reservo
 // same order (the same distances, minima and offers; the offers of one vector are checked again
 // against the threshold, which an earlier offer may have lowered).
 template <typename scalar_t>
-VRNET_AVX512 typename Avx512<scalar_t>::Mask lanes_below(int64_t count) {
-  using Mask = typename Avx512<scalar_t>::Mask;
-  return count >= Avx512<scalar_t>::kLanes ? static_cast<Mask>(~Mask{0}) : static_cast<Mask>((uint64_t{1} << count) - 1);
-}
-
-template <typename scalar_t>
 __attribute__((target("avx512f"))) void row_distances_avx512(const scalar_t* dots, const scalar_t* r_norms,
                                                              scalar_t q_norm, int64_t width, int64_t self,
                                                              scalar_t* dist) {

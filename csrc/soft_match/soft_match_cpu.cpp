@@ -21,10 +21,12 @@
 #include <ATen/ops/zeros_like.h>
 #include <torch/library.h>
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <vector>
 
+#include "common/cpu_dispatch.h"
 #include "soft_match/soft_match.h"
 
 namespace vrnet {
@@ -36,6 +38,116 @@ constexpr int64_t kTile = 512;      // rows of the other side streamed per step
 // A (rows, width) contiguous view on the first rows * width elements of a flat buffer.
 at::Tensor tile_view(const at::Tensor& buffer, int64_t rows, int64_t width) {
   return buffer.narrow(0, 0, rows * width).view({rows, width});
+}
+
+// The forward's row operations on one tile row, portable and (where the CPU has AVX-512, chosen at
+// run time) kLanes values per instruction with the same results: each value scaled by one multiply,
+// the first position of the largest value (NaN never wins; -inf or NaN only: position 0), one
+// subtraction per value, and a sum in 16 interleaved partial sums (value j into sum j % 16) added
+// pairwise at the end, an order both paths share.
+constexpr int64_t kSumLanes = 16;
+
+template <typename scalar_t>
+scalar_t pairwise_total(const scalar_t* partial) {
+  scalar_t level[kSumLanes];
+  std::copy(partial, partial + kSumLanes, level);
+  for (int64_t width = kSumLanes / 2; width >= 1; width /= 2)
+    for (int64_t l = 0; l < width; ++l) level[l] = level[2 * l] + level[2 * l + 1];
+  return level[0];
+}
+
+template <typename scalar_t>
+std::pair<scalar_t, int64_t> scale_and_max_portable(scalar_t* row, int64_t width, scalar_t scale) {
+  scalar_t best = -std::numeric_limits<scalar_t>::infinity();
+  int64_t at = 0;
+  for (int64_t j = 0; j < width; ++j) {
+    row[j] *= scale;
+    if (row[j] > best) best = row[j], at = j;
+  }
+  return {best, at};
+}
+
+template <typename scalar_t>
+scalar_t interleaved_sum_portable(const scalar_t* row, int64_t width) {
+  scalar_t partial[kSumLanes] = {};
+  for (int64_t j = 0; j < width; ++j) partial[j % kSumLanes] += row[j];
+  return pairwise_total(partial);
+}
+
+#ifdef VRNET_X86_DISPATCH
+template <typename scalar_t>
+__attribute__((target("avx512f"))) std::pair<scalar_t, int64_t> scale_and_max_avx512(scalar_t* row, int64_t width,
+                                                                                     scalar_t scale) {
+  using V = Avx512<scalar_t>;
+  const typename V::Vec factor = V::set1(scale);
+  typename V::Vec best = V::set1(-std::numeric_limits<scalar_t>::infinity());
+  for (int64_t j0 = 0; j0 < width; j0 += V::kLanes) {
+    const typename V::Mask valid = lanes_below<scalar_t>(width - j0);
+    const typename V::Vec scaled = V::mul(V::load(valid, row + j0), factor);
+    V::store(valid, row + j0, scaled);
+    best = V::blend(valid & V::less(best, scaled), best, scaled);
+  }
+  alignas(64) scalar_t lanes[V::kLanes];
+  V::store(lanes, best);
+  scalar_t top = lanes[0];
+  for (int l = 1; l < V::kLanes; ++l)
+    if (lanes[l] > top) top = lanes[l];
+  if (top == -std::numeric_limits<scalar_t>::infinity()) return {top, 0};
+  for (int64_t j = 0;; ++j)
+    if (row[j] == top) return {top, j};
+}
+
+template <typename scalar_t>
+__attribute__((target("avx512f"))) void subtract_avx512(scalar_t* row, int64_t width, scalar_t shift) {
+  using V = Avx512<scalar_t>;
+  const typename V::Vec by = V::set1(shift);
+  for (int64_t j0 = 0; j0 < width; j0 += V::kLanes) {
+    const typename V::Mask valid = lanes_below<scalar_t>(width - j0);
+    V::store(valid, row + j0, V::sub(V::load(valid, row + j0), by));
+  }
+}
+
+template <typename scalar_t>
+__attribute__((target("avx512f"))) scalar_t interleaved_sum_avx512(const scalar_t* row, int64_t width) {
+  using V = Avx512<scalar_t>;
+  constexpr int kParts = kSumLanes / V::kLanes;
+  typename V::Vec partial[kParts];
+  for (int p = 0; p < kParts; ++p) partial[p] = V::set1(0);
+  for (int64_t j0 = 0; j0 < width; j0 += kSumLanes)
+    for (int p = 0; p < kParts; ++p) {
+      const int64_t first = j0 + p * V::kLanes;
+      if (first >= width) break;
+      const typename V::Mask valid = lanes_below<scalar_t>(width - first);
+      partial[p] = V::blend(valid, partial[p], V::add(partial[p], V::load(valid, row + first)));
+    }
+  alignas(64) scalar_t lanes[kSumLanes];
+  for (int p = 0; p < kParts; ++p) V::store(lanes + p * V::kLanes, partial[p]);
+  return pairwise_total(lanes);
+}
+#endif
+
+template <typename scalar_t>
+std::pair<scalar_t, int64_t> scale_and_max(scalar_t* row, int64_t width, scalar_t scale) {
+#ifdef VRNET_X86_DISPATCH
+  if (kHasAvx512) return scale_and_max_avx512(row, width, scale);
+#endif
+  return scale_and_max_portable(row, width, scale);
+}
+
+template <typename scalar_t>
+void subtract(scalar_t* row, int64_t width, scalar_t shift) {
+#ifdef VRNET_X86_DISPATCH
+  if (kHasAvx512) return subtract_avx512(row, width, shift);
+#endif
+  for (int64_t j = 0; j < width; ++j) row[j] -= shift;
+}
+
+template <typename scalar_t>
+scalar_t interleaved_sum(const scalar_t* row, int64_t width) {
+#ifdef VRNET_X86_DISPATCH
+  if (kHasAvx512) return interleaved_sum_avx512(row, width);
+#endif
+  return interleaved_sum_portable(row, width);
 }
 
 template <typename scalar_t>
@@ -60,12 +172,7 @@ void soft_match_forward(const at::Tensor& query, const at::Tensor& key, const at
       scalar_t* s = scores.mutable_data_ptr<scalar_t>();
       for (int64_t i = 0; i < rows; ++i) {
         scalar_t* row = s + i * width;
-        scalar_t tile_max = -std::numeric_limits<scalar_t>::infinity();
-        int64_t tile_arg = 0;
-        for (int64_t j = 0; j < width; ++j) {
-          row[j] *= scale;
-          if (row[j] > tile_max) tile_max = row[j], tile_arg = j;
-        }
+        const auto [tile_max, tile_arg] = scale_and_max(row, width, scale);
         if (k0 == 0 || tile_max > row_max[i]) arg[i] = k0 + tile_arg;  // the first maximum wins ties
         const scalar_t new_max = std::max(row_max[i], tile_max);
         // scores of -inf (overflowed) weigh 0; while every score so far is -inf nothing has accumulated
@@ -73,14 +180,11 @@ void soft_match_forward(const at::Tensor& query, const at::Tensor& key, const at
         rescale[i] = k0 == 0 || none_yet ? scalar_t(0) : std::exp(row_max[i] - new_max);
         row_max[i] = new_max;
         const scalar_t shift = new_max == -std::numeric_limits<scalar_t>::infinity() ? scalar_t(0) : new_max;
-        for (int64_t j = 0; j < width; ++j) row[j] -= shift;
+        subtract(row, width, shift);
       }
       scores.exp_();
       for (int64_t i = 0; i < rows; ++i) {
-        const scalar_t* row = s + i * width;
-        scalar_t tile_sum = 0;
-        for (int64_t j = 0; j < width; ++j) tile_sum += row[j];
-        row_sum[i] = row_sum[i] * rescale[i] + tile_sum;
+        row_sum[i] = row_sum[i] * rescale[i] + interleaved_sum(s + i * width, width);
         for (int64_t d = 0; d < D; ++d) acc_p[i * D + d] *= rescale[i];
       }
       acc.addmm_(scores, values.select(0, b).narrow(0, k0, width));
