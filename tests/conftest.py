@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -48,6 +50,21 @@ def compile_fullgraph(fn, backend: str = "aot_eager"):
     """torch.compile with fullgraph=True: any graph break raises."""
     torch._dynamo.reset()
     return torch.compile(fn, fullgraph=True, backend=backend)
+
+
+def under_each_cpu_dispatch(script: str, tmp_path: Path, *args: str) -> tuple:
+    """Runs ``script`` (Python source that ``torch.save``s its results to ``sys.argv[1]``; further
+    ``args`` follow) in a fresh process with the default CPU dispatch (vector code where the CPU has
+    it) and with ``VRNET_CPU_DISPATCH=generic`` (the portable loops): (default, generic) results."""
+    results = []
+    for dispatch in ("default", "generic"):
+        path = tmp_path / f"{dispatch}.pt"
+        done = subprocess.run([sys.executable, "-c", script, str(path), *args],
+                              env=dict(os.environ, VRNET_CPU_DISPATCH=dispatch), capture_output=True, text=True,
+                              timeout=300)
+        assert done.returncode == 0, done.stderr
+        results.append(torch.load(path))
+    return tuple(results)
 
 
 def non_contiguous(t: torch.Tensor) -> torch.Tensor:

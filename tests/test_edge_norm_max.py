@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from conftest import DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext
+from conftest import DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext, under_each_cpu_dispatch
 from vrnet_ext.ops.edge_norm_max import _edge_norm_max_composite, edge_norm_max, edge_norm_max_reference
 
 
@@ -200,10 +200,6 @@ def test_the_vector_and_the_portable_pass_agree(tmp_path):
     """Where the CPU has AVX-512 the neighbour pass runs on 64-byte registers; VRNET_CPU_DISPATCH=generic
     keeps 16-byte ones. The same operations per lane: outputs and statistics equal bit for bit
     (batch and running statistics, both precisions, channel counts with and without a remainder)."""
-    import os
-    import subprocess
-    import sys
-
     script = ("import sys, torch; from vrnet_ext import ops; g = torch.Generator().manual_seed(3); out = []\n"
               "for dtype in (torch.float32, torch.float64):\n"
               "    for O in (16, 37, 64):\n"
@@ -214,14 +210,7 @@ def test_the_vector_and_the_portable_pass_agree(tmp_path):
               "        out += [ops.edge_norm_max(p, idx, w, b, None, None, 1e-5, 0.2),\n"
               "                ops.edge_norm_max(p, idx, w, b, rm, rv, 1e-5, 0.2)]\n"
               "torch.save(out, sys.argv[1])")
-    results = []
-    for dispatch in ("default", "generic"):
-        env = dict(os.environ, VRNET_CPU_DISPATCH=dispatch)
-        path = tmp_path / f"{dispatch}.pt"
-        done = subprocess.run([sys.executable, "-c", script, str(path)], env=env, capture_output=True, text=True,
-                              timeout=300)
-        assert done.returncode == 0, done.stderr
-        results.append(torch.load(path))
+    results = under_each_cpu_dispatch(script, tmp_path)
     for vector, generic in zip(*results):
         for a, b in zip(vector, generic):
             assert torch.equal(a, b)

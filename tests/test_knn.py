@@ -1,7 +1,8 @@
 import pytest
 import torch
 
-from conftest import DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext, tolerances
+from conftest import (DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext,
+                      tolerances, under_each_cpu_dispatch)
 from vrnet_ext import ops
 
 
@@ -212,23 +213,12 @@ def test_the_vector_and_the_portable_feature_search_agree(tmp_path):
     VRNET_CPU_DISPATCH=generic keeps the portable loops. Same distances and indices, bit for bit:
     k under and over the 16 subsets that bound a fresh row, several reference tiles (M > 1024),
     exact duplicates (ties) and the query's own column excluded, in both precisions."""
-    import os
-    import subprocess
-    import sys
-
     script = ("import sys, torch; from vrnet_ext import ops; g = torch.Generator().manual_seed(5); out = []\n"
               "for dtype in (torch.float32, torch.float64):\n"
               "    x = torch.randn(2, 1500, 32, generator=g, dtype=dtype); x[:, 700:900] = x[:, 100:300]\n"
               "    out += [ops.knn(x, x, k, exclude_self=es) for k in (1, 10, 16, 17, 40) for es in (False, True)]\n"
               "    out.append(ops.knn(x[:, :37, :5], x[:, :, :5], 12))\n"
               "torch.save(out, sys.argv[1])")
-    results = []
-    for dispatch in ("default", "generic"):
-        env = dict(os.environ, VRNET_CPU_DISPATCH=dispatch)
-        path = tmp_path / f"{dispatch}.pt"
-        done = subprocess.run([sys.executable, "-c", script, str(path)], env=env, capture_output=True, text=True,
-                              timeout=300)
-        assert done.returncode == 0, done.stderr
-        results.append(torch.load(path))
+    results = under_each_cpu_dispatch(script, tmp_path)
     for (dist_vector, idx_vector), (dist_generic, idx_generic) in zip(*results):
         assert torch.equal(dist_vector, dist_generic) and torch.equal(idx_vector, idx_generic)

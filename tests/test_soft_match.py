@@ -1,4 +1,3 @@
-import os
 import subprocess
 import sys
 import textwrap
@@ -6,7 +5,8 @@ import textwrap
 import pytest
 import torch
 
-from conftest import DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext, tolerances
+from conftest import (DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext,
+                      tolerances, under_each_cpu_dispatch)
 from vrnet_ext import ops
 from vrnet_ext.ops.soft_match import soft_match_reference
 
@@ -222,14 +222,7 @@ def test_the_vector_and_the_portable_rows_agree(tmp_path):
               "        v = torch.randn(2, M, 5, generator=g, dtype=dtype)\n"
               "        out.append(tuple(ops.soft_match(q, k, v, 0.7, return_stats=True)))\n"
               "torch.save(out, sys.argv[1])")
-    results = []
-    for dispatch in ("default", "generic"):
-        env = dict(os.environ, VRNET_CPU_DISPATCH=dispatch)
-        path = tmp_path / f"{dispatch}.pt"
-        done = subprocess.run([sys.executable, "-c", script, str(path)], env=env, capture_output=True, text=True,
-                              timeout=300)
-        assert done.returncode == 0, done.stderr
-        results.append(torch.load(path))
+    results = under_each_cpu_dispatch(script, tmp_path)
     for vector, generic in zip(*results):
         for a, b in zip(vector, generic):
             assert torch.equal(a, b)

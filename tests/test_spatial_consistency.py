@@ -1,12 +1,13 @@
 """ops.spatial_consistency: recovery under heavy outlier ratios, the compiled op against the dense
 reference (same inliers, same transform), degenerate inputs and named errors."""
 import math
+import os
 
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from conftest import requires_ext
+from conftest import requires_ext, under_each_cpu_dispatch
 from vrnet_ext import ops
 from vrnet_ext.ops.spatial_consistency import spatial_consistency_reference
 
@@ -132,20 +133,9 @@ def test_the_vector_and_the_portable_graph_give_the_same_fit(tmp_path):
     """Where the CPU has AVX-512 the graph is built by vector code; VRNET_CPU_DISPATCH=generic keeps
     the portable loop. Same transform, same inliers (K = 2,000 and 1,003: full words and a tail;
     the graph in float32 and, at tolerance 0.012, in float64)."""
-    import os
-    import subprocess
-    import sys
-
-    script = ("import sys, torch; sys.path.insert(0, sys.argv[1]); from test_spatial_consistency import correspondences; "
+    script = ("import sys, torch; sys.path.insert(0, sys.argv[2]); from test_spatial_consistency import correspondences; "
               "from vrnet_ext import ops; out = [ops.spatial_consistency(*correspondences(K, 0.9, seed=K)[:2], tolerance, "
-              "0.03) for K in (2000, 1003) for tolerance in (0.03, 0.012)]; torch.save(out, sys.argv[2])")
-    results = []
-    for dispatch in ("default", "generic"):
-        env = dict(os.environ, VRNET_CPU_DISPATCH=dispatch)
-        path = tmp_path / f"{dispatch}.pt"
-        done = subprocess.run([sys.executable, "-c", script, os.path.dirname(__file__), str(path)], env=env,
-                              capture_output=True, text=True, timeout=300)
-        assert done.returncode == 0, done.stderr
-        results.append(torch.load(path))
+              "0.03) for K in (2000, 1003) for tolerance in (0.03, 0.012)]; torch.save(out, sys.argv[1])")
+    results = under_each_cpu_dispatch(script, tmp_path, os.path.dirname(__file__))
     for (T_vector, mask_vector), (T_generic, mask_generic) in zip(*results):
         assert torch.equal(T_vector, T_generic) and torch.equal(mask_vector, mask_generic)
