@@ -11,6 +11,7 @@
 #include <torch/library.h>
 
 #include <limits>
+#include <vector>
 
 #include "common/cuda_utils.cuh"
 #include "knn/knn.h"
@@ -43,8 +44,16 @@ void knn_by_sorting(const at::Tensor& query, const at::Tensor& ref, int64_t k, b
   for (int64_t q0 = 0; q0 < N; q0 += rows) {
     const int64_t count = std::min(rows, N - q0);
     const at::Tensor diff = query.narrow(1, q0, count).unsqueeze(2).sub(ref.unsqueeze(1));  // (B, n, M, C)
-    at::Tensor d = diff.select(-1, 0).square();
-    for (int64_t c = 1; c < C; ++c) d = d.add(diff.select(-1, c).square());  // in order, as the CPU sums
+    // channel c into partial sum c % 8, the partials added pairwise: the CPU's squared_distance
+    std::vector<at::Tensor> partial(8);
+    for (int64_t c = 0; c < C; ++c) {
+      const at::Tensor square = diff.select(-1, c).square();
+      partial[c % 8] = partial[c % 8].defined() ? partial[c % 8].add(square) : square;
+    }
+    for (at::Tensor& p : partial)
+      if (!p.defined()) p = at::zeros_like(partial[0]);
+    at::Tensor d = partial[0].add(partial[1]).add(partial[2].add(partial[3]))
+                       .add(partial[4].add(partial[5]).add(partial[6].add(partial[7])));
     if (exclude_self) d.diagonal(q0, 1, 2).fill_(std::numeric_limits<double>::infinity());
     const auto [sorted, order] = d.sort(/*stable=*/true, /*dim=*/-1, /*descending=*/false);
     dist.narrow(1, q0, count).copy_(sorted.narrow(-1, 0, k));

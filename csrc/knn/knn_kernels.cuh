@@ -69,16 +69,26 @@ __global__ void knn3_kernel(const scalar_t* __restrict__ query, const scalar_t* 
   if (active) knn_store(top, k, dist_out + (b * N + n) * k, idx_out + (b * N + n) * k);
 }
 
-// Exact squared distance of two rows of C values, summed in order with one rounding per operation
-// (the CPU kernels' definition, so that both give the same bits).
+// Exact squared distance of two rows of C values: channel c into partial sum c % 8, one rounding per
+// operation, the partials added pairwise (the CPU kernels' squared_distance, so that both give the
+// same bits).
 template <typename scalar_t>
 __device__ inline scalar_t knn_exact_sq_dist(const scalar_t* q, const scalar_t* r, int64_t C) {
-  scalar_t acc = 0;
-  for (int64_t c = 0; c < C; ++c) {
-    const scalar_t diff = sub_rn(q[c], r[c]);
-    acc = add_rn(acc, mul_rn(diff, diff));
+  scalar_t partial[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+  int64_t c = 0;
+  for (; c + 8 <= C; c += 8) {
+#pragma unroll
+    for (int l = 0; l < 8; ++l) {
+      const scalar_t diff = sub_rn(q[c + l], r[c + l]);
+      partial[l] = add_rn(partial[l], mul_rn(diff, diff));
+    }
   }
-  return acc;
+  for (int l = 0; c < C; ++c, ++l) {
+    const scalar_t diff = sub_rn(q[c], r[c]);
+    partial[l] = add_rn(partial[l], mul_rn(diff, diff));
+  }
+  return add_rn(add_rn(add_rn(partial[0], partial[1]), add_rn(partial[2], partial[3])),
+                add_rn(add_rn(partial[4], partial[5]), add_rn(partial[6], partial[7])));
 }
 
 // Merges one chunk of dot products dots[b, j, n] = ref_c[b, r0 + j] . query_c[b, q0 + n] (clouds
