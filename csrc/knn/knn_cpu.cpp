@@ -313,8 +313,8 @@ __attribute__((target("avx512f"))) void subset_minima_avx512(const scalar_t* dis
     for (int p = 0; p < kParts; ++p) {
       const int64_t first = j0 + p * V::kLanes;
       if (first >= width) break;
-      const typename V::Vec d = V::blend(lanes_below<scalar_t>(width - first), inf,
-                                         V::load(lanes_below<scalar_t>(width - first), dist + first));
+      const typename V::Mask valid = lanes_below<scalar_t>(width - first);
+      const typename V::Vec d = V::blend(valid, inf, V::load(valid, dist + first));
       lowest[p] = V::blend(V::less(d, lowest[p]), lowest[p], d);
     }
   for (int p = 0; p < kParts; ++p) V::store(minima + p * V::kLanes, lowest[p]);
@@ -375,8 +375,8 @@ void knn_row_exhaustive(const scalar_t* q, const scalar_t* refs, int64_t M, int6
   }
 }
 
-// GEMM-tiled kNN for any C. Both clouds are first shifted by the reference cloud's mean, so that |q|^2 + |r|^2 - 2 q.r does not cancel catastrophically for clouds far from
-// the origin; the reservoir then keeps every candidate within the rounding bound of that formula
+// GEMM-tiled kNN for any C. Both clouds are first shifted by the reference cloud's mean, so that
+// |q|^2 + |r|^2 - 2 q.r does not cancel catastrophically for clouds far from the origin; the reservoir then keeps every candidate within the rounding bound of that formula
 // and re-ranks the survivors by exact distance (see Reservoir).
 //
 // The whole call is ONE parallel region in which the threads claim (cloud, block of kQueryBlock

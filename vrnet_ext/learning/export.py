@@ -100,7 +100,8 @@ def model_card_markdown(name: str, config: dict, card: dict) -> str:
              + ("" if name != DEFAULT_MODEL else "  # the default: load_pretrained()"),
              "out = model(src, tgt)  # src (B, N, 3), tgt (B, M, 3) in the unit sphere; R src + t ~ tgt", "```", "",
              "## Model", ""]
-    lines += [f"- {key}: `{value}`" for key, value in model.items() if key != "backend"]
+    lines += [f"- {key}: `{value}`" for key, value in model.items()
+              if key not in ("backend", "transformer_precision")]  # run-time choices, not the model
     if card.get("cells"):
         lines += ["", "Serves the ModelNet40 cells " + ", ".join(card["cells"])
                   + " (`vrnet eval --setting S --split P` picks it for them)."]
