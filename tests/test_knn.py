@@ -84,6 +84,23 @@ def test_ties_broken_by_lower_index(device, C):
 
 
 @requires_ext
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("copies", [3, 200])
+def test_many_exact_duplicates_in_one_tile(dtype, copies):
+    """A cloud of one tile made of `copies` copies of 4 points: with 200 copies every row's bound
+    passes far more columns than a row buffers, and the search takes the reservoir; either way the
+    k nearest are the lowest indices at distance 0, then the next."""
+    base = torch.randn(1, 4, 16, dtype=dtype, generator=torch.Generator().manual_seed(2))
+    cloud = base.repeat(1, copies, 1)
+    dist, idx = ops.knn(cloud, cloud, 10, exclude_self=True)
+    exact = torch.cdist(cloud.double(), cloud.double()).square()[0]
+    exact.fill_diagonal_(float("inf"))
+    expected = torch.sort(exact, dim=-1, stable=True).indices[:, :10]
+    assert torch.equal(idx[0], expected)
+    torch.testing.assert_close(dist[0].double(), exact.gather(1, expected), **tolerances(dtype))
+
+
+@requires_ext
 @pytest.mark.parametrize("C", [3, 5])
 def test_gradcheck(device, C):
     query = torch.rand(2, 9, C, dtype=torch.float64, requires_grad=True)
@@ -212,12 +229,15 @@ def test_the_vector_and_the_portable_feature_search_agree(tmp_path):
     """Where the CPU has AVX-512 the tiles' distances, subset minima and offers run as vector code;
     VRNET_CPU_DISPATCH=generic keeps the portable loops. Same distances and indices, bit for bit:
     k under and over the 16 subsets that bound a fresh row, several reference tiles (M > 1024),
-    exact duplicates (ties) and the query's own column excluded, in both precisions."""
+    exact duplicates (ties) and the query's own column excluded, in both precisions; clouds of one
+    tile (M <= 1024), including one whose bound passes every column (150 copies of each point)."""
     script = ("import sys, torch; from vrnet_ext import ops; g = torch.Generator().manual_seed(5); out = []\n"
               "for dtype in (torch.float32, torch.float64):\n"
               "    x = torch.randn(2, 1500, 32, generator=g, dtype=dtype); x[:, 700:900] = x[:, 100:300]\n"
               "    out += [ops.knn(x, x, k, exclude_self=es) for k in (1, 10, 16, 17, 40) for es in (False, True)]\n"
               "    out.append(ops.knn(x[:, :37, :5], x[:, :, :5], 12))\n"
+              "    y = x[:, :768].contiguous(); out += [ops.knn(y, y, k, exclude_self=True) for k in (1, 10, 16)]\n"
+              "    z = torch.zeros(1, 300, 8, dtype=dtype); z[:, 150:] = 1; out.append(ops.knn(z, z, 10))\n"
               "torch.save(out, sys.argv[1])")
     results = under_each_cpu_dispatch(script, tmp_path)
     for (dist_vector, idx_vector), (dist_generic, idx_generic) in zip(*results):

@@ -70,6 +70,17 @@ scalar_t squared_distance(const scalar_t* q, const scalar_t* r, int64_t C) {
   return ((partial[0] + partial[1]) + (partial[2] + partial[3])) + ((partial[4] + partial[5]) + (partial[6] + partial[7]));
 }
 
+// The k-th smallest of `count` (at most kMaxBoundValues, >= k) values that are numbers or +inf.
+constexpr int64_t kMaxBoundValues = 16;
+
+template <typename scalar_t>
+scalar_t kth_smallest(const scalar_t* values, int64_t count, int64_t k) {
+  scalar_t copy[kMaxBoundValues];
+  std::copy(values, values + count, copy);
+  std::nth_element(copy, copy + (k - 1), copy + count);
+  return copy[k - 1];
+}
+
 // Candidate buffer for the GEMM-tiled CPU search. Candidates arrive with *approximate* squared
 // distances (|q|^2 + |r|^2 - 2 q.r on centred coordinates, wrong by up to `slack`); the buffer keeps
 // every candidate that could still be among the k nearest: those at or below the k-th smallest
@@ -95,20 +106,11 @@ struct Reservoir {
     threshold = std::numeric_limits<scalar_t>::infinity();
   }
   // Lowers the threshold to the k-th smallest of `count` (a few) distances of distinct candidates
-  // (+ 2 slack): the k-th smallest of all candidates lies at or under it. The k-th smallest is the
-  // value with k - 1 others before it in (value, position) order: count^2 compares, no branches.
+  // (+ 2 slack): the k-th smallest of all candidates lies at or under it.
   void bound(const scalar_t* distances, int64_t count) {
     if (count < k) return;
-    for (int64_t i = 0; i < count; ++i) {
-      int64_t before = 0;
-      for (int64_t j = 0; j < count; ++j)
-        before += (distances[j] < distances[i]) | ((distances[j] == distances[i]) & (j < i));
-      if (before == k - 1) {
-        const scalar_t limit = distances[i] + 2 * slack;
-        if (limit < threshold) threshold = limit;
-        return;
-      }
-    }
+    const scalar_t limit = kth_smallest(distances, count, k) + 2 * slack;
+    if (limit < threshold) threshold = limit;
   }
   void add(scalar_t d, int64_t j) {
     items.emplace_back(d, j);

@@ -265,7 +265,7 @@ void row_distances_portable(const scalar_t* dots, const scalar_t* r_norms, scala
 }
 
 // Minimum of each of kBoundSubsets interleaved subsets of the row (column j in subset j % kBoundSubsets).
-constexpr int64_t kBoundSubsets = 16;
+constexpr int64_t kBoundSubsets = kMaxBoundValues;
 
 template <typename scalar_t>
 void subset_minima_portable(const scalar_t* dist, int64_t width, scalar_t* minima) {
@@ -363,6 +363,100 @@ void scan_row(const scalar_t* dots, const scalar_t* r_norms, scalar_t q_norm, in
   offer_row_portable(row, width, r0, res);
 }
 
+// The columns of a row at or under `threshold`, in column order, into `columns` (room for
+// kOneTileCandidates + 16): their count, or -1 when there are more than kOneTileCandidates.
+constexpr int64_t kOneTileCandidates = 128;
+
+template <typename scalar_t>
+int64_t collect_portable(const scalar_t* dist, int64_t width, scalar_t threshold, int32_t* columns) {
+  int64_t count = 0;
+  for (int64_t j = 0; j < width && count <= kOneTileCandidates; ++j)
+    if (dist[j] <= threshold) columns[count++] = static_cast<int32_t>(j);
+  return count > kOneTileCandidates ? -1 : count;
+}
+
+#ifdef VRNET_X86_DISPATCH
+template <typename scalar_t>
+__attribute__((target("avx512f"))) int64_t collect_avx512(const scalar_t* dist, int64_t width, scalar_t threshold,
+                                                          int32_t* columns) {
+  using V = Avx512<scalar_t>;
+  const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+  int64_t count = 0;
+  for (int64_t j0 = 0; j0 < width && count <= kOneTileCandidates; j0 += V::kLanes) {
+    const typename V::Mask valid = lanes_below<scalar_t>(width - j0);
+    const uint32_t pass = valid & V::less_equal(V::load(valid, dist + j0), V::set1(threshold));
+    _mm512_mask_compressstoreu_epi32(columns + count, static_cast<__mmask16>(pass),
+                                     _mm512_add_epi32(lane, _mm512_set1_epi32(static_cast<int32_t>(j0))));
+    count += __builtin_popcount(pass);
+  }
+  return count > kOneTileCandidates ? -1 : count;
+}
+
+// kth_smallest of a row's kBoundSubsets minima on AVX-512: the value v with #(< v) <= k - 1 <
+// #(<= v) (one value, whatever the ties, so it equals the portable result).
+template <typename scalar_t>
+__attribute__((target("avx512f,popcnt"))) scalar_t kth_minimum_avx512(const scalar_t* minima, int64_t k) {
+  using V = Avx512<scalar_t>;
+  constexpr int kParts = kBoundSubsets / V::kLanes;
+  typename V::Vec parts[kParts];
+  for (int p = 0; p < kParts; ++p) parts[p] = V::load(minima + p * V::kLanes);
+  for (int64_t i = 0; i < kBoundSubsets; ++i) {
+    const typename V::Vec value = V::set1(minima[i]);
+    int64_t below = 0, at_or_below = 0;
+    for (int p = 0; p < kParts; ++p) {
+      below += __builtin_popcount(V::less(parts[p], value));
+      at_or_below += __builtin_popcount(V::less_equal(parts[p], value));
+    }
+    if (below <= k - 1 && k - 1 < at_or_below) return minima[i];
+  }
+  return std::numeric_limits<scalar_t>::infinity();
+}
+#endif
+
+// Exact k nearest of one query when the whole reference cloud is one tile of dot products (M <=
+// kRefBlock) and k <= kBoundSubsets: the columns under the subset-minima bound (see scan_row) are
+// ranked by exact distance, ties by lower index: what the reservoir would return, without one.
+// False (nothing written) when the bound is not finite or passes more than kOneTileCandidates
+// columns; the caller then uses the reservoir.
+template <typename scalar_t>
+bool knn_row_one_tile(const scalar_t* dots, const scalar_t* r_norms, scalar_t q_norm, int64_t M, int64_t self,
+                      scalar_t slack, const scalar_t* q, const scalar_t* refs, int64_t C, int64_t k, scalar_t* row,
+                      scalar_t* dist_out, int64_t* idx_out) {
+  scalar_t minima[kBoundSubsets];
+  int32_t columns[kOneTileCandidates + 16];
+  int64_t count;
+#ifdef VRNET_X86_DISPATCH
+  if (kHasAvx512) {
+    row_distances_avx512(dots, r_norms, q_norm, M, self, row);
+    subset_minima_avx512(row, M, minima);
+    const scalar_t threshold = kth_minimum_avx512(minima, k) + 2 * slack;
+    if (!std::isfinite(threshold)) return false;
+    count = collect_avx512(row, M, threshold, columns);
+  } else
+#endif
+  {
+    row_distances_portable(dots, r_norms, q_norm, M, self, row);
+    subset_minima_portable(row, M, minima);
+    const scalar_t threshold = kth_smallest(minima, kBoundSubsets, k) + 2 * slack;
+    if (!std::isfinite(threshold)) return false;
+    count = collect_portable(row, M, threshold, columns);
+  }
+  if (count < 0) return false;
+  scalar_t exact[kOneTileCandidates];
+  for (int64_t i = 0; i < count; ++i) exact[i] = squared_distance(q, refs + columns[i] * C, C);
+  // Candidate i's place in (exact distance, index) order (columns are in index order): a
+  // permutation, so each of the first k places is written once; no branch on the distances.
+  for (int64_t i = 0; i < count; ++i) {
+    int64_t place = 0;
+    for (int64_t j = 0; j < count; ++j) place += (exact[j] < exact[i]) | ((exact[j] == exact[i]) & (j < i));
+    if (place < k) {
+      dist_out[place] = exact[i];
+      idx_out[place] = columns[i];
+    }
+  }
+  return true;
+}
+
 // Exact k nearest of one query row among all M reference rows (exhaustive scan with exact
 // differences), for clouds whose squared norms overflow the dtype.
 template <typename scalar_t>
@@ -407,8 +501,9 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
   const scalar_t* q_all = query.const_data_ptr<scalar_t>();
   const scalar_t* r_all = ref.const_data_ptr<scalar_t>();
   const int64_t blocks = (N + kQueryBlock - 1) / kQueryBlock;
+  const bool one_tile = M <= kRefBlock && k <= kBoundSubsets;  // most rows then need no reservoir
   parallel_tasks(B * blocks, [&](int64_t task) {
-    std::vector<Reservoir<scalar_t>> reservoirs(std::min(N, kQueryBlock));
+    std::vector<Reservoir<scalar_t>> reservoirs(one_tile ? 1 : std::min(N, kQueryBlock));
     std::vector<scalar_t> row(std::min(M, kRefBlock));
     const int64_t b = task / blocks, q0 = (task % blocks) * kQueryBlock, q1 = std::min(N, q0 + kQueryBlock);
     const scalar_t* q_rows = q_all + b * N * C;
@@ -424,11 +519,26 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
     }
     const scalar_t* qn = qn_all + b * N;
     const scalar_t* rn = rn_all + b * M;
-    for (int64_t n = q0; n < q1; ++n) {
-      const scalar_t slack = relative_error * (qn[n] + rn_max[b]);
-      reservoirs[n - q0].reset(k, std::isfinite(slack) ? slack : scalar_t(0));
-    }
+    const auto slack = [&](int64_t n) {
+      const scalar_t value = relative_error * (qn[n] + rn_max[b]);
+      return std::isfinite(value) ? value : scalar_t(0);
+    };
     const at::Tensor q_tile = q_centred.select(0, b).narrow(0, q0, q1 - q0);
+    if (one_tile) {
+      const at::Tensor dots = at::mm(q_tile, r_centred.select(0, b).t());
+      const scalar_t* dp = dots.const_data_ptr<scalar_t>();
+      for (int64_t n = q0; n < q1; ++n) {
+        const int64_t self = exclude_self ? n : -1;
+        if (knn_row_one_tile(dp + (n - q0) * M, rn, qn[n], M, self, slack(n), q_rows + n * C, r_rows, C, k, row.data(),
+                             d_out + n * k, i_out + n * k))
+          continue;
+        reservoirs[0].reset(k, slack(n));
+        scan_row(dp + (n - q0) * M, rn, qn[n], M, 0, self, row.data(), reservoirs[0]);
+        reservoirs[0].finish(q_rows + n * C, r_rows, C, d_out + n * k, i_out + n * k);
+      }
+      return;
+    }
+    for (int64_t n = q0; n < q1; ++n) reservoirs[n - q0].reset(k, slack(n));
     for (int64_t r0 = 0; r0 < M; r0 += kRefBlock) {
       const int64_t r1 = std::min(M, r0 + kRefBlock), width = r1 - r0;
       // dots[n, j] = q_n . r_j (single-threaded inside this task)
