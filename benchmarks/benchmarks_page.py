@@ -16,6 +16,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "real_pairs": "Real scan pairs (`bench_real_pairs.py`)",
     "real_pairs_turned": "Real scan pairs turned by a further rotation (`bench_real_pairs.py --extra-rotation`)",
+    "modelnet40_summary": "ModelNet40, the paper's 12 cells (`modelnet40_summary.py`)",
     "modelnet40_tables": "ModelNet40 tables (`modelnet40_tables.py`)",
     "modelnet40_tables_nd": "ModelNet40 tables, noisy data (`modelnet40_tables.py`)",
     "modelnet40_tables_uc": "ModelNet40 tables, unseen categories (`modelnet40_tables.py`)",

@@ -111,3 +111,27 @@ def test_ablations_write_json_and_png(tmp_path, ablation):
     result = json.loads((tmp_path / f"ablation_{ablation}.json").read_text())
     assert result["pairs"] == 2 and len(result["rows"]) == (6 if ablation == "iterations" else 5)
     assert (tmp_path / f"ablation_{ablation}.png").stat().st_size > 10_000
+
+
+def test_modelnet40_summary_takes_each_cells_serving_model_and_its_newest_measurement(tmp_path):
+    """Two dated measurements of CO / UPC by the model that serves it: the newer one is the cell's;
+    a measurement of a model that does not serve a cell is ignored; unmeasured cells say so."""
+    from vrnet_ext.model.pretrained import model_for
+
+    serving = model_for("CO", "UPC")
+    errors = {"RMSE(R)": 0.05, "MAE(R)": 0.01, "RMSE(t)": 2e-4, "MAE(t)": 3e-5}
+    for day, scale, model in (("2026-01-01", 10.0, serving), ("2026-01-02", 1.0, serving),
+                              ("2026-01-03", 0.1, "another-model")):
+        (tmp_path / "results" / day).mkdir(parents=True)
+        cell = {"model": model, "setting": "CO", "split": "UPC", "pairs": 2468,
+                "methods": {"vrnet": {k: v * scale for k, v in errors.items()}}}
+        (tmp_path / "results" / day / "modelnet40_tables_x.json").write_text(json.dumps({"results": [cell]}))
+    run([str(ROOT / "benchmarks" / "modelnet40_summary.py"), "--results", str(tmp_path / "results"),
+         "--json", "summary.json", "--png", "summary.png"], tmp_path)
+    cells = {(c["setting"], c["split"]): c for c in json.loads((tmp_path / "summary.json").read_text())["cells"]}
+    assert len(cells) == 12
+    co = cells[("CO", "UPC")]
+    assert co["model"] == serving and co["ours"]["RMSE(R)"] == 0.05 and co["reached"] == 4
+    assert co["ours"]["source"].endswith("2026-01-02/modelnet40_tables_x.json")
+    assert all("ours" not in c for key, c in cells.items() if key != ("CO", "UPC"))
+    assert (tmp_path / "summary.png").stat().st_size > 10_000

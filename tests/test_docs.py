@@ -75,6 +75,15 @@ def test_readme_results_table_is_rendered_from_its_json():
     assert render(record) in text
 
 
+def test_readme_modelnet40_grid_is_rendered_from_its_json():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from modelnet40_summary import grid
+
+    text = (ROOT / "README.md").read_text()
+    (link,) = set(re.findall(r"\((benchmarks/results/[^)]+/modelnet40_summary)\.md\)", text))
+    assert grid(json.loads((ROOT / f"{link}.json").read_text())["cells"]) in text
+
+
 def test_benchmarks_page_is_rendered_from_the_results_folder():
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from benchmarks_page import render

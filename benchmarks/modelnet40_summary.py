@@ -1,0 +1,168 @@
+"""The paper's whole ModelNet40 table, 12 cells, from the measured cell tables: per cell the shipped
+model that serves it (``vrnet_ext.model.pretrained.model_for``), its four errors on the whole test
+split beside the paper's VRNet row, how many of the four are at or below it, and the training time of
+that model (its card).
+
+    python benchmarks/modelnet40_summary.py [--results benchmarks/results] [--json F] [--markdown F] [--png F]
+
+Reads every ``modelnet40_tables*.json`` under ``--results`` (written by ``modelnet40_tables.py``; for a
+(model, cell) measured more than once the newest folder wins). A cell whose serving model was never
+measured is listed as such. The target is the paper's VRNet row, except RS / UC rotation, where it is
+PRNet's (the paper's VRNet is worse than PRNet there). The PNG colours each cell by its worst ratio
+ours / target over the four columns: green where it is at most 1 (every column reached), red where
+not, deeper the farther from 1.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+from modelnet40_tables import PAPER, SPLITS  # benchmarks/, the script's folder
+from outputs import write_outputs
+from vrnet_ext.data.protocol import SETTINGS
+from vrnet_ext.model.pretrained import model_card, model_for
+
+COLUMNS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)")
+
+
+def target(setting: str, split: str) -> tuple[tuple[float, ...], str]:
+    """The four numbers a cell must reach and where they come from."""
+    vrnet = PAPER[(setting, split)]["VRNet"]
+    if (setting, split) == ("RS", "UC"):
+        prnet = PAPER[(setting, split)]["PRNet"]
+        return (prnet[0], prnet[1], vrnet[2], vrnet[3]), "PRNet's rotation, VRNet's translation"
+    return vrnet, "VRNet"
+
+
+def measurements(results: Path) -> dict[tuple[str, str, str], dict]:
+    """(model, setting, split) -> the VRNet row of its newest measurement, with the file it came from."""
+    found: dict[tuple[str, str, str], dict] = {}
+    for path in sorted(results.glob("*/modelnet40_tables*.json")):  # date folders sort in time order
+        for cell in json.loads(path.read_text())["results"]:
+            if "vrnet" in cell["methods"]:
+                found[(cell["model"], cell["setting"], cell["split"])] = {
+                    **{k: cell["methods"]["vrnet"][k] for k in COLUMNS}, "pairs": cell["pairs"],
+                    "source": str(path.relative_to(results.parent))}
+    return found
+
+
+def summarise(results: Path) -> list[dict]:
+    measured = measurements(results)
+    rows = []
+    for setting in SETTINGS:
+        for split in SPLITS:
+            goal, goal_source = target(setting, split)
+            model = model_for(setting, split)
+            row = {"setting": setting, "split": split, "model": model, "target": dict(zip(COLUMNS, goal)),
+                   "target_source": goal_source}
+            if model is not None:
+                training = model_card(model).get("training", {})
+                row["training_minutes"] = round(training.get("train_seconds", float("nan")) / 60)
+            ours = measured.get((model, setting, split))
+            if ours is not None:
+                ratios = [ours[k] / g for k, g in zip(COLUMNS, goal)]
+                row.update(ours=ours, reached=sum(r <= 1 for r in ratios), worst_ratio=max(ratios))
+            rows.append(row)
+    return rows
+
+
+def _number(x: float) -> str:
+    return f"{x:.3g}" if abs(x) >= 1e-3 else f"{x:.2e}"
+
+
+def grid(rows: list[dict]) -> str:
+    """The 12 cells as the paper lays them out, each: our RMSE(R) in degrees (the paper's), and how
+    many of the four columns are at or below the paper's."""
+    by_cell = {(row["setting"], row["split"]): row for row in rows}
+    lines = ["| setting | " + " | ".join(SPLITS) + " |",
+             "|---|" + "---|" * len(SPLITS)]
+    for setting in SETTINGS:
+        entries = []
+        for split in SPLITS:
+            row = by_cell[(setting, split)]
+            entries.append(f"{_number(row['ours']['RMSE(R)'])} ({_number(row['target']['RMSE(R)'])}), "
+                           f"{row['reached']} / 4" if "ours" in row else "not measured")
+        lines.append(f"| {setting} | " + " | ".join(entries) + " |")
+    return "\n".join(lines)
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["| cell | model | RMSE(R) | MAE(R) | RMSE(t) | MAE(t) | the paper's | reached | training (this model) |",
+             "|---|---|---:|---:|---:|---:|---|---:|---:|"]
+    for row in rows:
+        goal = " / ".join(_number(row["target"][k]) for k in COLUMNS)
+        if row["target_source"] != "VRNet":
+            goal += f" ({row['target_source']})"
+        minutes = f"{row['training_minutes']} min" if "training_minutes" in row else "–"
+        if "ours" not in row:
+            lines.append(f"| {row['setting']} / {row['split']} | {row['model'] or '–'} | – | – | – | – | {goal} | "
+                         f"not measured | {minutes} |")
+            continue
+        ours = row["ours"]
+        values = " | ".join(("**" + _number(ours[k]) + "**") if ours[k] <= row["target"][k] else _number(ours[k])
+                            for k in COLUMNS)
+        status = "4 / 4" if row["reached"] == 4 else f"{row['reached']} / 4, not yet"
+        lines.append(f"| {row['setting']} / {row['split']} | `{row['model']}` | {values} | {goal} | {status} | {minutes} |")
+    reached = sum(row.get("reached") == 4 for row in rows)
+    lines.append(f"\n{reached} of {len(rows)} cells at or below the paper in all four columns (bold: a column "
+                 "at or below it). Whole test split of each cell, each model evaluated once.")
+    return "\n".join(lines)
+
+
+def picture(rows: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LinearSegmentedColormap
+
+    fig, ax = plt.subplots(figsize=(9, 6.2))
+    reached = LinearSegmentedColormap.from_list("reached", ["#cfe8d5", "#2e8b57"])  # worst ratio 1 .. 1/4
+    short = LinearSegmentedColormap.from_list("short", ["#f6d5cf", "#c0392b"])     # worst ratio 1 .. 4
+    for row in rows:
+        x, y = SPLITS.index(row["split"]), SETTINGS.index(row["setting"])
+        ratio = row.get("worst_ratio")
+        if ratio is None:
+            colour = "#dddddd"
+        else:
+            depth = min(abs(math.log(ratio, 4)), 1.0)
+            colour = reached(depth) if ratio <= 1 else short(depth)
+        ax.add_patch(plt.Rectangle((x, y), 1, 1, color=colour))
+        if "ours" in row:
+            text = (f"RMSE(R) {_number(row['ours']['RMSE(R)'])} / {_number(row['target']['RMSE(R)'])}\n"
+                    f"RMSE(t) {_number(row['ours']['RMSE(t)'])} / {_number(row['target']['RMSE(t)'])}\n"
+                    f"{row['reached']} / 4 columns reached")
+        else:
+            text = "not measured"
+        ax.text(x + 0.5, y + 0.5, text, ha="center", va="center", fontsize=8.5)
+    ax.set_xlim(0, len(SPLITS))
+    ax.set_ylim(len(SETTINGS), 0)
+    ax.set_xticks([i + 0.5 for i in range(len(SPLITS))], SPLITS)
+    ax.set_yticks([i + 0.5 for i in range(len(SETTINGS))], SETTINGS)
+    ax.set_title("ModelNet40, whole test split: ours / the paper's (green: all four columns at or below)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    print(f"wrote {path}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--results", default=str(Path(__file__).parent / "results"),
+                        help="folder of dated result folders holding modelnet40_tables*.json")
+    parser.add_argument("--json", default=None)
+    parser.add_argument("--markdown", default=None)
+    parser.add_argument("--png", default=None)
+    args = parser.parse_args(argv)
+    rows = summarise(Path(args.results))
+    write_outputs(grid(rows) + "\n\n" + markdown(rows), {"cells": rows}, args.markdown, args.json)
+    if args.png:
+        picture(rows, args.png)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
