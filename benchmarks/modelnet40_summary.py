@@ -5,9 +5,10 @@ that model (its card).
 
     python benchmarks/modelnet40_summary.py [--results benchmarks/results] [--json F] [--markdown F] [--png F]
 
-Reads every ``modelnet40_tables*.json`` under ``--results`` (written by ``modelnet40_tables.py``; for a
-(model, cell) measured more than once the newest folder wins). A cell whose serving model was never
-measured is listed as such. The target is the paper's VRNet row, except RS / UC rotation, where it is
+Reads every ``modelnet40_tables*.json`` under ``--results`` (written by ``modelnet40_tables.py``). A
+measurement that names the digest of other weights than the model's file holds now is stale and
+skipped; of the rest, for a (model, cell) measured more than once, the newest folder wins (in one
+folder, the file that sorts last). A cell whose serving model was never measured is listed as such. The target is the paper's VRNet row, except RS / UC rotation, where it is
 PRNet's (the paper's VRNet is worse than PRNet there). The PNG colours each cell by its worst ratio
 ours / target over the four columns: green where it is at most 1 (every column reached), red where
 not, deeper the farther from 1.
@@ -19,7 +20,7 @@ import json
 import math
 from pathlib import Path
 
-from modelnet40_tables import PAPER, SPLITS  # benchmarks/, the script's folder
+from modelnet40_tables import PAPER, SPLITS, weights_digest  # benchmarks/, the script's folder
 from outputs import write_outputs
 from vrnet_ext.data.protocol import SETTINGS
 from vrnet_ext.model.pretrained import model_card, model_for
@@ -39,9 +40,16 @@ def target(setting: str, split: str) -> tuple[tuple[float, ...], str]:
 def measurements(results: Path) -> dict[tuple[str, str, str], dict]:
     """(model, setting, split) -> the VRNet row of its newest measurement, with the file it came from."""
     found: dict[tuple[str, str, str], dict] = {}
+    digests: dict[str, str | None] = {}
     for path in sorted(results.glob("*/modelnet40_tables*.json")):  # date folders sort in time order
         for cell in json.loads(path.read_text())["results"]:
-            if "vrnet" in cell["methods"]:
+            if cell["model"] not in digests:
+                try:
+                    digests[cell["model"]] = weights_digest(cell["model"])
+                except (OSError, ValueError):  # a model that is no longer shipped
+                    digests[cell["model"]] = None
+            stale = "weights" in cell and cell["weights"] != digests[cell["model"]]
+            if "vrnet" in cell["methods"] and not stale:
                 found[(cell["model"], cell["setting"], cell["split"])] = {
                     **{k: cell["methods"]["vrnet"][k] for k in COLUMNS}, "pairs": cell["pairs"],
                     "source": str(path.relative_to(results.parent))}

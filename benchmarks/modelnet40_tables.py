@@ -24,6 +24,7 @@ rotation error; the time per pair is wall time over the pairs (the network batch
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import platform
 import sys
@@ -40,7 +41,7 @@ from vrnet_ext.data.protocol import MIXED, SETTINGS
 from vrnet_ext.registration.ransac import fpfh_ransac
 from vrnet_ext.geometry.metrics import summarize
 from vrnet_ext.ops import kabsch
-from vrnet_ext.model.pretrained import available, cells, load_vrnet
+from vrnet_ext.model.pretrained import available, cells, load_vrnet, weights_path
 from vrnet_ext.registration import IcpFailure, icp
 
 METHODS = ("vrnet", "vcp", "icp", "fpfh")
@@ -123,6 +124,13 @@ def classical_estimates(data, method: str, icp_max_distance: float, fpfh_voxel: 
     return np.stack(rotations), np.stack(translations), seconds, failures
 
 
+def weights_digest(name: str) -> str:
+    """The first 16 hex digits of the SHA-256 of a shipped model's weights file (or a checkpoint's):
+    which weights a measurement was taken with."""
+    path = weights_path(name) if name in available("vrnet") else Path(name)
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+
+
 def cells_of(name: str, config: dict) -> list[tuple[str, str]]:
     """The (setting, split) cells a model serves: a shipped model's per its card
     (:func:`vrnet_ext.model.pretrained.cells`); a checkpoint's its own, or every setting for a
@@ -159,7 +167,8 @@ def evaluate_cell(name: str, model, config: dict, setting: str, split: str, args
         rows[method] = row
         print(f"{name} {setting}/{split} {method}: RMSE(R) {row['RMSE(R)']:.3f}, MAE(R) {row['MAE(R)']:.3f}, "
               f"RMSE(t) {row['RMSE(t)']:.4f}, {row['seconds_per_pair'] * 1e3:.1f} ms/pair", flush=True)
-    return {"model": name, "setting": setting, "split": split, "pairs": len(data), "methods": rows,
+    return {"model": name, "weights": weights_digest(name), "setting": setting, "split": split, "pairs": len(data),
+            "methods": rows,
             "paper": {k: dict(zip(COLUMNS[:4], v)) for k, v in PAPER.get((setting, split), {}).items()}}
 
 

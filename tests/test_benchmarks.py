@@ -114,17 +114,21 @@ def test_ablations_write_json_and_png(tmp_path, ablation):
 
 
 def test_modelnet40_summary_takes_each_cells_serving_model_and_its_newest_measurement(tmp_path):
-    """Two dated measurements of CO / UPC by the model that serves it: the newer one is the cell's;
-    a measurement of a model that does not serve a cell is ignored; unmeasured cells say so."""
+    """Dated measurements of CO / UPC by the model that serves it: the newest one taken with its
+    current weights is the cell's (one naming other weights is stale); a measurement of a model
+    that does not serve a cell is ignored; unmeasured cells say so."""
     from vrnet_ext.model.pretrained import model_for
 
     serving = model_for("CO", "UPC")
     errors = {"RMSE(R)": 0.05, "MAE(R)": 0.01, "RMSE(t)": 2e-4, "MAE(t)": 3e-5}
-    for day, scale, model in (("2026-01-01", 10.0, serving), ("2026-01-02", 1.0, serving),
-                              ("2026-01-03", 0.1, "another-model")):
+    for day, scale, model, weights in (("2026-01-01", 10.0, serving, None), ("2026-01-02", 1.0, serving, None),
+                                       ("2026-01-03", 0.1, "another-model", None),
+                                       ("2026-01-04", 0.5, serving, "0" * 16)):  # other weights: stale
         (tmp_path / "results" / day).mkdir(parents=True)
         cell = {"model": model, "setting": "CO", "split": "UPC", "pairs": 2468,
                 "methods": {"vrnet": {k: v * scale for k, v in errors.items()}}}
+        if weights:
+            cell["weights"] = weights
         (tmp_path / "results" / day / "modelnet40_tables_x.json").write_text(json.dumps({"results": [cell]}))
     run([str(ROOT / "benchmarks" / "modelnet40_summary.py"), "--results", str(tmp_path / "results"),
          "--json", "summary.json", "--png", "summary.png"], tmp_path)
