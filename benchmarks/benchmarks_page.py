@@ -24,6 +24,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "modelnet40_tables_uc_cells": "ModelNet40 tables, every UC cell (`modelnet40_tables.py --models vrnet-mixed-uc-rcp vrnet-pv-uc-rcp`)",
     "modelnet40_tables_co_upc": "ModelNet40 tables, CO / UPC (`modelnet40_tables.py --models vrnet-co-upc-rcp --methods vrnet vcp`)",
     "modelnet40_tables_co_nd": "ModelNet40 tables, CO / ND (`modelnet40_tables.py --models vrnet-co-nd-rcp --methods vrnet vcp`)",
+    "modelnet40_tables_pv_uc": "ModelNet40 tables, PV / UC and CO / UC (`modelnet40_tables.py --models vrnet-pv-uc-rcp --methods vrnet vcp`)",
     "modelnet40_tables_pv_nd": "ModelNet40 tables, PV / ND (`modelnet40_tables.py --models vrnet-pv-nd-rcp --methods vrnet vcp`)",
     "modelnet40_tables_rs_nd": "ModelNet40 tables, RS / ND (`modelnet40_tables.py --models vrnet-rs-nd-rcp --methods vrnet vcp`)",
     "modelnet40_tables_nd_cells": "ModelNet40 tables, CO / RS / PV+RS with noise (`modelnet40_tables.py --models vrnet-mixed-nd-rcp --settings CO RS PV+RS`)",

@@ -7,8 +7,8 @@ that model (its card).
 
 Reads every ``modelnet40_tables*.json`` under ``--results`` (written by ``modelnet40_tables.py``). A
 measurement that names the digest of other weights than the model's file holds now is stale and
-skipped; of the rest, for a (model, cell) measured more than once, the newest folder wins (in one
-folder, the file that sorts last). A cell whose serving model was never measured is listed as such. The target is the paper's VRNet row, except RS / UC rotation, where it is
+skipped; one that names the current digest beats any that names none; otherwise, for a (model,
+cell) measured more than once, the newest folder wins (in one folder, the file that sorts last). A cell whose serving model was never measured is listed as such. The target is the paper's VRNet row, except RS / UC rotation, where it is
 PRNet's (the paper's VRNet is worse than PRNet there). The PNG colours each cell by its worst ratio
 ours / target over the four columns: green where it is at most 1 (every column reached), red where
 not, deeper the farther from 1.
@@ -49,10 +49,12 @@ def measurements(results: Path) -> dict[tuple[str, str, str], dict]:
                 except (OSError, ValueError):  # a model that is no longer shipped
                     digests[cell["model"]] = None
             stale = "weights" in cell and cell["weights"] != digests[cell["model"]]
-            if "vrnet" in cell["methods"] and not stale:
-                found[(cell["model"], cell["setting"], cell["split"])] = {
-                    **{k: cell["methods"]["vrnet"][k] for k in COLUMNS}, "pairs": cell["pairs"],
-                    "source": str(path.relative_to(results.parent))}
+            key = (cell["model"], cell["setting"], cell["split"])
+            if "vrnet" not in cell["methods"] or stale or ("weights" not in cell and found.get(key, {}).get("weights")):
+                continue  # a measurement known to be of the current weights beats one that names none
+            found[key] = {
+                **{k: cell["methods"]["vrnet"][k] for k in COLUMNS}, "pairs": cell["pairs"],
+                "weights": cell.get("weights"), "source": str(path.relative_to(results.parent))}
     return found
 
 

@@ -41,6 +41,7 @@ from vrnet_ext.data.protocol import MIXED, SETTINGS
 from vrnet_ext.registration.ransac import fpfh_ransac
 from vrnet_ext.geometry.metrics import summarize
 from vrnet_ext.ops import kabsch
+from vrnet_ext.model.checkpoints import read_checkpoint
 from vrnet_ext.model.pretrained import available, cells, load_vrnet, weights_path
 from vrnet_ext.registration import IcpFailure, icp
 
@@ -125,10 +126,15 @@ def classical_estimates(data, method: str, icp_max_distance: float, fpfh_voxel: 
 
 
 def weights_digest(name: str) -> str:
-    """The first 16 hex digits of the SHA-256 of a shipped model's weights file (or a checkpoint's):
-    which weights a measurement was taken with."""
+    """The first 16 hex digits of a SHA-256 over a shipped model's (or a checkpoint's) parameters,
+    name by name: which weights a measurement was taken with (its card may change, they may not)."""
     path = weights_path(name) if name in available("vrnet") else Path(name)
-    return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    state = read_checkpoint(path)["model"]
+    digest = hashlib.sha256()
+    for key in sorted(state):
+        digest.update(key.encode())
+        digest.update(state[key].detach().cpu().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()[:16]
 
 
 def cells_of(name: str, config: dict) -> list[tuple[str, str]]:

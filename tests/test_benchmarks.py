@@ -114,14 +114,19 @@ def test_ablations_write_json_and_png(tmp_path, ablation):
 
 
 def test_modelnet40_summary_takes_each_cells_serving_model_and_its_newest_measurement(tmp_path):
-    """Dated measurements of CO / UPC by the model that serves it: the newest one taken with its
-    current weights is the cell's (one naming other weights is stale); a measurement of a model
+    """Dated measurements of CO / UPC by the model that serves it: the one naming its current weights
+    beats newer ones that name none, one naming other weights is stale; a measurement of a model
     that does not serve a cell is ignored; unmeasured cells say so."""
     from vrnet_ext.model.pretrained import model_for
 
     serving = model_for("CO", "UPC")
     errors = {"RMSE(R)": 0.05, "MAE(R)": 0.01, "RMSE(t)": 2e-4, "MAE(t)": 3e-5}
-    for day, scale, model, weights in (("2026-01-01", 10.0, serving, None), ("2026-01-02", 1.0, serving, None),
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from modelnet40_tables import weights_digest
+
+    current = weights_digest(serving)
+    for day, scale, model, weights in (("2026-01-00", 1.0, serving, current), ("2026-01-01", 10.0, serving, None),
+                                       ("2026-01-02", 3.0, serving, None),
                                        ("2026-01-03", 0.1, "another-model", None),
                                        ("2026-01-04", 0.5, serving, "0" * 16)):  # other weights: stale
         (tmp_path / "results" / day).mkdir(parents=True)
@@ -136,6 +141,6 @@ def test_modelnet40_summary_takes_each_cells_serving_model_and_its_newest_measur
     assert len(cells) == 12
     co = cells[("CO", "UPC")]
     assert co["model"] == serving and co["ours"]["RMSE(R)"] == 0.05 and co["reached"] == 4
-    assert co["ours"]["source"].endswith("2026-01-02/modelnet40_tables_x.json")
+    assert co["ours"]["source"].endswith("2026-01-00/modelnet40_tables_x.json")
     assert all("ours" not in c for key, c in cells.items() if key != ("CO", "UPC"))
     assert (tmp_path / "summary.png").stat().st_size > 10_000
