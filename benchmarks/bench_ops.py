@@ -329,6 +329,7 @@ def all_cases(device: str = "cpu") -> list[Case]:
         _knn_case(1, 50000, 3, 20, skip_torch="the reference needs ~20 GB (two 50k x 50k matrices)"),
         _knn_case(8, 1024, 64, 20),
         _knn_case(8, 4096, 64, 20, quick=False),
+        _knn_case(2, 768, 32, 10),  # a DGCNN feature graph at inference: two clouds of one GEMM tile
         _graph_case("edge_features", lambda x, i, b: ops.edge_features(x, i, backend=b), 8, 64, 1024, 20),
         _graph_case("gather_reduce", lambda x, i, b: ops.gather_reduce(x, i, "max", backend=b), 8, 64, 1024, 20),
         _edge_norm_max_case(8, 64, 1024, 20),

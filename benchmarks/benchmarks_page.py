@@ -45,6 +45,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "busy_1": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
     "busy_2": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
     "edgeconv": "EdgeConv timings (`bench_ops.py`)",
+    "ops_knn": "kNN timings (`bench_ops.py --quick --only knn`)",
     "ops_knn_edge": "kNN, edge_norm_max and EdgeConv timings (`bench_ops.py --only knn,edge_norm_max,EdgeConv`)",
     "ablation_iterations": "Ablation: VRNet with iterations (`ablations.py iterations`)",
     "ablation_outliers": "Ablation: robustness to outliers (`ablations.py outliers`)",

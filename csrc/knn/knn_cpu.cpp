@@ -470,8 +470,9 @@ void knn_row_exhaustive(const scalar_t* q, const scalar_t* refs, int64_t M, int6
 }
 
 // GEMM-tiled kNN for any C. Both clouds are first shifted by the reference cloud's mean, so that
-// |q|^2 + |r|^2 - 2 q.r does not cancel catastrophically for clouds far from the origin; the reservoir then keeps every candidate within the rounding bound of that formula
-// and re-ranks the survivors by exact distance (see Reservoir).
+// |q|^2 + |r|^2 - 2 q.r does not cancel catastrophically for clouds far from the origin; every
+// candidate within the rounding bound of that formula is kept (by the reservoir, or on the stack
+// for a cloud of one tile) and the survivors are re-ranked by exact distance (see Reservoir).
 //
 // The whole call is ONE parallel region in which the threads claim (cloud, block of kQueryBlock
 // queries) tasks (parallel_tasks); inside a task the tile products run single-threaded. A fork and
