@@ -46,6 +46,7 @@ struct Avx512<double> {
   VRNET_AVX512 Vec blend(Mask take_b, Vec a, Vec b) { return _mm512_mask_blend_pd(take_b, a, b); }
   VRNET_AVX512 Mask less(Vec a, Vec b) { return _mm512_cmp_pd_mask(a, b, _CMP_LT_OQ); }
   VRNET_AVX512 Mask less_equal(Vec a, Vec b) { return _mm512_cmp_pd_mask(a, b, _CMP_LE_OQ); }
+  VRNET_AVX512 Mask equal(Vec a, Vec b) { return _mm512_cmp_pd_mask(a, b, _CMP_EQ_OQ); }
   VRNET_AVX512 Mask finite(Vec a) { return _mm512_cmp_pd_mask(_mm512_sub_pd(a, a), _mm512_setzero_pd(), _CMP_EQ_OQ); }
 };
 
@@ -65,6 +66,7 @@ struct Avx512<float> {
   VRNET_AVX512 Vec blend(Mask take_b, Vec a, Vec b) { return _mm512_mask_blend_ps(take_b, a, b); }
   VRNET_AVX512 Mask less(Vec a, Vec b) { return _mm512_cmp_ps_mask(a, b, _CMP_LT_OQ); }
   VRNET_AVX512 Mask less_equal(Vec a, Vec b) { return _mm512_cmp_ps_mask(a, b, _CMP_LE_OQ); }
+  VRNET_AVX512 Mask equal(Vec a, Vec b) { return _mm512_cmp_ps_mask(a, b, _CMP_EQ_OQ); }
   VRNET_AVX512 Mask finite(Vec a) { return _mm512_cmp_ps_mask(_mm512_sub_ps(a, a), _mm512_setzero_ps(), _CMP_EQ_OQ); }
 };
 

@@ -413,6 +413,46 @@ __attribute__((target("avx512f,popcnt"))) scalar_t kth_minimum_avx512(const scal
 }
 #endif
 
+// Writes the first k of `count` candidates in (exact distance, index) order (`columns` ascending):
+// candidate i's place is the number of candidates before it in that order, a permutation, so each
+// of the first k places is written once, with no branch on the distances.
+template <typename scalar_t>
+void rank_candidates_portable(const scalar_t* exact, const int32_t* columns, int64_t count, int64_t k,
+                              scalar_t* dist_out, int64_t* idx_out) {
+  for (int64_t i = 0; i < count; ++i) {
+    int64_t place = 0;
+    for (int64_t j = 0; j < count; ++j) place += (exact[j] < exact[i]) | ((exact[j] == exact[i]) & (j < i));
+    if (place < k) {
+      dist_out[place] = exact[i];
+      idx_out[place] = columns[i];
+    }
+  }
+}
+
+#ifdef VRNET_X86_DISPATCH
+// rank_candidates_portable with kLanes comparisons per instruction (the same places).
+template <typename scalar_t>
+__attribute__((target("avx512f,popcnt"))) void rank_candidates_avx512(const scalar_t* exact, const int32_t* columns,
+                                                                      int64_t count, int64_t k, scalar_t* dist_out,
+                                                                      int64_t* idx_out) {
+  using V = Avx512<scalar_t>;
+  for (int64_t i = 0; i < count; ++i) {
+    const typename V::Vec value = V::set1(exact[i]);
+    int64_t place = 0;
+    for (int64_t j0 = 0; j0 < count; j0 += V::kLanes) {
+      const typename V::Mask valid = lanes_below<scalar_t>(count - j0);
+      const typename V::Mask before = i > j0 ? lanes_below<scalar_t>(i - j0) : typename V::Mask{0};
+      const typename V::Vec other = V::load(valid, exact + j0);
+      place += __builtin_popcount((valid & V::less(other, value)) | (before & V::equal(other, value)));
+    }
+    if (place < k) {
+      dist_out[place] = exact[i];
+      idx_out[place] = columns[i];
+    }
+  }
+}
+#endif
+
 // Exact k nearest of one query when the whole reference cloud is one tile of dot products (M <=
 // kRefBlock) and k <= kBoundSubsets: the columns under the subset-minima bound (see scan_row) are
 // ranked by exact distance, ties by lower index: what the reservoir would return, without one.
@@ -444,16 +484,13 @@ bool knn_row_one_tile(const scalar_t* dots, const scalar_t* r_norms, scalar_t q_
   if (count < 0) return false;
   scalar_t exact[kOneTileCandidates];
   for (int64_t i = 0; i < count; ++i) exact[i] = squared_distance(q, refs + columns[i] * C, C);
-  // Candidate i's place in (exact distance, index) order (columns are in index order): a
-  // permutation, so each of the first k places is written once; no branch on the distances.
-  for (int64_t i = 0; i < count; ++i) {
-    int64_t place = 0;
-    for (int64_t j = 0; j < count; ++j) place += (exact[j] < exact[i]) | ((exact[j] == exact[i]) & (j < i));
-    if (place < k) {
-      dist_out[place] = exact[i];
-      idx_out[place] = columns[i];
-    }
+#ifdef VRNET_X86_DISPATCH
+  if (kHasAvx512) {
+    rank_candidates_avx512(exact, columns, count, k, dist_out, idx_out);
+    return true;
   }
+#endif
+  rank_candidates_portable(exact, columns, count, k, dist_out, idx_out);
   return true;
 }
 

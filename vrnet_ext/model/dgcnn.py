@@ -40,9 +40,11 @@ class DGCNN(nn.Module):
             idx = knn(features, features, self.k, backend=backend)[1]
             x = layer(x, idx, backend=backend)
             outputs.append(x)
-        concatenated = torch.cat(outputs, dim=1)
         if can_fold(self.projection_bn):  # eval: conv + BatchNorm as one product on the points' rows
-            rows = F.linear(concatenated.transpose(1, 2), *folded_affine(self.projection, self.projection_bn))
+            # The layers' outputs are point-major in memory: joined along channels as (B, N, sum C)
+            # rows, they feed the product without a transposing copy.
+            rows = torch.cat([output.transpose(1, 2) for output in outputs], dim=-1)
+            rows = F.linear(rows, *folded_affine(self.projection, self.projection_bn))
             return F.leaky_relu(rows, self.negative_slope).transpose(1, 2)
-        z = self.projection_bn(self.projection(concatenated))
+        z = self.projection_bn(self.projection(torch.cat(outputs, dim=1)))
         return F.leaky_relu(z, self.negative_slope)
