@@ -7,7 +7,8 @@ that model (its card).
 
 Reads every ``modelnet40_tables*.json`` under ``--results`` (written by ``modelnet40_tables.py``). A
 measurement that names the digest of other weights than the model's file holds now is stale and
-skipped; one that names the current digest beats any that names none; otherwise, for a (model,
+skipped, and so is one of a partial-view cell (PV, PV+RS) whose pairs were not cut the way
+``vrnet_ext.data.protocol`` cuts them now (``views``); one that names the current digest beats any that names none; otherwise, for a (model,
 cell) measured more than once, the newest folder wins (in one folder, the file that sorts last). A cell whose serving model was never measured is listed as such. The target is the paper's VRNet row, except RS / UC rotation, where it is
 PRNet's (the paper's VRNet is worse than PRNet there). The PNG colours each cell by its worst ratio
 ours / target over the four columns: green where it is at most 1 (every column reached), red where
@@ -22,10 +23,11 @@ from pathlib import Path
 
 from modelnet40_tables import PAPER, SPLITS, weights_digest  # benchmarks/, the script's folder
 from outputs import write_outputs
-from vrnet_ext.data.protocol import SETTINGS
+from vrnet_ext.data.protocol import SETTINGS, VIEW_PROTOCOL
 from vrnet_ext.model.pretrained import model_card, model_for
 
 COLUMNS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)")
+PARTIAL_VIEWS = ("PV", "PV+RS")  # the settings whose pairs depend on how views are cut
 
 
 def target(setting: str, split: str) -> tuple[tuple[float, ...], str]:
@@ -48,7 +50,8 @@ def measurements(results: Path) -> dict[tuple[str, str, str], dict]:
                     digests[cell["model"]] = weights_digest(cell["model"])
                 except (OSError, ValueError):  # a model that is no longer shipped
                     digests[cell["model"]] = None
-            stale = "weights" in cell and cell["weights"] != digests[cell["model"]]
+            stale = ("weights" in cell and cell["weights"] != digests[cell["model"]]) or (
+                cell["setting"] in PARTIAL_VIEWS and cell.get("views") != VIEW_PROTOCOL)
             key = (cell["model"], cell["setting"], cell["split"])
             if "vrnet" not in cell["methods"] or stale or ("weights" not in cell and found.get(key, {}).get("weights")):
                 continue  # a measurement known to be of the current weights beats one that names none

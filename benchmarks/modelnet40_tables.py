@@ -37,7 +37,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
-from vrnet_ext.data.protocol import MIXED, SETTINGS
+from vrnet_ext.data.protocol import MIXED, SETTINGS, VIEW_PROTOCOL
 from vrnet_ext.registration.ransac import fpfh_ransac
 from vrnet_ext.geometry.metrics import summarize
 from vrnet_ext.ops import kabsch
@@ -174,7 +174,7 @@ def evaluate_cell(name: str, model, config: dict, setting: str, split: str, args
         print(f"{name} {setting}/{split} {method}: RMSE(R) {row['RMSE(R)']:.3f}, MAE(R) {row['MAE(R)']:.3f}, "
               f"RMSE(t) {row['RMSE(t)']:.4f}, {row['seconds_per_pair'] * 1e3:.1f} ms/pair", flush=True)
     return {"model": name, "weights": weights_digest(name), "setting": setting, "split": split, "pairs": len(data),
-            "methods": rows,
+            "views": VIEW_PROTOCOL, "methods": rows,
             "paper": {k: dict(zip(COLUMNS[:4], v)) for k, v in PAPER.get((setting, split), {}).items()}}
 
 

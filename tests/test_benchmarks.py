@@ -144,3 +144,26 @@ def test_modelnet40_summary_takes_each_cells_serving_model_and_its_newest_measur
     assert co["ours"]["source"].endswith("2026-01-00/modelnet40_tables_x.json")
     assert all("ours" not in c for key, c in cells.items() if key != ("CO", "UPC"))
     assert (tmp_path / "summary.png").stat().st_size > 10_000
+
+
+def test_modelnet40_summary_skips_partial_view_measurements_of_other_views(tmp_path):
+    """A PV cell measured on pairs cut another way (no ``views``, or other ones) is stale, however new;
+    a CO cell does not depend on views."""
+    from vrnet_ext.data.protocol import VIEW_PROTOCOL
+    from vrnet_ext.model.pretrained import model_for
+
+    errors = {"RMSE(R)": 0.3, "MAE(R)": 0.05, "RMSE(t)": 2e-3, "MAE(t)": 3e-4}
+    for day, scale, views in (("2026-01-00", 1.0, VIEW_PROTOCOL), ("2026-01-01", 2.0, None),
+                              ("2026-01-02", 3.0, "another cut")):
+        (tmp_path / "results" / day).mkdir(parents=True)
+        results = [{"model": model_for(setting, "UPC"), "setting": setting, "split": "UPC", "pairs": 10,
+                    "methods": {"vrnet": {k: v * scale for k, v in errors.items()}}} for setting in ("PV", "CO")]
+        for cell in results:
+            if views:
+                cell["views"] = views
+        (tmp_path / "results" / day / "modelnet40_tables_x.json").write_text(json.dumps({"results": results}))
+    run([str(ROOT / "benchmarks" / "modelnet40_summary.py"), "--results", str(tmp_path / "results"),
+         "--json", "summary.json"], tmp_path)
+    cells = {(c["setting"], c["split"]): c for c in json.loads((tmp_path / "summary.json").read_text())["cells"]}
+    assert cells[("PV", "UPC")]["ours"]["RMSE(R)"] == 0.3
+    assert cells[("CO", "UPC")]["ours"]["RMSE(R)"] == pytest.approx(0.9)

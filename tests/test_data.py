@@ -88,6 +88,23 @@ def test_partial_views_look_along_the_diagonal_only_with_prnet_far_points(far_po
         PairSpec(far_points="north")
 
 
+@pytest.mark.parametrize("far_points, agreement", [("prnet", 1), ("symmetric", -1)])
+def test_both_views_are_cut_by_one_far_point_or_its_mirror_image(far_points, agreement):
+    """PRNet's and VRNet's code cut the target (in its own frame) by the source's far point; the
+    paper's ablations by its mirror image through the origin."""
+    rng = np.random.default_rng(1)
+    sphere = rng.standard_normal((1024, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    sphere.setflags(write=False)
+    for seed in range(20):
+        pair = make_pair(sphere, PairSpec(setting="PV", far_points=far_points), np.random.default_rng(seed))
+        R, t = pair["rotation"].astype(np.float64), pair["translation"].astype(np.float64)
+        src_view = view_direction(sphere, pair["src"])
+        # the target's view in the source's frame, turned into the target's frame
+        tgt_view = R @ view_direction(sphere, (pair["tgt"] - t) @ R)
+        assert src_view @ tgt_view * agreement > 0.99, (seed, src_view, tgt_view)
+
+
 def test_prnet_far_points_keep_the_pairs_of_earlier_versions():
     """The default pairs are drawn exactly as before ``far_points`` existed (same random stream)."""
     rng = np.random.default_rng(5)

@@ -127,8 +127,9 @@ def add_eval(sub) -> None:
                    help="evaluate the first N test shapes only (default: the whole test split)")
     p.add_argument("--iterations", type=int, default=None, help="ICP-like passes (paper Table 'with iteration')")
     p.add_argument("--far-points", choices=FAR_POINTS, default="prnet",
-                   help="partial views: prnet = the paper's far points near the diagonal; sphere = in a random "
-                        "direction for each cloud; mixed = one of the two per pair")
+                   help="partial views: prnet = the paper's: one far point near the diagonal cuts both clouds; "
+                        "sphere = in a random direction for each cloud; mixed = one of the two per pair; "
+                        "symmetric = the target's far point mirrors the source's (the paper's ablations)")
     p.add_argument("--backend", choices=("ext", "torch"), default="ext",
                    help="ext: the compiled kernels; torch: the pure-PyTorch references")
     p.add_argument("--transformer-precision", choices=("auto", "bf16", "fp32"), default="auto",

@@ -5,9 +5,10 @@
   translation uniform in [-0.5, 0.5] per axis. ``tgt = R src + t``.
 * Settings (crops are taken in each cloud's own frame, independently):
   CO all points; PV the ``num_subsampled`` points nearest to a random far point
-  (``far_points="prnet"``, the paper's: U[0,1]^3 + 500 s (1,1,1), s in {1,-1} for the source and
-  {1,-1,2,-2} for the target, so every view looks along the diagonal; ``"sphere"``: 500 times a
-  uniformly random direction, drawn for each cloud; ``"mixed"``: one of the two per pair, at random;
+  (``far_points="prnet"``, the paper's main tables: U[0,1]^3 + 500 s (1,1,1), s in {1,-1}, the SAME
+  point for both clouds, each cut in its own frame, as in PRNet's and VRNet's released code, so both
+  views look along one diagonal from one side; ``"sphere"``: 500 times a uniformly random
+  direction, drawn for each cloud; ``"mixed"``: one of the two per pair, at random;
   ``"symmetric"``: the source's far point as PRNet's, the target's at its mirror image through the
   origin, as in the paper's ablations: more partiality and more outliers);
   RS ``num_subsampled`` random points per cloud; PV+RS first ``pvrs_presample`` random points,
@@ -30,6 +31,9 @@ from vrnet_ext.geometry.transforms import move
 SETTINGS = ("CO", "PV", "RS", "PV+RS")  # the paper's
 MIXED = "mixed"  # one of SETTINGS per pair
 FAR_POINTS = ("prnet", "sphere", "mixed", "symmetric")
+# How the default ("prnet") partial views are cut, recorded with measurements so that a table never
+# mixes numbers of differently cut pairs.
+VIEW_PROTOCOL = "prnet, one far point for both clouds"
 
 
 @dataclass
@@ -66,13 +70,23 @@ def random_motion(rng: np.random.Generator, max_angle_deg: float, max_translatio
     return rotation, translation, np.rad2deg([az, ay, ax])
 
 
-def far_point(rng: np.random.Generator, scheme: str, scales) -> np.ndarray:
-    """A far point of a partial view (3,): PRNet's near the diagonal (``scales`` of it), or 500 times a
-    uniformly random direction (``scheme="sphere"``)."""
+def far_point(rng: np.random.Generator, scheme: str) -> np.ndarray:
+    """A far point of a partial view (3,): PRNet's near the diagonal, U[0,1]^3 + 500 s (1,1,1) with s
+    in {1,-1}, or 500 times a uniformly random direction (``scheme="sphere"``)."""
     if scheme == "sphere":
         direction = rng.standard_normal(3)
         return 500.0 * direction / max(float(np.linalg.norm(direction)), 1e-12)
-    return rng.random(3) + 500.0 * rng.choice(scales)
+    return rng.random(3) + 500.0 * rng.choice((1, -1))
+
+
+def view_points(rng: np.random.Generator, scheme: str) -> tuple[np.ndarray, np.ndarray]:
+    """The far points (3,) cutting the source's and the target's partial views, each taken in its
+    cloud's own frame: one PRNet point for both ("prnet"), it and its mirror image through the
+    origin ("symmetric"), or a random direction for each ("sphere")."""
+    if scheme == "sphere":
+        return far_point(rng, scheme), far_point(rng, scheme)
+    far = far_point(rng, "prnet")
+    return far, (-far if scheme == "symmetric" else far)
 
 
 def nearest_to_far_point(points: np.ndarray, count: int, far: np.ndarray) -> np.ndarray:
@@ -81,19 +95,18 @@ def nearest_to_far_point(points: np.ndarray, count: int, far: np.ndarray) -> np.
     return np.sort(np.argpartition(d2, count - 1)[:count])
 
 
-def select(points: np.ndarray, spec: PairSpec, setting: str, rng: np.random.Generator, scales,
-           scheme: str, far: np.ndarray | None = None) -> np.ndarray:
-    """Indices kept by ``setting``'s crop (one of SETTINGS), in ascending order (``scheme``: "prnet" or
-    "sphere"; ``far``: the partial view's far point when it is fixed beforehand)."""
+def select(points: np.ndarray, spec: PairSpec, setting: str, rng: np.random.Generator,
+           far: np.ndarray | None) -> np.ndarray:
+    """Indices kept by ``setting``'s crop (one of SETTINGS), in ascending order (``far``: the far point
+    of a PV or PV+RS view)."""
     n = points.shape[0]
     if setting == "CO":
         return np.arange(n)
     if setting == "RS":
         return np.sort(rng.choice(n, spec.num_subsampled, replace=False))
     if setting == "PV":
-        return nearest_to_far_point(points, spec.num_subsampled, far if far is not None else far_point(rng, scheme, scales))
+        return nearest_to_far_point(points, spec.num_subsampled, far)
     pre = np.sort(rng.choice(n, spec.pvrs_presample, replace=False))
-    far = far if far is not None else far_point(rng, scheme, scales)
     return pre[nearest_to_far_point(points[pre], spec.num_subsampled, far)]
 
 
@@ -113,13 +126,9 @@ def make_pair(base: np.ndarray, spec: PairSpec, rng: np.random.Generator) -> dic
     rotation, translation, euler = random_motion(rng, spec.max_angle_deg, spec.max_translation)
     moved = move(base, rotation, translation)
     scheme = spec.far_points if spec.far_points != "mixed" else ("prnet", "sphere")[int(rng.integers(2))]
-    if scheme == "symmetric":
-        far = far_point(rng, "prnet", (1, -1))
-        src_keep = select(base, spec, setting, rng, (1, -1), scheme, far)
-        tgt_keep = select(moved, spec, setting, rng, (1, -1), scheme, -far)
-    else:
-        src_keep = select(base, spec, setting, rng, (1, -1), scheme)
-        tgt_keep = select(moved, spec, setting, rng, (1, -1, 2, -2), scheme)
+    src_far, tgt_far = view_points(rng, scheme) if setting in ("PV", "PV+RS") else (None, None)
+    src_keep = select(base, spec, setting, rng, src_far)
+    tgt_keep = select(moved, spec, setting, rng, tgt_far)
     src_keep = src_keep[rng.permutation(src_keep.size)]
     tgt_keep = tgt_keep[rng.permutation(tgt_keep.size)]
     row_in_tgt = np.full(base.shape[0], -1, dtype=np.int64)

@@ -54,8 +54,9 @@ FIELD_HELP = {
     "loss_l4": "weight of L4 (amendment offset) in the hybrid loss",
     "loss_l4_form": "rmse: the paper's L4 (outliers dominate) | log: mean log(1 + error / 0.01) per point "
                     "(small errors count as much as large ones)",
-    "far_points": "partial views (PV, PV+RS) for training and validation: prnet = the paper's far points near the "
-                  "diagonal; sphere = in a random direction for each cloud; mixed = one of the two per pair",
+    "far_points": "partial views (PV, PV+RS) for training and validation: prnet = the paper's: one far point near the "
+                  "diagonal cuts both clouds; sphere = in a random direction for each cloud; mixed = one of the two "
+                  "per pair; symmetric = the target's far point mirrors the source's (the paper's ablations)",
     "loss_motion": "weight of LM, the supervised motion loss rmse(R^T R_gt, I) + rmse(t, t_gt) of the network's "
                    "estimate (DCP's; not in the paper; 0: off)",
     "precision": "bf16: forward and loss under bfloat16 autocast (ops, matching and Procrustes stay float32) | fp32",
