@@ -13,21 +13,25 @@ import json
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
+# Tables measured before partial views were cut as the paper's (one far point for both clouds).
+EARLIER_VIEWS = "; its PV and PV+RS rows on earlier pairs, whose target view had a far point of its own"
 TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "real_pairs": "Real scan pairs (`bench_real_pairs.py`)",
     "real_pairs_turned": "Real scan pairs turned by a further rotation (`bench_real_pairs.py --extra-rotation`)",
     "modelnet40_summary": "ModelNet40, the paper's 12 cells (`modelnet40_summary.py`)",
-    "modelnet40_tables": "ModelNet40 tables (`modelnet40_tables.py`)",
-    "modelnet40_tables_nd": "ModelNet40 tables, noisy data (`modelnet40_tables.py`)",
-    "modelnet40_tables_uc": "ModelNet40 tables, unseen categories (`modelnet40_tables.py`)",
-    "modelnet40_tables_cells": "ModelNet40 tables, CO / RS / PV+RS cells (`modelnet40_tables.py --settings CO RS PV+RS`)",
-    "modelnet40_tables_uc_cells": "ModelNet40 tables, every UC cell (`modelnet40_tables.py --models vrnet-mixed-uc-rcp vrnet-pv-uc-rcp`)",
+    "modelnet40_tables": "ModelNet40 tables (`modelnet40_tables.py`)" + EARLIER_VIEWS,
+    "modelnet40_tables_nd": "ModelNet40 tables, noisy data (`modelnet40_tables.py`)" + EARLIER_VIEWS,
+    "modelnet40_tables_uc": "ModelNet40 tables, unseen categories (`modelnet40_tables.py`)" + EARLIER_VIEWS,
+    "modelnet40_tables_cells": "ModelNet40 tables, CO / RS / PV+RS cells (`modelnet40_tables.py --settings CO RS PV+RS`)" + EARLIER_VIEWS,
+    "modelnet40_tables_uc_cells": "ModelNet40 tables, every UC cell (`modelnet40_tables.py --models vrnet-mixed-uc-rcp vrnet-pv-uc-rcp`)" + EARLIER_VIEWS,
     "modelnet40_tables_co_upc": "ModelNet40 tables, CO / UPC (`modelnet40_tables.py --models vrnet-co-upc-rcp --methods vrnet vcp`)",
     "modelnet40_tables_co_nd": "ModelNet40 tables, CO / ND (`modelnet40_tables.py --models vrnet-co-nd-rcp --methods vrnet vcp`)",
-    "modelnet40_tables_pv_uc": "ModelNet40 tables, PV / UC and CO / UC (`modelnet40_tables.py --models vrnet-pv-uc-rcp --methods vrnet vcp`)",
-    "modelnet40_tables_pv_nd": "ModelNet40 tables, PV / ND (`modelnet40_tables.py --models vrnet-pv-nd-rcp --methods vrnet vcp`)",
+    "modelnet40_tables_pv_uc": "ModelNet40 tables, PV / UC and CO / UC (`modelnet40_tables.py --models vrnet-pv-uc-rcp --methods vrnet vcp`)" + EARLIER_VIEWS,
+    "modelnet40_tables_pv_nd": "ModelNet40 tables, PV / ND (`modelnet40_tables.py --models vrnet-pv-nd-rcp --methods vrnet vcp`)" + EARLIER_VIEWS,
+    "modelnet40_tables_views_pv": "ModelNet40 tables, PV cells on the paper's views (`modelnet40_tables.py --models vrnet-pv-upc-rcp vrnet-pv-uc-rcp vrnet-pv-nd-rcp --settings PV`)",
+    "modelnet40_tables_views_pvrs": "ModelNet40 tables, PV+RS cells on the paper's views (`modelnet40_tables.py --models vrnet-mixed-upc-rcp vrnet-mixed-uc-rcp vrnet-mixed-nd-rcp --settings PV+RS`)",
     "modelnet40_tables_rs_nd": "ModelNet40 tables, RS / ND (`modelnet40_tables.py --models vrnet-rs-nd-rcp --methods vrnet vcp`)",
-    "modelnet40_tables_nd_cells": "ModelNet40 tables, CO / RS / PV+RS with noise (`modelnet40_tables.py --models vrnet-mixed-nd-rcp --settings CO RS PV+RS`)",
+    "modelnet40_tables_nd_cells": "ModelNet40 tables, CO / RS / PV+RS with noise (`modelnet40_tables.py --models vrnet-mixed-nd-rcp --settings CO RS PV+RS`)" + EARLIER_VIEWS,
     "memory_plan": "Memory planner: predicted vs measured peaks (`bench_memory_plan.py`)",
     "memory_plan_scene": "Memory planner, scene model (`bench_memory_plan.py --methods vrnet vrnet-large`)",
     "large": "Large scenes under memory budgets (`bench_large_scene.py`)",
