@@ -53,3 +53,48 @@ def test_transformer_is_eta_in_both_directions(points):
     torch.testing.assert_close(phi_x, (fx + transformer._eta(fx, fy)).transpose(1, 2))
     torch.testing.assert_close(phi_y, (fy + transformer._eta(fy, fx)).transpose(1, 2))
     assert phi_x.shape == src.shape and phi_y.shape == tgt.shape
+
+
+def _autocast_transformer():
+    torch.manual_seed(3)
+    model = Transformer(32, 4, 64, 1, 1, 0.0).eval()
+    src, tgt = torch.randn(2, 32, 40), torch.randn(2, 32, 40)
+    return model, src, tgt
+
+
+def _under_autocast(model, src, tgt, grad: bool):
+    with torch.set_grad_enabled(grad), torch.autocast("cpu", dtype=torch.bfloat16):
+        return tuple(t.detach() for t in model(src, tgt))
+
+
+def test_autocast_inference_reuses_its_casts_with_the_same_results():
+    """Without gradients the bfloat16 casts of the weights are made once and kept: the outputs equal
+    those of autocast's own per-call casts (taken while gradients are recorded) bit for bit."""
+    model, src, tgt = _autocast_transformer()
+    recorded = _under_autocast(model, src, tgt, grad=True)
+    for _ in range(2):
+        for got, expected in zip(_under_autocast(model, src, tgt, grad=False), recorded):
+            assert torch.equal(got, expected)
+    cached = [m.__dict__.get("_autocast_parameters", {}) for m in model.modules()]
+    assert sum(len(c) for c in cached) == 20  # weight and bias: 3 x (packed + output projection), 2 x 2 linears
+    assert set(model.state_dict()) == set(Transformer(32, 4, 64, 1, 1, 0.0).state_dict())
+
+
+def test_autocast_casts_follow_weights_changed_in_place_or_replaced():
+    model, src, tgt = _autocast_transformer()
+    _under_autocast(model, src, tgt, grad=False)  # fills the cache
+    with torch.no_grad():
+        model.decoder[0].feed_forward.net[1].weight.mul_(2)
+        model.encoder[0].self_attention.attention.in_proj_weight.add_(0.1)
+    model.decoder[0].cross_attention.attention.out_proj.weight.data = torch.randn(32, 32)
+    for got, expected in zip(_under_autocast(model, src, tgt, grad=False), _under_autocast(model, src, tgt, grad=True)):
+        assert torch.equal(got, expected)
+
+
+def test_autocast_training_still_reaches_every_weight():
+    model, src, tgt = _autocast_transformer()
+    model.train()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        loss = sum(t.float().square().mean() for t in model(src, tgt))
+    loss.backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in model.parameters())

@@ -5,6 +5,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from vrnet_ext.nn.autocast_weights import AutocastLinear, autocast_parameter
+
 
 class MultiHeadAttention(nn.Module):
     """Batch-first multi-head attention on ``F.scaled_dot_product_attention``.
@@ -23,7 +25,7 @@ class MultiHeadAttention(nn.Module):
         self.dropout = dropout
         self.in_proj_weight = nn.Parameter(torch.empty(3 * dims, dims))
         self.in_proj_bias = nn.Parameter(torch.zeros(3 * dims))
-        self.out_proj = nn.Linear(dims, dims)
+        self.out_proj = AutocastLinear(dims, dims)
         nn.init.xavier_uniform_(self.in_proj_weight)
         nn.init.zeros_(self.out_proj.bias)
 
@@ -34,12 +36,13 @@ class MultiHeadAttention(nn.Module):
 
     def forward(self, queries: torch.Tensor, memory: torch.Tensor | None = None) -> torch.Tensor:
         """queries (B, N, dims), memory (B, M, dims) or None (self-attention) -> (B, N, dims)."""
+        weight, bias = autocast_parameter(self, "in_proj_weight"), autocast_parameter(self, "in_proj_bias")
         if memory is None:
-            q, k, v = self._heads(F.linear(queries, self.in_proj_weight, self.in_proj_bias), 3)
+            q, k, v = self._heads(F.linear(queries, weight, bias), 3)
         else:
             dims = queries.shape[-1]
-            (q,) = self._heads(F.linear(queries, self.in_proj_weight[:dims], self.in_proj_bias[:dims]), 1)
-            k, v = self._heads(F.linear(memory, self.in_proj_weight[dims:], self.in_proj_bias[dims:]), 2)
+            (q,) = self._heads(F.linear(queries, weight[:dims], bias[:dims]), 1)
+            k, v = self._heads(F.linear(memory, weight[dims:], bias[dims:]), 2)
         attended = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
         return self.out_proj(attended.transpose(1, 2).flatten(2))
 
@@ -59,8 +62,8 @@ class _AttentionBlock(nn.Module):
 class _FeedForward(nn.Module):
     def __init__(self, dims: int, ff_dims: int, dropout: float) -> None:
         super().__init__()
-        self.net = nn.Sequential(nn.LayerNorm(dims), nn.Linear(dims, ff_dims), nn.ReLU(),
-                                 nn.Dropout(dropout), nn.Linear(ff_dims, dims))
+        self.net = nn.Sequential(nn.LayerNorm(dims), AutocastLinear(dims, ff_dims), nn.ReLU(),
+                                 nn.Dropout(dropout), AutocastLinear(ff_dims, dims))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x + self.net(x)
