@@ -3,7 +3,7 @@
 * Rigid motion: angles uniform in [0, max_angle] about x, y, z; R = Rx Ry Rz as in DCP, which is
   scipy's ``Rotation.from_euler('zyx', [az, ay, ax])`` (extrinsic z, then y, then x);
   translation uniform in [-0.5, 0.5] per axis. ``tgt = R src + t``.
-* Settings (crops are taken in each cloud's own frame, independently):
+* Settings (crops are taken in each cloud's own frame):
   CO all points; PV the ``num_subsampled`` points nearest to a random far point
   (``far_points="prnet"``, the paper's main tables: U[0,1]^3 + 500 s (1,1,1), s in {1,-1}, the SAME
   point for both clouds, each cut in its own frame, as in PRNet's and VRNet's released code, so both
