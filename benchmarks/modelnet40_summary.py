@@ -8,11 +8,13 @@ that model (its card).
 Reads every ``modelnet40_tables*.json`` under ``--results`` (written by ``modelnet40_tables.py``). A
 measurement that names the digest of other weights than the model's file holds now is stale and
 skipped, and so is one of a partial-view cell (PV, PV+RS) whose pairs were not cut the way
-``vrnet_ext.data.protocol`` cuts them now (``views``); one that names the current digest beats any that names none; otherwise, for a (model,
-cell) measured more than once, the newest folder wins (in one folder, the file that sorts last). A cell whose serving model was never measured is listed as such. The target is the paper's VRNet row, except RS / UC rotation, where it is
-PRNet's (the paper's VRNet is worse than PRNet there). The PNG colours each cell by its worst ratio
-ours / target over the four columns: green where it is at most 1 (every column reached), red where
-not, deeper the farther from 1.
+``vrnet_ext.data.protocol`` cuts them now (``views``); one that names the current digest beats any
+that names none; otherwise, for a (model, cell) measured more than once, the newest folder wins (in
+one folder, the file that sorts last). A cell whose serving model was never measured is listed as
+such. The target is the paper's VRNet row, except RS / UC rotation, where it is PRNet's (the
+paper's VRNet is worse than PRNet there). The PNG colours each cell by its worst ratio ours / target
+over the four columns: green where it is at most 1 (every column reached), red where not, deeper the
+farther from 1.
 """
 from __future__ import annotations
 
