@@ -303,6 +303,17 @@ def _soft_match_case(B, N, c, D, backward=True, quick=True, skip_torch=None):
     return Case("soft_match", f"{kind} B={B} N=M={N} c={c} D={D}", make, impls, quick, skip)
 
 
+def _attention_case(B, H, N, D, quick=True):
+    """Inference on bfloat16 heads (the Transformer's attention). The reference is torch's
+    scaled_dot_product_attention, a fused flash-attention kernel and the best existing tool."""
+    def make():
+        g = torch.Generator().manual_seed(0)
+        return tuple((torch.randn(B, H, N, D, generator=g) * 2).bfloat16() for _ in range(3))
+
+    impls = {b: (lambda q, k, v, b=b: ops.attention(q, k, v, backend=b)) for b in ("ext", "torch")}
+    return Case("attention", f"fwd bf16 B={B} H={H} N=M={N} D={D}", make, impls, quick)
+
+
 def cuda_cases() -> list[Case]:
     return [
         _knn_case(8, 16384, 3, 20),
@@ -351,6 +362,8 @@ def all_cases(device: str = "cpu") -> list[Case]:
         _soft_match_case(1, 8192, 32, 35, backward=False),
         _soft_match_case(1, 50000, 32, 35, backward=False, quick=False,
                          skip_torch="the reference needs ~20 GB (two 50k x 50k matrices)"),
+        _attention_case(2, 4, 768, 32),  # one pair's Transformer attention (both clouds as one batch)
+        _attention_case(32, 4, 768, 32, quick=False),  # 16 pairs
     ]
 
 

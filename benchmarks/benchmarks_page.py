@@ -53,6 +53,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "edgeconv": "EdgeConv timings (`bench_ops.py`)",
     "ops_knn": "kNN timings (`bench_ops.py --quick --only knn`)",
     "ops_knn_edge": "kNN, edge_norm_max and EdgeConv timings (`bench_ops.py --only knn,edge_norm_max,EdgeConv`)",
+    "ops_attention": "Attention timings (`bench_ops.py --only attention`)",
     "ablation_iterations": "Ablation: VRNet with iterations (`ablations.py iterations`)",
     "ablation_outliers": "Ablation: robustness to outliers (`ablations.py outliers`)",
     "ablation_matches": "Ablation: correct matches vs outlier ratio (`ablations.py matches`)",

@@ -50,8 +50,8 @@ def test_transformer_is_eta_in_both_directions(points):
     tgt = torch.randn(2, 16, points[1], dtype=torch.float64)
     phi_x, phi_y = transformer(src, tgt)
     fx, fy = src.transpose(1, 2), tgt.transpose(1, 2)
-    torch.testing.assert_close(phi_x, (fx + transformer._eta(fx, fy)).transpose(1, 2))
-    torch.testing.assert_close(phi_y, (fy + transformer._eta(fy, fx)).transpose(1, 2))
+    torch.testing.assert_close(phi_x, (fx + transformer._eta(fx, fy, "ext")).transpose(1, 2))
+    torch.testing.assert_close(phi_y, (fy + transformer._eta(fy, fx, "ext")).transpose(1, 2))
     assert phi_x.shape == src.shape and phi_y.shape == tgt.shape
 
 
@@ -62,18 +62,19 @@ def _autocast_transformer():
     return model, src, tgt
 
 
-def _under_autocast(model, src, tgt, grad: bool):
+def _under_autocast(model, src, tgt, grad: bool, backend: str = "ext"):
     with torch.set_grad_enabled(grad), torch.autocast("cpu", dtype=torch.bfloat16):
-        return tuple(t.detach() for t in model(src, tgt))
+        return tuple(t.detach() for t in model(src, tgt, backend=backend))
 
 
 def test_autocast_inference_reuses_its_casts_with_the_same_results():
     """Without gradients the bfloat16 casts of the weights are made once and kept: the outputs equal
-    those of autocast's own per-call casts (taken while gradients are recorded) bit for bit."""
+    those of autocast's own per-call casts (taken while gradients are recorded) bit for bit (the
+    attention itself on the reference in both, since recording gradients picks the reference)."""
     model, src, tgt = _autocast_transformer()
-    recorded = _under_autocast(model, src, tgt, grad=True)
+    recorded = _under_autocast(model, src, tgt, grad=True, backend="torch")
     for _ in range(2):
-        for got, expected in zip(_under_autocast(model, src, tgt, grad=False), recorded):
+        for got, expected in zip(_under_autocast(model, src, tgt, grad=False, backend="torch"), recorded):
             assert torch.equal(got, expected)
     cached = [m.__dict__.get("_autocast_parameters", {}) for m in model.modules()]
     assert sum(len(c) for c in cached) == 20  # weight and bias: 3 x (packed + output projection), 2 x 2 linears
@@ -87,7 +88,8 @@ def test_autocast_casts_follow_weights_changed_in_place_or_replaced():
         model.decoder[0].feed_forward.net[1].weight.mul_(2)
         model.encoder[0].self_attention.attention.in_proj_weight.add_(0.1)
     model.decoder[0].cross_attention.attention.out_proj.weight.data = torch.randn(32, 32)
-    for got, expected in zip(_under_autocast(model, src, tgt, grad=False), _under_autocast(model, src, tgt, grad=True)):
+    for got, expected in zip(_under_autocast(model, src, tgt, grad=False, backend="torch"),
+                             _under_autocast(model, src, tgt, grad=True, backend="torch")):
         assert torch.equal(got, expected)
 
 

@@ -23,4 +23,5 @@
   X("normals(Tensor points, Tensor idx, float[] viewpoint) -> Tensor") \
   X("fpfh(Tensor points, Tensor normals, Tensor idx, Tensor dist2, float radius) -> Tensor") \
   X("voxel_downsample(Tensor points, float voxel_size) -> Tensor") \
-  X("spatial_consistency(Tensor src, Tensor tgt, float tolerance, float inlier_threshold, int seeds, int consensus) -> (Tensor, Tensor)")
+  X("spatial_consistency(Tensor src, Tensor tgt, float tolerance, float inlier_threshold, int seeds, int consensus) -> (Tensor, Tensor)") \
+  X("attention(Tensor q, Tensor k, Tensor v, float scale) -> Tensor")

@@ -6,10 +6,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from vrnet_ext.nn.autocast_weights import AutocastLinear, autocast_parameter
+from vrnet_ext.ops import attention
 
 
 class MultiHeadAttention(nn.Module):
-    """Batch-first multi-head attention on ``F.scaled_dot_product_attention``.
+    """Batch-first multi-head attention on :func:`vrnet_ext.ops.attention`.
 
     The same function and parameters (names, shapes, initialisation) as
     ``nn.MultiheadAttention(dims, heads, batch_first=True)``, so checkpoints load in either, but
@@ -34,7 +35,7 @@ class MultiHeadAttention(nn.Module):
         batch, length, width = projected.shape
         return projected.view(batch, length, parts, self.heads, width // (parts * self.heads)).permute(2, 0, 3, 1, 4)
 
-    def forward(self, queries: torch.Tensor, memory: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, queries: torch.Tensor, memory: torch.Tensor | None = None, backend: str = "ext") -> torch.Tensor:
         """queries (B, N, dims), memory (B, M, dims) or None (self-attention) -> (B, N, dims)."""
         weight, bias = autocast_parameter(self, "in_proj_weight"), autocast_parameter(self, "in_proj_bias")
         if memory is None:
@@ -43,7 +44,7 @@ class MultiHeadAttention(nn.Module):
             dims = queries.shape[-1]
             (q,) = self._heads(F.linear(queries, weight[:dims], bias[:dims]), 1)
             k, v = self._heads(F.linear(memory, weight[dims:], bias[dims:]), 2)
-        attended = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        attended = attention(q, k, v, dropout_p=self.dropout if self.training else 0.0, backend=backend)
         return self.out_proj(attended.transpose(1, 2).flatten(2))
 
 
@@ -55,8 +56,8 @@ class _AttentionBlock(nn.Module):
         self.norm = nn.LayerNorm(dims)
         self.attention = MultiHeadAttention(dims, heads, dropout)
 
-    def forward(self, x: torch.Tensor, memory: torch.Tensor | None = None) -> torch.Tensor:
-        return x + self.attention(self.norm(x), memory)
+    def forward(self, x: torch.Tensor, memory: torch.Tensor | None = None, backend: str = "ext") -> torch.Tensor:
+        return x + self.attention(self.norm(x), memory, backend)
 
 
 class _FeedForward(nn.Module):
@@ -75,8 +76,8 @@ class _EncoderLayer(nn.Module):
         self.self_attention = _AttentionBlock(dims, heads, dropout)
         self.feed_forward = _FeedForward(dims, ff_dims, dropout)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.feed_forward(self.self_attention(x))
+    def forward(self, x: torch.Tensor, backend: str = "ext") -> torch.Tensor:
+        return self.feed_forward(self.self_attention(x, backend=backend))
 
 
 class _DecoderLayer(nn.Module):
@@ -86,8 +87,8 @@ class _DecoderLayer(nn.Module):
         self.cross_attention = _AttentionBlock(dims, heads, dropout)
         self.feed_forward = _FeedForward(dims, ff_dims, dropout)
 
-    def forward(self, x: torch.Tensor, memory: torch.Tensor) -> torch.Tensor:
-        return self.feed_forward(self.cross_attention(self.self_attention(x), memory))
+    def forward(self, x: torch.Tensor, memory: torch.Tensor, backend: str = "ext") -> torch.Tensor:
+        return self.feed_forward(self.cross_attention(self.self_attention(x, backend=backend), memory, backend))
 
 
 class Transformer(nn.Module):
@@ -102,18 +103,19 @@ class Transformer(nn.Module):
         self.decoder = nn.ModuleList(_DecoderLayer(dims, heads, ff_dims, dropout) for _ in range(decoder_layers))
         self.decoder_norm = nn.LayerNorm(dims)
 
-    def _eta(self, queries: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+    def _eta(self, queries: torch.Tensor, context: torch.Tensor, backend: str) -> torch.Tensor:
         memory = context
         for layer in self.encoder:
-            memory = layer(memory)
+            memory = layer(memory, backend)
         memory = self.encoder_norm(memory)
         x = queries
         for layer in self.decoder:
-            x = layer(x, memory)
+            x = layer(x, memory, backend)
         return self.decoder_norm(x)
 
-    def forward(self, src_features: torch.Tensor, tgt_features: torch.Tensor):
-        """(B, c, N), (B, c, M) -> Phi_X (B, c, N), Phi_Y (B, c, M).
+    def forward(self, src_features: torch.Tensor, tgt_features: torch.Tensor, backend: str = "ext"):
+        """(B, c, N), (B, c, M) -> Phi_X (B, c, N), Phi_Y (B, c, M). ``backend`` is the attention's
+        (:func:`vrnet_ext.ops.attention`).
 
         With N == M both directions run as one batch of 2B (larger matrix products, half the
         kernel calls); the function is the same either way.
@@ -121,8 +123,8 @@ class Transformer(nn.Module):
         fx, fy = src_features.transpose(1, 2), tgt_features.transpose(1, 2)
         if fx.shape == fy.shape:
             both = torch.cat([fx, fy])
-            phi_x, phi_y = (both + self._eta(both, torch.cat([fy, fx]))).chunk(2)
+            phi_x, phi_y = (both + self._eta(both, torch.cat([fy, fx]), backend)).chunk(2)
         else:
-            phi_x = fx + self._eta(fx, fy)
-            phi_y = fy + self._eta(fy, fx)
+            phi_x = fx + self._eta(fx, fy, backend)
+            phi_y = fy + self._eta(fy, fx, backend)
         return phi_x.transpose(1, 2), phi_y.transpose(1, 2)

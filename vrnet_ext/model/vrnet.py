@@ -175,7 +175,7 @@ class VRNet(nn.Module):
         features = self._features(src, tgt, backend)
         bf16 = self.transformer_in_bf16(src)
         with torch.autocast(src.device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
-            phi_x, phi_y = self.transformer(*features)
+            phi_x, phi_y = self.transformer(*features, backend=backend)
         # The soft matching decides where every VCP lands: it runs in float32 even under autocast
         # (a bfloat16 score carries ~3 significant digits, a visible error on sharp softmax rows).
         with torch.autocast(src.device.type, enabled=False):

@@ -1,5 +1,6 @@
 """Public ops. Each takes ``backend="ext"`` (compiled kernel, the default) or ``"torch"``
 (the pure-PyTorch reference, same signature)."""
+from vrnet_ext.ops.attention import attention
 from vrnet_ext.ops.edge_features import edge_features
 from vrnet_ext.ops.edge_norm_max import edge_norm_max
 from vrnet_ext.ops.fpfh import fpfh
@@ -14,4 +15,4 @@ from vrnet_ext.ops.svd3x3 import svd3x3
 from vrnet_ext.ops.voxel_downsample import voxel_downsample
 
 __all__ = ["knn", "edge_features", "gather_reduce", "edge_norm_max", "svd3x3", "kabsch", "pairwise_distance_loss",
-           "soft_match", "normals", "fpfh", "voxel_downsample", "spatial_consistency"]
+           "soft_match", "attention", "normals", "fpfh", "voxel_downsample", "spatial_consistency"]
