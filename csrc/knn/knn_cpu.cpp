@@ -1,5 +1,5 @@
-// CPU kNN: a uniform-grid search for 3-D points and, for features, GEMM tiles scanned by a
-// per-query reservoir. Neither materialises the N x M distance matrix.
+// CPU kNN: a uniform-grid search for 3-D points (reference clouds over one tile) and, for features
+// and small clouds, GEMM tiles scanned by a per-query reservoir. Neither materialises the N x M distance matrix.
 #include <ATen/ops/empty.h>
 #include <ATen/ops/mm.h>
 #include <ATen/ops/mean.h>
@@ -604,7 +604,10 @@ std::tuple<at::Tensor, at::Tensor> knn_cpu(const at::Tensor& query_in, const at:
   at::Tensor idx = at::empty({B, N, k}, query.options().dtype(at::kLong));
   if (N == 0) return {dist, idx};
   AT_DISPATCH_FLOATING_TYPES(query.scalar_type(), "knn_cpu", [&] {
-    if (C == 3) knn_grid<scalar_t>(query, ref, k, exclude_self, dist, idx);
+    // 3-D points: the grid, except for reference clouds of one tile, where the tiled search with its
+    // one-tile bound is faster (the same neighbours and the same exact distances).
+    const bool one_tile = ref.size(1) <= kRefBlock && k <= kBoundSubsets;
+    if (C == 3 && !one_tile) knn_grid<scalar_t>(query, ref, k, exclude_self, dist, idx);
     else knn_tiled<scalar_t>(query, ref, k, exclude_self, dist, idx);
   });
   return {dist, idx};
