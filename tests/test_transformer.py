@@ -76,7 +76,7 @@ def test_autocast_inference_reuses_its_casts_with_the_same_results():
     for _ in range(2):
         for got, expected in zip(_under_autocast(model, src, tgt, grad=False, backend="torch"), recorded):
             assert torch.equal(got, expected)
-    cached = [m.__dict__.get("_autocast_parameters", {}) for m in model.modules()]
+    cached = [m.__dict__.get("_inference_cache", {}) for m in model.modules()]
     assert sum(len(c) for c in cached) == 20  # weight and bias: 3 x (packed + output projection), 2 x 2 linears
     assert set(model.state_dict()) == set(Transformer(32, 4, 64, 1, 1, 0.0).state_dict())
 

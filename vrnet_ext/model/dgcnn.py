@@ -5,8 +5,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from vrnet_ext.nn import EdgeConv, folded_affine
-from vrnet_ext.nn.pointwise import can_fold
+from vrnet_ext.nn import EdgeConv
+from vrnet_ext.nn.pointwise import cached_folded_affine, can_fold
 from vrnet_ext.ops import knn
 
 
@@ -44,7 +44,7 @@ class DGCNN(nn.Module):
             # The layers' outputs are point-major in memory: joined along channels as (B, N, sum C)
             # rows, they feed the product without a transposing copy.
             rows = torch.cat([output.transpose(1, 2) for output in outputs], dim=-1)
-            rows = F.linear(rows, *folded_affine(self.projection, self.projection_bn))
+            rows = F.linear(rows, *cached_folded_affine(self, "folded projection", self.projection, self.projection_bn))
             return F.leaky_relu(rows, self.negative_slope).transpose(1, 2)
         z = self.projection_bn(self.projection(torch.cat(outputs, dim=1)))
         return F.leaky_relu(z, self.negative_slope)

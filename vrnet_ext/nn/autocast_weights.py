@@ -2,16 +2,17 @@
 
 Under ``torch.autocast`` a matrix product casts its float32 weight to the low-precision dtype on
 every call; for a model applied pair after pair that is a fresh copy of every weight per forward.
-:func:`autocast_parameter` keeps the cast copy on the module and hands it out again while the
-parameter is unchanged (same storage, same in-place version counter) and no gradient is being
-recorded, outside ``torch.compile``; otherwise it returns the parameter itself and autocast casts it
-as usual. The cast is the one autocast makes (``Tensor.to``), so results are the same bit for bit.
+:func:`autocast_parameter` keeps the cast copy (:func:`vrnet_ext.nn.inference_cache.inference_cached`)
+and otherwise returns the parameter itself, which autocast then casts as usual. The cast is the one
+autocast makes (``Tensor.to``), so results are the same bit for bit.
 """
 from __future__ import annotations
 
 import torch
 from torch import nn
 from torch.nn import functional as F
+
+from vrnet_ext.nn.inference_cache import inference_cached
 
 
 def autocast_parameter(module: nn.Module, name: str) -> torch.Tensor | None:
@@ -25,14 +26,7 @@ def autocast_parameter(module: nn.Module, name: str) -> torch.Tensor | None:
     dtype = torch.get_autocast_dtype(device_type)
     if param.dtype == dtype:
         return param
-    key = (param.data_ptr(), param._version, dtype)
-    cache = module.__dict__.setdefault("_autocast_parameters", {})
-    entry = cache.get(name)
-    if entry is None or entry[0] != key:
-        # The entry holds the source storage too, so no later storage can reuse its address.
-        source = param.detach()
-        entry = cache[name] = (key, source.to(dtype), source)
-    return entry[1]
+    return inference_cached(module, f"autocast {name} {dtype}", (param,), lambda: param.detach().to(dtype))
 
 
 class AutocastLinear(nn.Linear):

@@ -15,6 +15,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from vrnet_ext.nn.inference_cache import inference_cached
 from vrnet_ext.ops import edge_features, edge_norm_max
 
 
@@ -43,11 +44,16 @@ class EdgeConv(nn.Module):
             return z.max(dim=-1).values
         return self._fused(x, idx)
 
-    def _fused(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    def _projection_weight(self) -> torch.Tensor:
+        """(C, 2O) [W1 | W2 - W1]^T: one product gives both terms of every point."""
         weight = self.conv.weight.flatten(1)
         w_neighbour, w_centre = weight[:, : self.in_channels], weight[:, self.in_channels:]
+        return torch.cat([w_neighbour, w_centre - w_neighbour]).mT
+
+    def _fused(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        weight = inference_cached(self, "projection weight", (self.conv.weight,), self._projection_weight)
         # (B, N, 2O) in memory, the layout the compiled kernel gathers from; seen as (B, 2O, N)
-        projections = torch.matmul(x.mT, torch.cat([w_neighbour, w_centre - w_neighbour]).mT).mT
+        projections = torch.matmul(x.mT, weight).mT
         bn = self.bn
         batch_stats = bn.training or bn.running_mean is None
         out, mean, var = edge_norm_max(projections, idx, bn.weight, bn.bias,

@@ -3,14 +3,17 @@
 A ``Conv1d(C, O, 1)`` followed by a ``BatchNorm1d(O)`` that uses its running statistics is one
 affine map of every point's features: ``W' = diag(s) W`` and ``b' = s (b - mean) + beta`` with
 ``s = gamma / sqrt(var + eps)``. Applied point-major ((B, N, C) rows times W'^T, one matrix product)
-it replaces the convolution, the normalisation and their intermediate tensor; the folded weights
-are computed on every call (a few thousand values), so they always follow the parameters.
+it replaces the convolution, the normalisation and their intermediate tensor. The folded weights
+are kept for inference while the parameters and statistics are unchanged
+(:mod:`vrnet_ext.nn.inference_cache`), so they always follow them.
 """
 from __future__ import annotations
 
 import torch
 from torch import nn
 from torch.nn import functional as F
+
+from vrnet_ext.nn.inference_cache import inference_cached
 
 
 def folded_affine(conv: nn.Conv1d, bn: nn.BatchNorm1d | None) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -25,6 +28,14 @@ def folded_affine(conv: nn.Conv1d, bn: nn.BatchNorm1d | None) -> tuple[torch.Ten
     shift = -bn.running_mean if bias is None else bias - bn.running_mean
     folded_bias = scale * shift + (bn.bias if bn.bias is not None else 0)
     return weight * scale[:, None], folded_bias
+
+
+def cached_folded_affine(owner: nn.Module, name: str, conv: nn.Conv1d,
+                         bn: nn.BatchNorm1d | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """:func:`folded_affine`, kept on ``owner`` under ``name`` for inference while the parameters
+    and statistics are unchanged (:func:`vrnet_ext.nn.inference_cache.inference_cached`)."""
+    sources = (conv.weight, conv.bias) + ((bn.weight, bn.bias, bn.running_mean, bn.running_var) if bn else ())
+    return inference_cached(owner, name, sources, lambda: folded_affine(conv, bn))
 
 
 def can_fold(bn: nn.BatchNorm1d) -> bool:
@@ -53,7 +64,7 @@ class PointwiseMLP(nn.Sequential):
             if not isinstance(conv, nn.Conv1d) or conv.kernel_size != (1,) or conv.groups != 1:
                 raise TypeError(f"PointwiseMLP expects 1x1 Conv1d layers, found {conv}")
             bn = layers[i + 1] if i + 1 < len(layers) and isinstance(layers[i + 1], nn.BatchNorm1d) else None
-            rows = F.linear(rows, *folded_affine(conv, bn))
+            rows = F.linear(rows, *cached_folded_affine(self, f"folded {i}", conv, bn))
             i += 2 if bn is not None else 1
             if i < len(layers) and isinstance(layers[i], nn.ReLU):
                 rows = rows.relu_()
