@@ -125,11 +125,16 @@ def test_reference_runs_where_the_kernel_does_not_serve(monkeypatch):
 
 @requires_ext
 def test_under_autocast_the_kernel_keeps_bfloat16():
+    """Autocast leaves the op's bfloat16 heads as they are; float32 heads go to the reference, which
+    autocast runs in bfloat16."""
     q, k, v = _heads(1, 2, 20, 30, 32)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         got = ops.attention(q, k, v)
         direct = torch.ops.vrnet_ext.attention(q, k, v, 1 / math.sqrt(32))
+        from_float = ops.attention(q.float(), k.float(), v.float())
     assert got.dtype == torch.bfloat16 and torch.equal(got, ops.attention(q, k, v)) and torch.equal(direct, got)
+    assert from_float.dtype == torch.bfloat16
+    torch.testing.assert_close(from_float, got, rtol=2e-2, atol=2e-2)
 
 
 @requires_ext

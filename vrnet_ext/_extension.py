@@ -43,18 +43,20 @@ def _kernel_device_types() -> frozenset[str]:
 KERNEL_DEVICE_TYPES = _kernel_device_types()
 
 
-# Ops whose kernels are built for a lower precision, and the dtype autocast hands them.
-AUTOCAST_DTYPES = {"vrnet_ext::attention": torch.bfloat16}
+# Ops built for a lower precision: autocast leaves their inputs as they are (``attention`` takes
+# the bfloat16 heads that autocast's projections produce).
+NATIVE_PRECISION_OPS = frozenset({"vrnet_ext::attention"})
 
 
 def _register_autocast() -> None:
-    """Every compiled op but those of ``AUTOCAST_DTYPES`` runs in float32 under autocast: its
+    """Every compiled op but those of ``NATIVE_PRECISION_OPS`` runs in float32 under autocast: its
     inputs are promoted and autocast is off inside it, so the matrix products a kernel issues
     itself (the GEMM tiles of ``knn``) are not lowered to bfloat16 behind its back."""
-    names = [name for name in torch._C._dispatch_get_all_op_names() if name.startswith("vrnet_ext::")]
+    names = [name for name in torch._C._dispatch_get_all_op_names()
+             if name.startswith("vrnet_ext::") and name not in NATIVE_PRECISION_OPS]
     for name in names:
         for device_type in KERNEL_DEVICE_TYPES:
-            torch.library.register_autocast(name, device_type, AUTOCAST_DTYPES.get(name, torch.float32))
+            torch.library.register_autocast(name, device_type, torch.float32)
 
 
 if LOAD_ERROR is None:
