@@ -50,6 +50,18 @@ def test_matches_the_float64_attention_as_closely_as_torchs_kernel(shape):
 
 
 @requires_ext
+@pytest.mark.parametrize("shape", [(8, 4, 70, 2048, 32), (1, 1, 64, 20000, 32)])
+def test_buffers_over_the_kept_size(shape):
+    """Packed heads (first shape) or a worker's scores (second) over the 4 MB a thread keeps between
+    calls: temporary buffers, the same accuracy."""
+    q, k, v = _heads(*shape)
+    exact = F.scaled_dot_product_attention(q.double(), k.double(), v.double())
+    got = ops.attention(q, k, v)
+    torch.testing.assert_close(got.double(), exact, rtol=2e-2, atol=2e-2)
+    assert _error(got, exact)[1] <= 1.5 * _error(F.scaled_dot_product_attention(q, k, v), exact)[1] + 1e-5
+
+
+@requires_ext
 def test_sharp_and_flat_rows():
     """Scores spread over hundreds (all weight on one key; the rest underflow) and all equal
     (uniform weights): both within bfloat16 rounding of the float64 result."""

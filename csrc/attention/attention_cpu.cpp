@@ -10,10 +10,11 @@
 // VRNET_CPU_DISPATCH=generic) plain loops. The softmax and the final scaling run on AVX-512 with
 // AVX512-BF16 where the CPU has them, bit-equal to their portable loops.
 //
-// Memory: the packed heads (4 M D bytes per head) live in a buffer the calling thread keeps between
-// calls, and each worker keeps its kRows x M float32 scores and bfloat16 weights: fresh pages for
-// them on every call cost more than the arithmetic at the sizes this op is for. The Python wrapper
-// keeps M bounded (longer key sets go to torch's streamed attention).
+// Memory: the packed heads (4 M D bytes per head) and each worker's kRows x M float32 scores and
+// bfloat16 weights live in buffers their thread keeps between calls, up to kKeptBytes each (fresh
+// pages on every call cost more than the arithmetic at the sizes this op is for); larger ones are
+// freed at the end of the call. The Python wrapper keeps M bounded (longer key sets go to torch's
+// streamed attention).
 #include <ATen/native/CPUBlas.h>
 #include <ATen/ops/empty.h>
 #include <torch/library.h>
@@ -179,9 +180,13 @@ void claim_tasks(int64_t tasks, const F& fn, const G& finish) {
   });
 }
 
-// A buffer of at least `count` elements that this thread keeps (and reuses) between calls.
+// Room for `count` elements: in `kept`, a buffer the thread keeps between calls, when it needs at
+// most kKeptBytes, else in `temporary`, freed by its owner at the end of the call.
+constexpr size_t kKeptBytes = size_t(4) << 20;
+
 template <typename T>
-T* scratch(std::vector<T>& buffer, int64_t count) {
+T* scratch(std::vector<T>& kept, std::vector<T>& temporary, int64_t count) {
+  std::vector<T>& buffer = static_cast<size_t>(count) * sizeof(T) <= kKeptBytes ? kept : temporary;
   if (buffer.size() < static_cast<size_t>(count)) buffer.resize(count);
   return buffer.data();
 }
@@ -199,8 +204,9 @@ at::Tensor attention_cpu(const at::Tensor& q_in, const at::Tensor& k_in, const a
   const Heads q_heads = heads_of(q), k_heads = heads_of(k), v_heads = heads_of(v);
   const bool amx = products_on_amx(D);
   const int64_t key_words = (D / 2) * M, value_words = (padded_M / 2) * D;
-  thread_local std::vector<uint32_t> packed_buffer;
-  uint32_t* packed = amx ? scratch(packed_buffer, B * H * (key_words + value_words)) : nullptr;
+  thread_local std::vector<uint32_t> packed_kept;
+  std::vector<uint32_t> packed_temporary;
+  uint32_t* packed = amx ? scratch(packed_kept, packed_temporary, B * H * (key_words + value_words)) : nullptr;
   std::atomic<bool> k_bad{false}, v_bad{false}, q_bad{false};
   parallel_tasks(B * H, [&](int64_t task) {
     const int64_t b = task / H, h = task % H;
@@ -223,12 +229,14 @@ at::Tensor attention_cpu(const at::Tensor& q_in, const at::Tensor& k_in, const a
       return;
     }
     // Written in full before they are read (no zero fill).
-    thread_local std::vector<float> scores_buffer, sums_buffer, products_buffer;
-    thread_local std::vector<uint16_t> weights_buffer;
-    float* scores = scratch(scores_buffer, rows * M);
-    float* sums = scratch(sums_buffer, rows);
-    float* products = scratch(products_buffer, rows * D);
-    uint16_t* weights = scratch(weights_buffer, rows * padded_M);
+    thread_local std::vector<float> scores_kept, sums_kept, products_kept;
+    thread_local std::vector<uint16_t> weights_kept;
+    std::vector<float> scores_temporary, sums_temporary, products_temporary;
+    std::vector<uint16_t> weights_temporary;
+    float* scores = scratch(scores_kept, scores_temporary, rows * M);
+    float* sums = scratch(sums_kept, sums_temporary, rows);
+    float* products = scratch(products_kept, products_temporary, rows * D);
+    uint16_t* weights = scratch(weights_kept, weights_temporary, rows * padded_M);
     const uint16_t* q_rows = q_heads.row(b, h, i0);
     const uint32_t* keys = amx ? packed + (b * H + h) * (key_words + value_words) : nullptr;
     if (amx) {
