@@ -160,8 +160,9 @@ def test_the_kernel_rejects_non_finite_heads():
     q, k, v = _heads(1, 2, 10, 12, 16)
     nan_k = k.clone()
     nan_k[0, 1, 3, 2] = float("nan")
-    for args, message in (((q, nan_k, v), "k contains NaN"), ((q, k, v.masked_fill(v > 1, float("inf"))), "v contains NaN"),
-                          ((q.masked_fill(q > 2, float("-inf")), k, v), "q contains NaN")):
+    cases = (((q, nan_k, v), "k contains NaN"), ((q, k, v.masked_fill(v > 1, float("inf"))), "v contains NaN"),
+             ((q.masked_fill(q > 2, float("-inf")), k, v), "q contains NaN"))
+    for args, message in cases:
         with pytest.raises(ValueError, match=message):
             ops.attention(*args)
 

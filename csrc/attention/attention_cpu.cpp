@@ -35,7 +35,9 @@ constexpr int kSumLanes = 16;  // the softmax sum runs in 16 interleaved partial
 struct Heads {
   const uint16_t* data;
   int64_t stride_b, stride_h, stride_l;
-  const uint16_t* row(int64_t b, int64_t h, int64_t l) const { return data + b * stride_b + h * stride_h + l * stride_l; }
+  const uint16_t* row(int64_t b, int64_t h, int64_t l) const {
+    return data + b * stride_b + h * stride_h + l * stride_l;
+  }
 };
 
 Heads heads_of(const at::Tensor& t) {
@@ -240,7 +242,8 @@ at::Tensor attention_cpu(const at::Tensor& q_in, const at::Tensor& k_in, const a
     const uint16_t* q_rows = q_heads.row(b, h, i0);
     const uint32_t* keys = amx ? packed + (b * H + h) * (key_words + value_words) : nullptr;
     if (amx) {
-      at::native::cpublas::brgemm(rows, M, D, q_heads.stride_l, M, M, false, reinterpret_cast<const at::BFloat16*>(q_rows),
+      at::native::cpublas::brgemm(rows, M, D, q_heads.stride_l, M, M, false,
+                                  reinterpret_cast<const at::BFloat16*>(q_rows),
                                   reinterpret_cast<const at::BFloat16*>(keys), scores, true);
     } else {
       for (int64_t r = 0; r < rows; ++r)
@@ -253,7 +256,8 @@ at::Tensor attention_cpu(const at::Tensor& q_in, const at::Tensor& k_in, const a
     }
     for (int64_t r = 0; r < rows; ++r) sums[r] = softmax_row(scores + r * M, M, padded_M, c, weights + r * padded_M);
     if (amx) {
-      at::native::cpublas::brgemm(rows, D, padded_M, padded_M, D, D, false, reinterpret_cast<const at::BFloat16*>(weights),
+      at::native::cpublas::brgemm(rows, D, padded_M, padded_M, D, D, false,
+                                  reinterpret_cast<const at::BFloat16*>(weights),
                                   reinterpret_cast<const at::BFloat16*>(keys + key_words), products, true);
     } else {
       std::fill(products, products + rows * D, 0.0f);
