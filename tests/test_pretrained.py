@@ -78,7 +78,7 @@ def test_eval_picks_the_shipped_model_of_the_setting_and_split(tmp_path, capsys,
     assert model_for("PV", "UPC") == "vrnet-pv-upc-rcp" and model_for("PV", "ND") == "vrnet-pv-nd-rcp"
     assert model_for("CO", "UPC") == "vrnet-co-upc-rcp"
     assert model_for("RS", "UPC") == model_for("PV+RS", "UPC") == "vrnet-mixed-upc-rcp"
-    assert model_for("RS", "UC") == "vrnet-mixed-uc-rcp" and model_for("PV+RS", "UC") == "vrnet-pvrs-uc-rcp"
+    assert model_for("RS", "UC") == "vrnet-rs-uc-rcp" and model_for("PV+RS", "UC") == "vrnet-pvrs-uc-rcp"
     assert model_for("CO", "UC") == "vrnet-co-uc-rcp" and model_for("PV", "UC") == "vrnet-pv-uc-rcp"
     assert model_for("RS", "ND") == "vrnet-rs-nd-rcp" and model_for("PV+RS", "ND") == "vrnet-pvrs-nd-rcp"
     assert model_for("CO", "ND") == "vrnet-co-nd-rcp"
