@@ -453,6 +453,10 @@ __attribute__((target("avx512f,popcnt"))) void rank_candidates_avx512(const scal
 }
 #endif
 
+// Whether a reference cloud of M points is one GEMM tile for a k-nearest search that needs no
+// reservoir (most rows are ranked on the stack by knn_row_one_tile).
+constexpr bool fits_one_tile(int64_t M, int64_t k) { return M <= kRefBlock && k <= kBoundSubsets; }
+
 // Exact k nearest of one query when the whole reference cloud is one tile of dot products (M <=
 // kRefBlock) and k <= kBoundSubsets: the columns under the subset-minima bound (see scan_row) are
 // ranked by exact distance, ties by lower index: what the reservoir would return, without one.
@@ -539,7 +543,7 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
   const scalar_t* q_all = query.const_data_ptr<scalar_t>();
   const scalar_t* r_all = ref.const_data_ptr<scalar_t>();
   const int64_t blocks = (N + kQueryBlock - 1) / kQueryBlock;
-  const bool one_tile = M <= kRefBlock && k <= kBoundSubsets;  // most rows then need no reservoir
+  const bool one_tile = fits_one_tile(M, k);
   parallel_tasks(B * blocks, [&](int64_t task) {
     std::vector<Reservoir<scalar_t>> reservoirs(one_tile ? 1 : std::min(N, kQueryBlock));
     std::vector<scalar_t> row(std::min(M, kRefBlock));
@@ -606,8 +610,7 @@ std::tuple<at::Tensor, at::Tensor> knn_cpu(const at::Tensor& query_in, const at:
   AT_DISPATCH_FLOATING_TYPES(query.scalar_type(), "knn_cpu", [&] {
     // 3-D points: the grid, except for reference clouds of one tile, where the tiled search with its
     // one-tile bound is faster (the same neighbours and the same exact distances).
-    const bool one_tile = ref.size(1) <= kRefBlock && k <= kBoundSubsets;
-    if (C == 3 && !one_tile) knn_grid<scalar_t>(query, ref, k, exclude_self, dist, idx);
+    if (C == 3 && !fits_one_tile(ref.size(1), k)) knn_grid<scalar_t>(query, ref, k, exclude_self, dist, idx);
     else knn_tiled<scalar_t>(query, ref, k, exclude_self, dist, idx);
   });
   return {dist, idx};
