@@ -11,6 +11,9 @@ those of ``--settings``) define the test pairs: ``ModelNet40Pairs(partition="tes
 * ``vrnet``: the model's own estimate (RCPs, weighted when the model has a confidence head);
 * ``vcp``: Kabsch on the VCPs of the same forward pass (the network without its walk: DCP-v2's
   estimator on our features);
+* ``vrnet2`` (not run by default): the network twice per pair, the second pass registering the
+  source moved by the first estimate (the paper's "VRNet with iteration"; its main tables are one
+  pass, so this row is never the one compared with them);
 * ``icp``: point-to-point ICP from the identity (``registration.icp``: 50 iterations, every pair within
   ``--icp-max-distance`` = 1.0 counts, i.e. the shapes' radius);
 * ``fpfh``: FPFH + RANSAC (``registration.ransac.fpfh_ransac``) with a ``--fpfh-voxel`` of 0.05: normals
@@ -45,8 +48,9 @@ from vrnet_ext.model.checkpoints import read_checkpoint
 from vrnet_ext.model.pretrained import available, cells, load_vrnet, weights_path
 from vrnet_ext.registration import IcpFailure, icp
 
-METHODS = ("vrnet", "vcp", "icp", "fpfh")
+METHODS = ("vrnet", "vcp", "vrnet2", "icp", "fpfh")
 LABELS = {"vrnet": "VRNet (ours)", "vcp": "VCP-only, same network (DCP-v2 estimator)",
+          "vrnet2": "VRNet, 2 passes (ours; the paper's iteration mode)",
           "icp": "ICP from the identity (ours)", "fpfh": "FPFH + RANSAC (ours)"}
 COLUMNS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)", "RE mean (deg)")
 # The paper's Tables I (CO) and II (PV, RS, PV+RS), as printed: per method, RMSE(R), MAE(R),
@@ -87,22 +91,31 @@ PAPER = {(setting, split): {method: (row[k], row[3 + k], row[6 + k] * scale, row
 
 
 def network_estimates(model, data, batch_size: int, methods) -> dict:
-    """{method: (R (S, 3, 3), t (S, 3), seconds)} for "vrnet" / "vcp" (one forward pass serves both)."""
+    """{method: (R (S, 3, 3), t (S, 3), seconds)} for the network's methods: "vrnet" and "vcp" share
+    one forward pass; "vrnet2" runs the network twice per pair (the paper's iteration mode)."""
     loader = DataLoader(data, batch_size=batch_size, shuffle=False)
-    rotations = {m: [] for m in ("vrnet", "vcp")}
-    translations = {m: [] for m in ("vrnet", "vcp")}
-    seconds = 0.0
-    with torch.no_grad():
-        for batch in tqdm(loader, desc="network", leave=False):
-            started = time.perf_counter()
-            out = model(batch["src"], batch["tgt"])
-            seconds += time.perf_counter() - started
-            R_vcp, t_vcp = kabsch(batch["src"], out.vcp)
-            for name, (R, t) in (("vrnet", (out.rotation, out.translation)), ("vcp", (R_vcp, t_vcp))):
-                rotations[name].append(R.double().numpy())
-                translations[name].append(t.double().numpy())
-    return {m: (np.concatenate(rotations[m]), np.concatenate(translations[m]), seconds)
-            for m in ("vrnet", "vcp") if m in methods}
+    estimates = {}
+    configured = model.config.iterations
+    for passes, names in ((configured, ("vrnet", "vcp")), (2, ("vrnet2",))):
+        names = [m for m in names if m in methods]
+        if not names:
+            continue
+        rotations, translations, seconds = {m: [] for m in names}, {m: [] for m in names}, 0.0
+        model.config.iterations = passes
+        try:
+            with torch.no_grad():
+                for batch in tqdm(loader, desc=f"network ({passes} pass{'es' if passes > 1 else ''})", leave=False):
+                    started = time.perf_counter()
+                    out = model(batch["src"], batch["tgt"])
+                    seconds += time.perf_counter() - started
+                    for name in names:
+                        R, t = kabsch(batch["src"], out.vcp) if name == "vcp" else (out.rotation, out.translation)
+                        rotations[name].append(R.double().numpy())
+                        translations[name].append(t.double().numpy())
+        finally:
+            model.config.iterations = configured
+        estimates.update({m: (np.concatenate(rotations[m]), np.concatenate(translations[m]), seconds) for m in names})
+    return estimates
 
 
 def classical_estimates(data, method: str, icp_max_distance: float, fpfh_voxel: float) -> tuple:
@@ -198,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--models", nargs="+", default=None, help="shipped names or checkpoints (default: every shipped ModelNet40 VRNet)")
     parser.add_argument("--data-dir", default=None, help="folder of modelnet40_1024_test.h5 (default: ../shared)")
-    parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
+    parser.add_argument("--methods", nargs="+", choices=METHODS, default=["vrnet", "vcp", "icp", "fpfh"])
     parser.add_argument("--settings", nargs="+", choices=SETTINGS, default=None,
                         help="only these settings of the models' cells (default: every cell a model serves)")
     parser.add_argument("--max-items", type=int, default=None, help="first N test shapes only (default: all)")

@@ -167,3 +167,38 @@ def test_modelnet40_summary_skips_partial_view_measurements_of_other_views(tmp_p
     cells = {(c["setting"], c["split"]): c for c in json.loads((tmp_path / "summary.json").read_text())["cells"]}
     assert cells[("PV", "UPC")]["ours"]["RMSE(R)"] == 0.3
     assert cells[("CO", "UPC")]["ours"]["RMSE(R)"] == pytest.approx(0.9)
+
+
+@requires_modelnet
+def test_modelnet40_tables_two_passes_leave_the_one_pass_row_and_the_model_as_they_were(tmp_path):
+    """``vrnet2`` is a second run of the same network (two passes) beside the one-pass ``vrnet`` row:
+    the one-pass row is the same as without it, and the two rows differ."""
+    common = [str(ROOT / "benchmarks" / "modelnet40_tables.py"), "--models", "vrnet-pv-upc-rcp", "--max-items", "3",
+              "--batch-size", "2", "--data-dir", str(MODELNET_DIR)]
+    run(common + ["--methods", "vrnet", "vrnet2", "--json", "both.json", "--markdown", "both.md"], tmp_path)
+    run(common + ["--methods", "vrnet", "--json", "one.json", "--markdown", "one.md"], tmp_path)
+    (both,) = json.loads((tmp_path / "both.json").read_text())["results"]
+    (one,) = json.loads((tmp_path / "one.json").read_text())["results"]
+    assert both["methods"]["vrnet"]["RMSE(R)"] == one["methods"]["vrnet"]["RMSE(R)"]
+    assert both["methods"]["vrnet2"]["RMSE(R)"] != both["methods"]["vrnet"]["RMSE(R)"]
+    assert "VRNet, 2 passes" in (tmp_path / "both.md").read_text()
+
+
+def test_modelnet40_summary_lists_two_pass_rows_apart_from_the_comparison(tmp_path):
+    """A cell measured with one and two passes: the one-pass row decides ``reached``; the two-pass row
+    is listed in a table of its own."""
+    from vrnet_ext.model.pretrained import model_for
+
+    one_pass = {"RMSE(R)": 0.5, "MAE(R)": 0.05, "RMSE(t)": 1e-3, "MAE(t)": 1e-4}  # CO / UC: above the paper
+    two_passes = {k: v / 100 for k, v in one_pass.items()}
+    (tmp_path / "results" / "2026-01-00").mkdir(parents=True)
+    cell = {"model": model_for("CO", "UC"), "setting": "CO", "split": "UC", "pairs": 2468,
+            "methods": {"vrnet": one_pass, "vrnet2": two_passes}}
+    (tmp_path / "results" / "2026-01-00" / "modelnet40_tables_x.json").write_text(json.dumps({"results": [cell]}))
+    run([str(ROOT / "benchmarks" / "modelnet40_summary.py"), "--results", str(tmp_path / "results"),
+         "--json", "summary.json", "--markdown", "summary.md"], tmp_path)
+    cells = {(c["setting"], c["split"]): c for c in json.loads((tmp_path / "summary.json").read_text())["cells"]}
+    co = cells[("CO", "UC")]
+    assert co["reached"] == 0 and co["two_passes_reached"] == 4 and co["two_passes"]["RMSE(R)"] == 0.005
+    text = (tmp_path / "summary.md").read_text()
+    assert "0 of 12 cells" in text and "with two passes" in text
