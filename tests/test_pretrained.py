@@ -106,3 +106,16 @@ def test_model_for_prefers_the_model_of_the_setting_then_one_trained_on_every_se
     assert pretrained.model_for("RS", "UPC") == pretrained.model_for("CO", "UPC") == "all-upc"
     assert pretrained.model_for("PV", "ND") == "pv-nd" and pretrained.model_for("RS", "ND") is None
     assert pretrained.model_for("CO", "UC") == "pv-uc" and pretrained.cells("pv-uc") == ["CO/UC", "PV/UC"]
+    torch.save({"model": {}, "config": {"model": {}, "setting": "mixed", "split": "ND"}, "card": {"cells": []}},
+               tmp_path / "all-nd.pt")  # a starting point that serves no cell
+    assert pretrained.cells("all-nd") == [] and pretrained.model_for("RS", "ND") is None
+
+
+def test_every_cell_is_served_by_exactly_one_shipped_model():
+    """``cells()`` of the shipped models partitions the paper's 12 cells, and ``model_for`` agrees."""
+    from vrnet_ext.model.pretrained import available, cells, model_for
+
+    for setting in ("CO", "PV", "RS", "PV+RS"):
+        for split in ("UPC", "UC", "ND"):
+            serving = [name for name in available("vrnet") if f"{setting}/{split}" in cells(name)]
+            assert serving == [model_for(setting, split)], (setting, split, serving)

@@ -105,6 +105,9 @@ def model_card_markdown(name: str, config: dict, card: dict) -> str:
     if card.get("cells"):
         lines += ["", "Serves the ModelNet40 cells " + ", ".join(card["cells"])
                   + " (`vrnet eval --setting S --split P` picks it for them)."]
+    elif "cells" in card:
+        lines += ["", "Serves no ModelNet40 cell (`vrnet eval` picks other models by default); it is the "
+                  "starting point of models that do, and loads by name."]
     lines += ["", "## Training", ""]
     lines += [f"- {key}: {value}" for key, value in card.get("training", {}).items() if not isinstance(value, dict)]
     if "validation" in card.get("training", {}):

@@ -45,15 +45,16 @@ def available(kind: str | None = None) -> list[str]:
 
 def cells(name: str) -> list[str]:
     """The ModelNet40 cells ("PV/UPC", "CO/UPC", ...) a shipped VRNet serves: those its card names
-    (chosen on validation pairs when a model serves more than the cell it was trained for), else the
+    (chosen on validation pairs; none for a model kept as the starting point of others), else the
     setting and split it was trained for; a model trained on every setting (``"mixed"``) serves
     every setting of its split unless its card says otherwise."""
     return _cells_of(read_checkpoint(weights_path(name)))
 
 
 def _cells_of(state: dict) -> list[str]:
-    if state.get("card", {}).get("cells"):
-        return list(state["card"]["cells"])
+    card = state.get("card", {})
+    if "cells" in card:  # chosen on validation; an empty list: a starting point that serves no cell
+        return list(card["cells"])
     setting, split = state["config"].get("setting"), state["config"].get("split")
     if setting == MIXED_SETTING:
         return [f"{s}/{split}" for s in PAPER_SETTINGS]
