@@ -40,6 +40,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
+from vrnet_ext.data.modelnet import SPLITS
 from vrnet_ext.data.protocol import MIXED, SETTINGS, VIEW_PROTOCOL
 from vrnet_ext.registration.ransac import fpfh_ransac
 from vrnet_ext.geometry.metrics import summarize
@@ -83,7 +84,6 @@ PAPER_TABLES = {
         "PRNet": (4.924, 3.836, 4.519, 2.573, 1.901, 1.925, 0.0162, 0.0163, 0.0139, 0.0112, 0.0112, 0.0099),
         "VRNet": (1.109, 1.842, 2.411, 0.513, 0.702, 1.020, 0.0037, 0.0045, 0.0072, 0.0023, 0.0026, 0.0050)}),
 }
-SPLITS = ("UPC", "UC", "ND")
 # (setting, split) -> method -> (RMSE(R), MAE(R), RMSE(t), MAE(t)) in plain units.
 PAPER = {(setting, split): {method: (row[k], row[3 + k], row[6 + k] * scale, row[9 + k] * scale)
                             for method, row in rows.items()}

@@ -113,9 +113,11 @@ def test_model_for_prefers_the_model_of_the_setting_then_one_trained_on_every_se
 
 def test_every_cell_is_served_by_exactly_one_shipped_model():
     """``cells()`` of the shipped models partitions the paper's 12 cells, and ``model_for`` agrees."""
+    from vrnet_ext.data.modelnet import SPLITS
+    from vrnet_ext.data.protocol import SETTINGS
     from vrnet_ext.model.pretrained import available, cells, model_for
 
-    for setting in ("CO", "PV", "RS", "PV+RS"):
-        for split in ("UPC", "UC", "ND"):
+    for setting in SETTINGS:
+        for split in SPLITS:
             serving = [name for name in available("vrnet") if f"{setting}/{split}" in cells(name)]
             assert serving == [model_for(setting, split)], (setting, split, serving)
