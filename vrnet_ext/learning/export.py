@@ -8,22 +8,55 @@ from pathlib import Path
 
 from vrnet_ext.geometry.atomic import save_atomically, write_text_atomically
 from vrnet_ext.model.checkpoints import model_from_state, read_checkpoint, validate_model_config
-from vrnet_ext.model.pretrained import DEFAULT_MODEL, FORMAT
+from vrnet_ext.model.pretrained import DEFAULT_MODEL, FORMAT, available, model_card, training_seconds
 from vrnet_ext.model.scene import SCENE_FORMAT
+
+
+MAX_LINEAGE = 16  # runs followed back from a checkpoint to the shipped model it started from
+
+
+def _seconds(state: dict) -> float:
+    return float(state.get("train_seconds") or 0.0)
+
+
+def lineage(state: dict, source: str) -> tuple[str | None, float]:
+    """Where a ``vrnet train`` run's chain of warm starts began and what the chain cost.
+
+    Follows ``features_from`` (else ``walk_from``) back through run checkpoints until a shipped
+    model (its name) or a run started from scratch (``None``). Returns that starting point and the
+    seconds of every run in the chain after it, ``state``'s own included. A starting checkpoint that
+    no longer exists is named by its path and its time is not counted."""
+
+    seconds = _seconds(state)
+    for _ in range(MAX_LINEAGE):
+        start = state["config"].get("features_from") or state["config"].get("walk_from")
+        if not start:
+            return None, seconds
+        if not Path(start).is_file():
+            return str(start), seconds
+        state = read_checkpoint(start)
+        if state.get("format") == FORMAT:
+            return Path(start).stem, seconds
+        seconds += _seconds(state)
+    raise ValueError(f"{source}: more than {MAX_LINEAGE} runs of warm starts before a shipped model or a run "
+                     "from scratch")
 
 
 def training_facts(checkpoint: str | os.PathLike) -> dict:
     """What a model card says about training, read from a ``vrnet train`` checkpoint and the
-    ``metrics.jsonl`` beside it: setting, split, preset, the selected epoch, steps, wall time and
-    that epoch's validation metrics."""
+    ``metrics.jsonl`` beside it: setting, split, preset, the selected epoch, steps, wall time, the
+    shipped model its warm starts began from and the wall time of the runs since (:func:`lineage`),
+    and that epoch's validation metrics."""
 
     state = read_checkpoint(checkpoint)
     config = state["config"]
     facts = {key: config.get(key) for key in ("preset", "setting", "split", "num_points", "num_subsampled",
                                               "batch_size", "stage1_epochs", "stage2_epochs", "precision",
                                               "max_train_items", "val_fraction", "seed")}
+    starting_point, runs_seconds = lineage(state, str(checkpoint))
     facts.update(stage=state.get("stage"), epoch=(state.get("epoch") or 0) + 1, step=state.get("step"),
-                 train_seconds=round(float(state.get("train_seconds") or 0.0), 1))
+                 train_seconds=round(_seconds(state), 1), starting_point=starting_point,
+                 runs_seconds=round(runs_seconds, 1))
     metrics = Path(checkpoint).with_name("metrics.jsonl")
     if metrics.exists():
         records = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
@@ -49,10 +82,22 @@ def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike
     config["model"] = validate_model_config(dict(config["model"], **overrides), str(out_path)).to_dict()
     card = json.loads(json.dumps(card))
     out_path = Path(out_path)
+    _replacing_its_start(card.get("training", {}), out_path.stem)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     save_atomically({"format": FORMAT, "model": weights, "config": config, "card": card}, out_path)
     write_text_atomically(out_path.with_suffix(".md"), model_card_markdown(out_path.stem, config, card))
     return out_path
+
+
+def _replacing_its_start(training: dict, name: str) -> None:
+    """A model shipped under the name of the model it started from takes over that model's starting
+    point and adds its training time (the earlier weights are about to be overwritten)."""
+    if training.get("starting_point") != name or name not in available():
+        return
+    earlier = model_card(name).get("training", {})
+    training["starting_point"] = earlier.get("starting_point", f"an earlier {name}")
+    earlier_seconds = float(earlier.get("runs_seconds") or earlier.get("train_seconds") or 0.0)
+    training["runs_seconds"] = round(float(training.get("runs_seconds") or 0.0) + earlier_seconds, 1)
 
 
 def export_scene_model(run: str | os.PathLike, out_path: str | os.PathLike, card: dict) -> Path:
@@ -109,8 +154,16 @@ def model_card_markdown(name: str, config: dict, card: dict) -> str:
         lines += ["", "Serves no ModelNet40 cell (`vrnet eval` picks other models by default); it is the "
                   "starting point of models that do, and loads by name."]
     lines += ["", "## Training", ""]
-    lines += [f"- {key}: {value}" for key, value in card.get("training", {}).items() if not isinstance(value, dict)]
-    if "validation" in card.get("training", {}):
+    training = card.get("training", {})
+    lines += [f"- {key}: {value}" for key, value in training.items() if not isinstance(value, dict)]
+    if "starting_point" in training:
+        start = training["starting_point"]
+        before = 0.0 if start is None else training_seconds(start)
+        if before is not None:
+            total = float(training.get("runs_seconds") or training.get("train_seconds") or 0.0) + before
+            lines.append(f"- training in all: {total:,.0f} s (runs_seconds: the runs since the starting point; "
+                         "with the training of every model before it)")
+    if "validation" in training:
         lines += ["", "Validation (pairs held out of the training split) at the selected epoch:", ""]
         lines += _table(card["training"]["validation"])
     if "test" in card:

@@ -97,6 +97,24 @@ def model_card(name: str | None = None) -> dict:
     return dict(read_checkpoint(weights_path(name or DEFAULT_MODEL)).get("card", {}))
 
 
+def training_seconds(name: str) -> float | None:
+    """Wall time of all the training behind a shipped model, in seconds: the runs its card counts
+    since its starting point (``runs_seconds``) plus the starting point's own total, back to a model
+    trained from scratch (``starting_point`` None). None where a card in the chain does not record
+    its starting point or names one that is not shipped."""
+    seconds, seen = 0.0, set()
+    while name is not None:
+        if name in seen or name not in available():
+            return None
+        seen.add(name)
+        training = model_card(name).get("training", {})
+        if "starting_point" not in training:
+            return None
+        seconds += float(training.get("runs_seconds") or training.get("train_seconds") or 0.0)
+        name = training["starting_point"]
+    return seconds
+
+
 def load_model(checkpoint: str | os.PathLike,
                map_location: str | torch.device = "cpu") -> tuple[VRNet | SceneVRNet, dict]:
     """(model in eval mode, checkpoint dict) from a checkpoint path or a shipped name
