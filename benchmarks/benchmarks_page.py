@@ -35,6 +35,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "modelnet40_tables_co_uc": "ModelNet40 tables, CO / UC (`modelnet40_tables.py --models vrnet-co-uc-rcp --methods vrnet vcp`)",
     "modelnet40_tables_rs_uc": "ModelNet40 tables, RS / UC (`modelnet40_tables.py --models vrnet-rs-uc-rcp --methods vrnet vcp`)",
     "modelnet40_tables_pvrs_uc": "ModelNet40 tables, PV+RS / UC (`modelnet40_tables.py --models vrnet-pvrs-uc-rcp --methods vrnet vcp [vrnet2]`)",
+    "modelnet40_tables_rs_upc": "ModelNet40 tables, RS / UPC (`modelnet40_tables.py --models vrnet-rs-upc-rcp --methods vrnet vcp vrnet2`)",
     "modelnet40_tables_pvrs_nd": "ModelNet40 tables, PV+RS / ND (`modelnet40_tables.py --models vrnet-pvrs-nd-rcp --methods vrnet vcp vrnet2`)",
     "modelnet40_tables_two_passes": "ModelNet40 tables, two passes (`modelnet40_tables.py --models <the serving models> --methods vrnet2`)",
     "modelnet40_tables_rs_nd": "ModelNet40 tables, RS / ND (`modelnet40_tables.py --models vrnet-rs-nd-rcp --methods vrnet vcp`)",

@@ -77,7 +77,7 @@ def test_eval_picks_the_shipped_model_of_the_setting_and_split(tmp_path, capsys,
 
     assert model_for("PV", "UPC") == "vrnet-pv-upc-rcp" and model_for("PV", "ND") == "vrnet-pv-nd-rcp"
     assert model_for("CO", "UPC") == "vrnet-co-upc-rcp"
-    assert model_for("RS", "UPC") == model_for("PV+RS", "UPC") == "vrnet-mixed-upc-rcp"
+    assert model_for("RS", "UPC") == "vrnet-rs-upc-rcp" and model_for("PV+RS", "UPC") == "vrnet-mixed-upc-rcp"
     assert model_for("RS", "UC") == "vrnet-rs-uc-rcp" and model_for("PV+RS", "UC") == "vrnet-pvrs-uc-rcp"
     assert model_for("CO", "UC") == "vrnet-co-uc-rcp" and model_for("PV", "UC") == "vrnet-pv-uc-rcp"
     assert model_for("RS", "ND") == "vrnet-rs-nd-rcp" and model_for("PV+RS", "ND") == "vrnet-pvrs-nd-rcp"
@@ -121,3 +121,61 @@ def test_every_cell_is_served_by_exactly_one_shipped_model():
         for split in SPLITS:
             serving = [name for name in available("vrnet") if f"{setting}/{split}" in cells(name)]
             assert serving == [model_for(setting, split)], (setting, split, serving)
+
+
+def _run_checkpoint(path, seconds, start=None):
+    from vrnet_ext import VRNet, VRNetConfig
+
+    config = VRNetConfig.small(k=4, dgcnn_channels=[8, 8], emb_dims=16, heads=2, ff_dims=16, walk_channels=[8, 3])
+    torch.manual_seed(0)
+    torch.save({"model": VRNet(config).state_dict(), "train_seconds": seconds,
+                "config": {"model": config.to_dict(), "setting": "PV", "split": "UPC", "features_from": start}}, path)
+    return path
+
+
+def test_training_time_follows_warm_starts_back_to_the_shipped_model_they_began_from(tmp_path, monkeypatch):
+    """A card counts the runs since its shipped starting point; ``training_seconds`` adds the chain of
+    cards; exporting under the starting point's own name takes over its history."""
+    import vrnet_ext.model.pretrained as pretrained
+    from vrnet_ext.learning.export import export_pretrained, lineage, training_facts
+
+    monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path / "weights")
+    scratch = _run_checkpoint(tmp_path / "scratch.pt", 100.0)
+    assert lineage(read_checkpoint(scratch), "scratch") == (None, 100.0)
+    export_pretrained(scratch, tmp_path / "weights" / "base.pt", {"training": training_facts(scratch)})
+    first = _run_checkpoint(tmp_path / "first.pt", 20.0, start=str(tmp_path / "weights" / "base.pt"))
+    second = _run_checkpoint(tmp_path / "second.pt", 3.0, start=str(first))
+    facts = training_facts(second)
+    assert (facts["starting_point"], facts["runs_seconds"], facts["train_seconds"]) == ("base", 23.0, 3.0)
+    export_pretrained(second, tmp_path / "weights" / "child.pt", {"training": facts})
+    assert pretrained.training_seconds("base") == 100.0 and pretrained.training_seconds("child") == 123.0
+    assert "training in all: 123 s" in (tmp_path / "weights" / "child.md").read_text()
+
+    again = _run_checkpoint(tmp_path / "again.pt", 7.0, start=str(tmp_path / "weights" / "child.pt"))
+    export_pretrained(again, tmp_path / "weights" / "child.pt", {"training": training_facts(again)})
+    training = pretrained.model_card("child")["training"]
+    assert (training["starting_point"], training["runs_seconds"]) == ("base", 30.0)
+    assert pretrained.training_seconds("child") == 130.0
+
+    gone = _run_checkpoint(tmp_path / "gone.pt", 5.0, start=str(tmp_path / "deleted.pt"))
+    assert lineage(read_checkpoint(gone), "gone") == (str(tmp_path / "deleted.pt"), 5.0)
+    export_pretrained(gone, tmp_path / "weights" / "orphan.pt", {"training": training_facts(gone)})
+    assert pretrained.training_seconds("orphan") is None  # its start is not shipped: unknown, not zero
+    export_pretrained(scratch, tmp_path / "weights" / "old.pt", {"training": {"train_seconds": 9.0}})
+    assert pretrained.training_seconds("old") is None  # a card that never recorded its start
+
+
+def test_a_loop_of_warm_starts_is_refused_naming_the_checkpoint(tmp_path):
+    from vrnet_ext.learning.export import lineage
+
+    loop = _run_checkpoint(tmp_path / "loop.pt", 1.0, start=str(tmp_path / "loop.pt"))
+    with pytest.raises(ValueError, match="loop.pt"):
+        lineage(read_checkpoint(loop), str(loop))
+
+
+def test_every_shipped_vrnet_card_knows_its_whole_training_time():
+    from vrnet_ext.model.pretrained import training_seconds
+
+    for name in available("vrnet"):
+        seconds = training_seconds(name)
+        assert seconds is not None and seconds >= model_card(name)["training"]["train_seconds"], name
