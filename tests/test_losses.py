@@ -139,3 +139,11 @@ def test_the_motion_term_measures_the_estimate_against_the_truth():
     expected = float(((2 * (1 - angle.cos()) ** 2 + 2 * angle.sin() ** 2) / 9).sqrt()) + 0.3
     assert parts["LM"] == pytest.approx(expected, rel=1e-9) and "LM" not in parts_without
     assert float(total - without) == pytest.approx(2.0 * expected, rel=1e-9)
+    _, heavier = losses.hybrid_loss(off, src, R, t, losses.HybridLossWeights(motion=2.0, motion_translation=4.0),
+                                    backend="torch")
+    assert heavier["LM"] == pytest.approx(expected + 3 * 0.3, rel=1e-9)  # only the translation term grows
+    _, parts_l1 = losses.hybrid_loss(off, src, R, t, losses.HybridLossWeights(motion=2.0, motion_translation=4.0),
+                                     generator=torch.Generator().manual_seed(0), backend="torch")
+    _, parts_l1_dcp = losses.hybrid_loss(off, src, R, t, weights, generator=torch.Generator().manual_seed(0),
+                                         backend="torch")
+    assert parts_l1["L1"] == parts_l1_dcp["L1"]  # L1's motion consensus keeps its own balance

@@ -197,6 +197,9 @@ def test_freeze_confidence_trains_the_offsets_only():
         TrainConfig.from_preset("tiny", freeze_confidence=True)
     with pytest.raises(ValueError, match="loss_motion must be >= 0"):
         TrainConfig.from_preset("tiny", loss_motion=-1.0)
+    for bad in (-1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="loss_motion_translation must be >= 0 and finite"):
+            TrainConfig.from_preset("tiny", loss_motion_translation=bad)
 
 
 @requires_modelnet

@@ -59,6 +59,8 @@ FIELD_HELP = {
                   "per pair; symmetric = the target's far point mirrors the source's (the paper's ablations)",
     "loss_motion": "weight of LM, the supervised motion loss rmse(R^T R_gt, I) + rmse(t, t_gt) of the network's "
                    "estimate (DCP's; not in the paper; 0: off)",
+    "loss_motion_translation": "weight of LM's translation term rmse(t, t_gt) against its rotation term (1: DCP's; "
+                               "a rotation error of 1 degree weighs about as much as a translation error of 0.014)",
     "precision": "bf16: forward and loss under bfloat16 autocast (ops, matching and Procrustes stay float32) | fp32",
     "checkpoint_minutes": "also write last.pt every this many minutes inside an epoch",
     "resume": "continue from this last.pt (same model options as the run that wrote it; a larger epoch count "
@@ -86,7 +88,7 @@ SECTIONS = {
              "max_train_items", "max_val_items", "val_fraction", "seed"),
     "schedule": ("batch_size", "stage1_epochs", "stage2_epochs", "lr_stage1", "lr_stage2", "weight_decay",
                  "lr_milestones", "lr_gamma"),
-    "loss": ("loss_l4", "loss_l4_form", "loss_motion"),
+    "loss": ("loss_l4", "loss_l4_form", "loss_motion", "loss_motion_translation"),
     "start": ("resume", "features_from", "walk_from", "freeze_confidence"),
     "runtime": ("out_dir", "device", "backend", "num_workers", "precision", "flush_denormal", "checkpoint_minutes"),
 }
@@ -123,6 +125,7 @@ class TrainConfig:
     loss_l4: float = 100.0
     loss_l4_form: str = "rmse"
     loss_motion: float = 0.0
+    loss_motion_translation: float = 1.0
     far_points: str = "prnet"
     precision: str = "bf16"
     checkpoint_minutes: float = 10.0
@@ -183,8 +186,9 @@ class TrainConfig:
             raise ValueError(f"loss_l4_form must be one of {L4_FORMS}, got {self.loss_l4_form!r}")
         if not self.checkpoint_minutes > 0:
             raise ValueError(f"checkpoint_minutes must be > 0, got {self.checkpoint_minutes}")
-        if not self.loss_motion >= 0:
-            raise ValueError(f"loss_motion must be >= 0, got {self.loss_motion}")
+        for name in ("loss_motion", "loss_motion_translation"):
+            if not 0 <= getattr(self, name) < float("inf"):
+                raise ValueError(f"{name} must be >= 0 and finite, got {getattr(self, name)}")
         if self.freeze_confidence and not self.model.get("walk_confidence_trunk"):
             raise ValueError("freeze_confidence needs walk_confidence_trunk (a confidence MLP of its own)")
 

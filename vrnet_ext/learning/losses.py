@@ -63,10 +63,11 @@ def local_motion_consensus_loss(src: torch.Tensor, rcp: torch.Tensor, rotation: 
 
 
 def motion_difference(rotation: torch.Tensor, translation: torch.Tensor, other_rotation: torch.Tensor,
-                      other_translation: torch.Tensor) -> torch.Tensor:
-    """(B, 3, 3), (B, 3) twice -> (B,) rmse(R^T R', I) + rmse(t, t'): L1's term, and LM's against the truth."""
+                      other_translation: torch.Tensor, translation_weight: float = 1.0) -> torch.Tensor:
+    """(B, 3, 3), (B, 3) twice -> (B,) rmse(R^T R', I) + translation_weight rmse(t, t'): L1's term, and LM's
+    against the truth."""
     eye = torch.eye(3, dtype=rotation.dtype, device=rotation.device).expand_as(rotation)
-    return rmse(rotation.mT @ other_rotation, eye) + rmse(translation, other_translation)
+    return rmse(rotation.mT @ other_rotation, eye) + translation_weight * rmse(translation, other_translation)
 
 
 def offset_log_loss(rcp: torch.Tensor, truth: torch.Tensor, scale: float) -> torch.Tensor:
@@ -93,6 +94,7 @@ class HybridLossWeights:
     confidence: float = 1.0
     l4_log_scale: float = 0.01
     motion: float = 0.0  # weight of LM (not in the paper)
+    motion_translation: float = 1.0  # weight of LM's translation term against its rotation term
     correct_within: float = 0.03  # a VCP / RCP this close to R_gt x + t_gt counts as correct (unit-sphere shapes)
 
 
@@ -111,7 +113,8 @@ def hybrid_loss(out: VRNetOutput, src: torch.Tensor, gt_rotation: torch.Tensor, 
     total = w.l1 * l1 + w.l2 * l2 + w.l3 * l3 + w.l4 * l4
     parts = {"L1": float(l1.detach()), "L2": float(l2.detach()), "L3": float(l3.detach()), "L4": float(l4.detach())}
     if w.motion > 0:
-        lm = motion_difference(out.rotation, out.translation, gt_rotation, gt_translation).mean()
+        lm = motion_difference(out.rotation, out.translation, gt_rotation, gt_translation,
+                               w.motion_translation).mean()
         total = total + w.motion * lm
         parts["LM"] = float(lm.detach())
     if out.gate_logits is not None:

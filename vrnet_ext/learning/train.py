@@ -229,7 +229,8 @@ def train(cfg: TrainConfig, datasets: tuple[Dataset, Dataset] | None = None) -> 
     if state is not None:
         _check_resumable(state, model_cfg, cfg.resume)
         model.load_state_dict(state["model"])
-    loss_weights = HybridLossWeights(l4=cfg.loss_l4, l4_form=cfg.loss_l4_form, motion=cfg.loss_motion)
+    loss_weights = HybridLossWeights(l4=cfg.loss_l4, l4_form=cfg.loss_l4_form, motion=cfg.loss_motion,
+                                     motion_translation=cfg.loss_motion_translation)
     progress = _Progress()
     if state:
         progress = _Progress(state["step"], state.get("best_rmse", float("inf")), state.get("train_seconds", 0.0))
