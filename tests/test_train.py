@@ -175,8 +175,8 @@ def test_resume_extends_a_finished_stage_with_this_runs_milestones(tmp_path):
     stage2 = [r for r in records(tmp_path / "run") if r["stage"] == 2]
     lr = TrainConfig.from_preset("tiny").lr_stage2
     assert [r["epoch"] for r in stage2] == [1, 2, 3]
-    # the lr logged after an epoch is the next epoch's: the milestone at 2 lowers it from then on
-    assert [r["lr"] for r in stage2] == pytest.approx([lr, lr * 0.1, lr * 0.1])
+    # each epoch's record holds the rate it ran with: the milestone at 2 lowers it after two epochs
+    assert [r["lr"] for r in stage2] == pytest.approx([lr, lr, lr * 0.1])
 
 
 def test_freeze_confidence_trains_the_offsets_only():

@@ -39,7 +39,8 @@ FIELD_HELP = {
     "lr_stage1": "Adam learning rate of stage 1",
     "lr_stage2": "Adam learning rate of stage 2",
     "weight_decay": "Adam weight decay",
-    "lr_milestones": "epochs (counted within each stage) at which the learning rate is multiplied by lr_gamma",
+    "lr_milestones": "the learning rate is multiplied by lr_gamma after each of these many epochs, counted within "
+                     "each stage (2: the first two epochs at the full rate)",
     "lr_gamma": "learning-rate factor at each milestone",
     "num_points": "points per shape before the crop",
     "num_subsampled": "points per cloud after the PV / RS crop",

@@ -344,9 +344,9 @@ def _train_stages(setup: _Setup, state: dict | None, progress: _Progress) -> dic
                           f"continue with --resume {out_dir / 'last.pt'}", flush=True)
                     return {"stage": stage, "epoch": epoch + 1, "step": progress.step, "stopped": True,
                             "signal": stop.signal}
+            epoch_lr = optimizer.param_groups[0]["lr"]
             scheduler.step()
-            record = {"stage": stage, "epoch": epoch + 1, "step": progress.step,
-                      "lr": optimizer.param_groups[0]["lr"],
+            record = {"stage": stage, "epoch": epoch + 1, "step": progress.step, "lr": epoch_lr,
                       "epoch_seconds": round(time.time() - epoch_started, 2), "world_size": run.world}
             record.update({f"train_{k}": v / max(batches, 1) for k, v in totals.items()})
             record["replica_max_abs_diff"] = _replica_spread(model, run)
