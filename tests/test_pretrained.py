@@ -149,7 +149,7 @@ def test_training_time_follows_warm_starts_back_to_the_shipped_model_they_began_
     assert (facts["starting_point"], facts["runs_seconds"], facts["train_seconds"]) == ("base", 23.0, 3.0)
     export_pretrained(second, tmp_path / "weights" / "child.pt", {"training": facts})
     assert pretrained.training_seconds("base") == 100.0 and pretrained.training_seconds("child") == 123.0
-    assert "training in all: 123 s" in (tmp_path / "weights" / "child.md").read_text()
+    assert "training in all: 123 s (runs_seconds plus" in (tmp_path / "weights" / "child.md").read_text()
 
     again = _run_checkpoint(tmp_path / "again.pt", 7.0, start=str(tmp_path / "weights" / "child.pt"))
     export_pretrained(again, tmp_path / "weights" / "child.pt", {"training": training_facts(again)})

@@ -161,8 +161,8 @@ def model_card_markdown(name: str, config: dict, card: dict) -> str:
         before = 0.0 if start is None else training_seconds(start)
         if before is not None:
             total = float(training.get("runs_seconds") or training.get("train_seconds") or 0.0) + before
-            lines.append(f"- training in all: {total:,.0f} s (runs_seconds: the runs since the starting point; "
-                         "with the training of every model before it)")
+            lines.append(f"- training in all: {total:,.0f} s (runs_seconds plus the training of the starting point "
+                         "and of every model before it)")
     if "validation" in training:
         lines += ["", "Validation (pairs held out of the training split) at the selected epoch:", ""]
         lines += _table(card["training"]["validation"])
