@@ -1,9 +1,9 @@
 """The paper's whole ModelNet40 table, 12 cells, from the measured cell tables: per cell the shipped
 model that serves it (``vrnet_ext.model.pretrained.model_for``), its four errors on the whole test
-split beside the paper's VRNet row, how many of the four are at or below it, and the training time behind
-that model (its card and the cards of the models it was fine-tuned from). Where a cell was also measured with two passes (``modelnet40_tables.py
---methods vrnet2``), a second table lists those: information, not the comparison with the paper's
-one-pass tables.
+split beside the paper's VRNet row, how many of the four are at or below it, and the training time
+behind that model (its card and the cards of the models it was fine-tuned from). Where a cell was
+also measured with two passes (``modelnet40_tables.py --methods vrnet2``), a second table lists
+those: information, not the comparison with the paper's one-pass tables.
 
     python benchmarks/modelnet40_summary.py [--results benchmarks/results] [--json F] [--markdown F] [--png F]
 

@@ -163,6 +163,9 @@ def test_training_time_follows_warm_starts_back_to_the_shipped_model_they_began_
     assert pretrained.training_seconds("orphan") is None  # its start is not shipped: unknown, not zero
     export_pretrained(scratch, tmp_path / "weights" / "old.pt", {"training": {"train_seconds": 9.0}})
     assert pretrained.training_seconds("old") is None  # a card that never recorded its start
+    export_pretrained(scratch, tmp_path / "weights" / "odd.pt",
+                      {"training": {"starting_point": ["base"], "runs_seconds": "many"}})
+    assert pretrained.training_seconds("odd") is None  # card values of the wrong type: unknown, no crash
 
 
 def test_a_loop_of_warm_starts_is_refused_naming_the_checkpoint(tmp_path):

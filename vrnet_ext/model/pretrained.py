@@ -101,16 +101,17 @@ def training_seconds(name: str) -> float | None:
     """Wall time of all the training behind a shipped model, in seconds: the runs its card counts
     since its starting point (``runs_seconds``) plus the starting point's own total, back to a model
     trained from scratch (``starting_point`` None). None where a card in the chain does not record
-    its starting point or names one that is not shipped."""
+    its starting point, names one that is not shipped, or holds no number of seconds."""
     seconds, seen = 0.0, set()
     while name is not None:
-        if name in seen or name not in available():
+        if not isinstance(name, str) or name in seen or name not in available():
             return None
         seen.add(name)
         training = model_card(name).get("training", {})
-        if "starting_point" not in training:
+        runs = training.get("runs_seconds", training.get("train_seconds"))
+        if "starting_point" not in training or isinstance(runs, bool) or not isinstance(runs, (int, float)):
             return None
-        seconds += float(training.get("runs_seconds") or training.get("train_seconds") or 0.0)
+        seconds += float(runs)
         name = training["starting_point"]
     return seconds
 
