@@ -25,7 +25,8 @@ def lineage(state: dict, source: str) -> tuple[str | None, float]:
     Follows ``features_from`` (else ``walk_from``) back through run checkpoints until a shipped
     model (its name) or a run started from scratch (``None``). Returns that starting point and the
     seconds of every run in the chain after it, ``state``'s own included. A starting checkpoint that
-    no longer exists is named by its path and its time is not counted."""
+    no longer exists is named by its path and its time is not counted. The paths are read as they
+    are now: a shipped file replaced by a later link of the same chain would count that link twice."""
 
     seconds = _seconds(state)
     for _ in range(MAX_LINEAGE):
