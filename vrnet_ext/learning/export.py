@@ -8,7 +8,8 @@ from pathlib import Path
 
 from vrnet_ext.geometry.atomic import save_atomically, write_text_atomically
 from vrnet_ext.model.checkpoints import model_from_state, read_checkpoint, validate_model_config
-from vrnet_ext.model.pretrained import DEFAULT_MODEL, FORMAT, available, model_card, training_seconds
+from vrnet_ext.model.pretrained import (DEFAULT_MODEL, FORMAT, available, card_runs_seconds, model_card,
+                                        training_seconds)
 from vrnet_ext.model.scene import SCENE_FORMAT
 
 
@@ -97,8 +98,7 @@ def _replacing_its_start(training: dict, name: str) -> None:
         return
     earlier = model_card(name).get("training", {})
     training["starting_point"] = earlier.get("starting_point", f"an earlier {name}")
-    earlier_seconds = float(earlier.get("runs_seconds") or earlier.get("train_seconds") or 0.0)
-    training["runs_seconds"] = round(float(training.get("runs_seconds") or 0.0) + earlier_seconds, 1)
+    training["runs_seconds"] = round((card_runs_seconds(training) or 0.0) + (card_runs_seconds(earlier) or 0.0), 1)
 
 
 def export_scene_model(run: str | os.PathLike, out_path: str | os.PathLike, card: dict) -> Path:
@@ -110,7 +110,7 @@ def export_scene_model(run: str | os.PathLike, out_path: str | os.PathLike, card
         raise ValueError(f"{run}: not a scene-model run of `vrnet train-scene`")
     model_from_state(state, str(run))  # the weights match the configuration
     training = {"scans": ", ".join(state.get("scans", [])), "steps": state.get("step"),
-                "train_seconds": round(float(state.get("train_seconds") or 0.0), 1)}
+                "train_seconds": round(_seconds(state), 1)}
     training.update({k: v for k, v in (state.get("train_config") or {}).items() if k != "checkpoint_every"})
     card = json.loads(json.dumps(dict(card, training=dict(training, **card.get("training", {})))))
     weights = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
@@ -160,8 +160,9 @@ def model_card_markdown(name: str, config: dict, card: dict) -> str:
     if "starting_point" in training:
         start = training["starting_point"]
         before = 0.0 if start is None else training_seconds(start)
-        if before is not None:
-            total = float(training.get("runs_seconds") or training.get("train_seconds") or 0.0) + before
+        runs = card_runs_seconds(training)
+        if before is not None and runs is not None:
+            total = runs + before
             lines.append(f"- training in all: {total:,.0f} s (runs_seconds plus the training of the starting point "
                          "and of every model before it)")
     if "validation" in training:

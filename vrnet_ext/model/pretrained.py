@@ -97,6 +97,15 @@ def model_card(name: str | None = None) -> dict:
     return dict(read_checkpoint(weights_path(name or DEFAULT_MODEL)).get("card", {}))
 
 
+def card_runs_seconds(training: dict) -> float | None:
+    """A card's ``training`` section -> the seconds of its runs since its starting point
+    (``runs_seconds``, else ``train_seconds`` for cards that predate it); None when it holds no number."""
+    runs = training.get("runs_seconds", training.get("train_seconds"))
+    if isinstance(runs, bool) or not isinstance(runs, (int, float)):
+        return None
+    return float(runs)
+
+
 def training_seconds(name: str) -> float | None:
     """Wall time of all the training behind a shipped model, in seconds: the runs its card counts
     since its starting point (``runs_seconds``) plus the starting point's own total, back to a model
@@ -108,10 +117,10 @@ def training_seconds(name: str) -> float | None:
             return None
         seen.add(name)
         training = model_card(name).get("training", {})
-        runs = training.get("runs_seconds", training.get("train_seconds"))
-        if "starting_point" not in training or isinstance(runs, bool) or not isinstance(runs, (int, float)):
+        runs = card_runs_seconds(training)
+        if "starting_point" not in training or runs is None:
             return None
-        seconds += float(runs)
+        seconds += runs
         name = training["starting_point"]
     return seconds
 
