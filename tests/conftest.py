@@ -67,6 +67,27 @@ def under_each_cpu_dispatch(script: str, tmp_path: Path, *args: str) -> tuple:
     return tuple(results)
 
 
+class ChairPairs(torch.utils.data.Dataset):
+    """``count`` training pairs of procedural chairs (96 points, 64 kept), seeded by (``seed``, index):
+    a pair provider for ``vrnet_ext.learning.train.train`` that needs no ModelNet40."""
+
+    def __init__(self, count: int, seed: int):
+        self.count, self.seed = count, seed
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, index: int) -> dict:
+        import numpy as np
+
+        from vrnet_ext.data import PairSpec, make_pair
+        from vrnet_ext.data.procedural import chair
+
+        rng = np.random.default_rng([self.seed, index])
+        pair = make_pair(chair(rng)[:96], PairSpec(num_points=96, num_subsampled=64), rng)
+        return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in pair.items()}
+
+
 def non_contiguous(t: torch.Tensor) -> torch.Tensor:
     """Same values, transposed storage (last two dims stored swapped)."""
     out = t.mT.contiguous().mT

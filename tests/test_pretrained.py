@@ -137,11 +137,12 @@ def test_training_time_follows_warm_starts_back_to_the_shipped_model_they_began_
     """A card counts the runs since its shipped starting point; ``training_seconds`` adds the chain of
     cards; exporting under the starting point's own name takes over its history."""
     import vrnet_ext.model.pretrained as pretrained
-    from vrnet_ext.learning.export import export_pretrained, lineage, training_facts
+    from vrnet_ext.learning.export import export_pretrained, training_facts
+    from vrnet_ext.learning.lineage import Lineage, lineage_of
 
     monkeypatch.setattr(pretrained, "WEIGHTS_DIR", tmp_path / "weights")
     scratch = _run_checkpoint(tmp_path / "scratch.pt", 100.0)
-    assert lineage(read_checkpoint(scratch), "scratch") == (None, 100.0)
+    assert lineage_of(read_checkpoint(scratch), "scratch") == Lineage(None, 100.0)
     export_pretrained(scratch, tmp_path / "weights" / "base.pt", {"training": training_facts(scratch)})
     first = _run_checkpoint(tmp_path / "first.pt", 20.0, start=str(tmp_path / "weights" / "base.pt"))
     second = _run_checkpoint(tmp_path / "second.pt", 3.0, start=str(first))
@@ -152,13 +153,13 @@ def test_training_time_follows_warm_starts_back_to_the_shipped_model_they_began_
     assert "training in all: 123 s (runs_seconds plus" in (tmp_path / "weights" / "child.md").read_text()
 
     again = _run_checkpoint(tmp_path / "again.pt", 7.0, start=str(tmp_path / "weights" / "child.pt"))
-    export_pretrained(again, tmp_path / "weights" / "child.pt", {"training": training_facts(again)})
+    export_pretrained(again, tmp_path / "weights" / "child.pt", {"training": training_facts(again, "child")})
     training = pretrained.model_card("child")["training"]
     assert (training["starting_point"], training["runs_seconds"]) == ("base", 30.0)
     assert pretrained.training_seconds("child") == 130.0
 
     gone = _run_checkpoint(tmp_path / "gone.pt", 5.0, start=str(tmp_path / "deleted.pt"))
-    assert lineage(read_checkpoint(gone), "gone") == (str(tmp_path / "deleted.pt"), 5.0)
+    assert lineage_of(read_checkpoint(gone), "gone") == Lineage(str(tmp_path / "deleted.pt"), 5.0)
     export_pretrained(gone, tmp_path / "weights" / "orphan.pt", {"training": training_facts(gone)})
     assert pretrained.training_seconds("orphan") is None  # its start is not shipped: unknown, not zero
     export_pretrained(scratch, tmp_path / "weights" / "old.pt", {"training": {"train_seconds": 9.0}})
@@ -169,11 +170,11 @@ def test_training_time_follows_warm_starts_back_to_the_shipped_model_they_began_
 
 
 def test_a_loop_of_warm_starts_is_refused_naming_the_checkpoint(tmp_path):
-    from vrnet_ext.learning.export import lineage
+    from vrnet_ext.learning.lineage import lineage_of
 
     loop = _run_checkpoint(tmp_path / "loop.pt", 1.0, start=str(tmp_path / "loop.pt"))
     with pytest.raises(ValueError, match="loop.pt"):
-        lineage(read_checkpoint(loop), str(loop))
+        lineage_of(read_checkpoint(loop), str(loop))
 
 
 def test_every_shipped_vrnet_card_knows_its_whole_training_time():

@@ -7,7 +7,7 @@ import sys
 import pytest
 import torch
 
-from conftest import MODELNET_DIR, requires_modelnet
+from conftest import MODELNET_DIR, ChairPairs, requires_modelnet
 from vrnet_ext.model.checkpoints import read_checkpoint as load_checkpoint
 from vrnet_ext.learning.train import TrainConfig, train
 
@@ -242,26 +242,8 @@ def test_cli_refuses_an_output_file_and_a_missing_gpu_naming_the_flag(tmp_path, 
 
 def test_train_takes_any_pair_provider(tmp_path):
     """Datasets of one's own (here procedural chairs, no ModelNet40 needed) instead of the config's."""
-    import numpy as np
-    from torch.utils.data import Dataset
-
-    from vrnet_ext.data import PairSpec, make_pair
-    from vrnet_ext.data.procedural import chair
-
-    class Chairs(Dataset):
-        def __init__(self, count, seed):
-            self.count, self.seed = count, seed
-
-        def __len__(self):
-            return self.count
-
-        def __getitem__(self, index):
-            rng = np.random.default_rng([self.seed, index])
-            pair = make_pair(chair(rng)[:96], PairSpec(num_points=96, num_subsampled=64), rng)
-            return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in pair.items()}
-
     cfg = TrainConfig.from_preset("tiny", out_dir=str(tmp_path / "run"), progress=False)
-    record = train(cfg, datasets=(Chairs(8, 0), Chairs(4, 1)))
+    record = train(cfg, datasets=(ChairPairs(8, 0), ChairPairs(4, 1)))
     assert record["stage"] == 2 and (tmp_path / "run" / "best.pt").exists()
     assert "val_RMSE(R)" in json.loads((tmp_path / "run" / "metrics.jsonl").read_text().splitlines()[-1])
 

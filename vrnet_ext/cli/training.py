@@ -260,7 +260,7 @@ def run_export(args) -> int:
         path = export_scene_model(args.checkpoint, out / f"{args.name}.pt", card)
         print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")
         return 0
-    training = training_facts(args.checkpoint)
+    training = training_facts(args.checkpoint, args.name)
     if args.machine:
         training["machine"] = args.machine
     if args.sessions:

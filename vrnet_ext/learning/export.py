@@ -7,57 +7,32 @@ import os
 from pathlib import Path
 
 from vrnet_ext.geometry.atomic import save_atomically, write_text_atomically
+from vrnet_ext.learning.lineage import Lineage, lineage_of, run_seconds
 from vrnet_ext.model.checkpoints import model_from_state, read_checkpoint, validate_model_config
 from vrnet_ext.model.pretrained import (DEFAULT_MODEL, FORMAT, available, card_runs_seconds, model_card,
                                         training_seconds)
 from vrnet_ext.model.scene import SCENE_FORMAT
 
 
-MAX_LINEAGE = 16  # runs followed back from a checkpoint to the shipped model it started from
-
-
-def _seconds(state: dict) -> float:
-    return float(state.get("train_seconds") or 0.0)
-
-
-def lineage(state: dict, source: str) -> tuple[str | None, float]:
-    """Where a ``vrnet train`` run's chain of warm starts began and what the chain cost.
-
-    Follows ``features_from`` (else ``walk_from``) back through run checkpoints until a shipped
-    model (its name) or a run started from scratch (``None``). Returns that starting point and the
-    seconds of every run in the chain after it, ``state``'s own included. A starting checkpoint that
-    no longer exists is named by its path and its time is not counted. The paths are read as they
-    are now: a shipped file replaced by a later link of the same chain would count that link twice."""
-
-    seconds = _seconds(state)
-    for _ in range(MAX_LINEAGE):
-        start = state["config"].get("features_from") or state["config"].get("walk_from")
-        if not start:
-            return None, seconds
-        if not Path(start).is_file():
-            return str(start), seconds
-        state = read_checkpoint(start)
-        if state.get("format") == FORMAT:
-            return Path(start).stem, seconds
-        seconds += _seconds(state)
-    raise ValueError(f"{source}: more than {MAX_LINEAGE} runs of warm starts before a shipped model or a run "
-                     "from scratch")
-
-
-def training_facts(checkpoint: str | os.PathLike) -> dict:
+def training_facts(checkpoint: str | os.PathLike, name: str | None = None) -> dict:
     """What a model card says about training, read from a ``vrnet train`` checkpoint and the
     ``metrics.jsonl`` beside it: setting, split, preset, the selected epoch, steps, wall time, the
-    shipped model its warm starts began from and the wall time of the runs since (:func:`lineage`),
-    and that epoch's validation metrics."""
+    shipped model its warm starts began from and the wall time of the runs since
+    (:mod:`vrnet_ext.learning.lineage`), and that epoch's validation metrics.
+
+    ``name``: the name the model will be shipped under. When it is the name of the model the chain
+    began from (a model replacing its own start), the card takes over that model's starting point and
+    adds its time, as its card stood when the chain began (as it stands now for runs that predate the
+    record)."""
 
     state = read_checkpoint(checkpoint)
     config = state["config"]
     facts = {key: config.get(key) for key in ("preset", "setting", "split", "num_points", "num_subsampled",
                                               "batch_size", "stage1_epochs", "stage2_epochs", "precision",
                                               "max_train_items", "val_fraction", "seed")}
-    starting_point, runs_seconds = lineage(state, str(checkpoint))
+    starting_point, runs_seconds = _starting_point(lineage_of(state, str(checkpoint)), name)
     facts.update(stage=state.get("stage"), epoch=(state.get("epoch") or 0) + 1, step=state.get("step"),
-                 train_seconds=round(_seconds(state), 1), starting_point=starting_point,
+                 train_seconds=round(run_seconds(state), 1), starting_point=starting_point,
                  runs_seconds=round(runs_seconds, 1))
     metrics = Path(checkpoint).with_name("metrics.jsonl")
     if metrics.exists():
@@ -66,6 +41,20 @@ def training_facts(checkpoint: str | os.PathLike) -> dict:
         if mine:
             facts["validation"] = {k[4:]: v for k, v in mine[-1].items() if k.startswith("val_")}
     return facts
+
+
+def _starting_point(lineage: Lineage, name: str | None) -> tuple[str | None, float]:
+    """(starting point, seconds since) of a card, the start's own history folded in when the model
+    is shipped under its starting point's name."""
+    if name is None or lineage.starting_point != name:
+        return lineage.starting_point, lineage.seconds
+    earlier = lineage.start_training
+    if earlier is None:
+        if name not in available():
+            return lineage.starting_point, lineage.seconds
+        earlier = model_card(name).get("training", {})
+    return (earlier.get("starting_point", f"an earlier {name}"),
+            lineage.seconds + (card_runs_seconds(earlier) or 0.0))
 
 
 def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike, card: dict,
@@ -84,21 +73,10 @@ def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike
     config["model"] = validate_model_config(dict(config["model"], **overrides), str(out_path)).to_dict()
     card = json.loads(json.dumps(card))
     out_path = Path(out_path)
-    _replacing_its_start(card.get("training", {}), out_path.stem)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     save_atomically({"format": FORMAT, "model": weights, "config": config, "card": card}, out_path)
     write_text_atomically(out_path.with_suffix(".md"), model_card_markdown(out_path.stem, config, card))
     return out_path
-
-
-def _replacing_its_start(training: dict, name: str) -> None:
-    """A model shipped under the name of the model it started from takes over that model's starting
-    point and adds its training time (the earlier weights are about to be overwritten)."""
-    if training.get("starting_point") != name or name not in available():
-        return
-    earlier = model_card(name).get("training", {})
-    training["starting_point"] = earlier.get("starting_point", f"an earlier {name}")
-    training["runs_seconds"] = round((card_runs_seconds(training) or 0.0) + (card_runs_seconds(earlier) or 0.0), 1)
 
 
 def export_scene_model(run: str | os.PathLike, out_path: str | os.PathLike, card: dict) -> Path:
@@ -110,7 +88,7 @@ def export_scene_model(run: str | os.PathLike, out_path: str | os.PathLike, card
         raise ValueError(f"{run}: not a scene-model run of `vrnet train-scene`")
     model_from_state(state, str(run))  # the weights match the configuration
     training = {"scans": ", ".join(state.get("scans", [])), "steps": state.get("step"),
-                "train_seconds": round(_seconds(state), 1)}
+                "train_seconds": round(run_seconds(state), 1)}
     training.update({k: v for k, v in (state.get("train_config") or {}).items() if k != "checkpoint_every"})
     card = json.loads(json.dumps(dict(card, training=dict(training, **card.get("training", {})))))
     weights = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}

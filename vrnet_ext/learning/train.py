@@ -47,6 +47,7 @@ from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.learning.curves import plot_metrics
 from vrnet_ext.runtime import set_flush_denormal
 from vrnet_ext.geometry.atomic import save_atomically
+from vrnet_ext.learning.lineage import Lineage, lineage_before
 from vrnet_ext.learning.warm_start import init_features_from, init_walk_from
 from vrnet_ext.learning.config import TrainConfig
 
@@ -118,21 +119,31 @@ def stage_train_mode(model: VRNet, stage: int, freeze_confidence: bool = False) 
             module.eval()
 
 
-def _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse, train_seconds,
+def _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse, train_seconds, lineage,
                 partial=None) -> dict:
     """``epoch``: the last completed epoch of ``stage``; ``best``: the stage's selection score so
     far (val L0 in stage 1, val RMSE(R) in stage 2); ``best_rmse``: the lowest val RMSE(R) of the
     whole run (selects best.pt across stages); ``train_seconds``: wall time spent in training
-    and validation epochs so far, over all sessions; ``partial``: ``{"epoch", "batches",
+    and validation epochs so far, over all sessions; ``lineage``: the chain of warm starts before
+    this run (:class:`vrnet_ext.learning.lineage.Lineage`); ``partial``: ``{"epoch", "batches",
     "totals"}`` of an epoch in progress (mid-epoch checkpoints only)."""
     return {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
             "config": json.loads(json.dumps(asdict(cfg))), "stage": stage, "epoch": epoch, "step": step,
-            "best": best, "best_rmse": best_rmse, "train_seconds": train_seconds, "partial": partial}
+            "best": best, "best_rmse": best_rmse, "train_seconds": train_seconds, "lineage": lineage.to_dict(),
+            "partial": partial}
 
 
 def _save(checkpoint: dict, path: Path) -> None:
     """Writes ``path`` atomically (a run stopped mid-write leaves the previous file intact)."""
     save_atomically(checkpoint, path)
+
+
+def _run_lineage(cfg: TrainConfig, state: dict | None) -> Lineage:
+    """The chain of warm starts before this run: as recorded in the checkpoint resumed from, else
+    read from ``--features-from`` (else ``--walk-from``) now."""
+    if state is not None and "lineage" in state:
+        return Lineage.from_dict(state["lineage"], cfg.resume)
+    return lineage_before(cfg.features_from or cfg.walk_from, "--features-from / --walk-from")
 
 
 def _check_resumable(state: dict, model_cfg: VRNetConfig, path: str) -> None:
@@ -236,7 +247,8 @@ def train(cfg: TrainConfig, datasets: tuple[Dataset, Dataset] | None = None) -> 
         progress = _Progress(state["step"], state.get("best_rmse", float("inf")), state.get("train_seconds", 0.0))
     autocast = torch.autocast(run.device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
     stop = _StopRequest(enabled=run.world == 1)
-    setup = _Setup(cfg, run, model, train_set, val_set, sampler, loss_weights, autocast, stop, out_dir)
+    setup = _Setup(cfg, run, model, train_set, val_set, sampler, loss_weights, autocast, stop, out_dir,
+                   _run_lineage(cfg, state))
     try:
         return _train_stages(setup, state, progress)
     finally:
@@ -247,7 +259,8 @@ def train(cfg: TrainConfig, datasets: tuple[Dataset, Dataset] | None = None) -> 
 @dataclass
 class _Setup:
     """What :func:`train` prepares for its loops: the options, the process group, the model, the data
-    and the loss, the precision, the stop request and the output folder."""
+    and the loss, the precision, the stop request, the output folder and the chain of warm starts
+    before the run."""
 
     cfg: TrainConfig
     run: _Run
@@ -259,6 +272,7 @@ class _Setup:
     autocast: torch.autocast
     stop: _StopRequest
     out_dir: Path
+    lineage: Lineage
 
 
 @dataclass
@@ -337,7 +351,8 @@ def _train_stages(setup: _Setup, state: dict | None, progress: _Progress) -> dic
                     started = saved_at = now
                     partial_epoch = {"epoch": epoch, "batches": batches, "totals": dict(totals)}
                     _save(_checkpoint(model, optimizer, scheduler, cfg, stage, epoch - 1, progress.step, best,
-                                      progress.best_rmse, progress.train_seconds, partial_epoch), out_dir / "last.pt")
+                                      progress.best_rmse, progress.train_seconds, setup.lineage, partial_epoch),
+                          out_dir / "last.pt")
                 if stop.requested:
                     bar.close()
                     print(f"vrnet train: stopped at stage {stage}, epoch {epoch + 1}, batch {batches}; "
@@ -360,7 +375,7 @@ def _train_stages(setup: _Setup, state: dict | None, progress: _Progress) -> dic
                 progress.train_seconds += time.time() - started
                 record["train_seconds"] = round(progress.train_seconds, 1)
                 ckpt = _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, progress.step, best,
-                                   progress.best_rmse, progress.train_seconds)
+                                   progress.best_rmse, progress.train_seconds, setup.lineage)
                 _save(ckpt, out_dir / "last.pt")
                 if improved:
                     _save(ckpt, out_dir / f"best_stage{stage}.pt")
