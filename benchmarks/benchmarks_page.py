@@ -33,7 +33,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "modelnet40_tables_views_pv": "ModelNet40 tables, PV cells on the paper's views (`modelnet40_tables.py --models vrnet-pv-upc-rcp vrnet-pv-uc-rcp vrnet-pv-nd-rcp --settings PV`)",
     "modelnet40_tables_views_pvrs": "ModelNet40 tables, PV+RS cells on the paper's views (`modelnet40_tables.py --models vrnet-mixed-upc-rcp vrnet-mixed-uc-rcp vrnet-mixed-nd-rcp --settings PV+RS`)",
     "modelnet40_tables_co_uc": "ModelNet40 tables, CO / UC (`modelnet40_tables.py --models vrnet-co-uc-rcp --methods vrnet vcp`)",
-    "modelnet40_tables_rs_uc": "ModelNet40 tables, RS / UC (`modelnet40_tables.py --models vrnet-rs-uc-rcp --methods vrnet vcp`)",
+    "modelnet40_tables_rs_uc": "ModelNet40 tables, RS / UC (`modelnet40_tables.py --models vrnet-rs-uc-rcp --methods vrnet vcp [vrnet2]`)",
     "modelnet40_tables_pvrs_uc": "ModelNet40 tables, PV+RS / UC (`modelnet40_tables.py --models vrnet-pvrs-uc-rcp --methods vrnet vcp [vrnet2]`)",
     "modelnet40_tables_rs_upc": "ModelNet40 tables, RS / UPC (`modelnet40_tables.py --models vrnet-rs-upc-rcp --methods vrnet vcp vrnet2`)",
     "modelnet40_tables_pvrs_nd": "ModelNet40 tables, PV+RS / ND (`modelnet40_tables.py --models vrnet-pvrs-nd-rcp --methods vrnet vcp vrnet2`)",
