@@ -74,3 +74,25 @@ def test_a_malformed_lineage_record_is_refused_naming_the_file(record):
     state = {"config": {"model": {}}, "train_seconds": 1.0, "lineage": record}
     with pytest.raises(ValueError, match="run.pt: malformed 'lineage' record"):
         lineage_of(state, "run.pt")
+
+
+def test_a_start_with_a_malformed_record_is_refused_naming_the_start(tmp_path):
+    from vrnet_ext.learning.lineage import lineage_before
+
+    state = _run(tmp_path, "bad")
+    state["lineage"] = {"starting_point": "a", "seconds": -5.0, "start_training": None}
+    torch.save(state, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match=f"{tmp_path / 'bad.pt'}: malformed 'lineage' record"):
+        lineage_before(str(tmp_path / "bad.pt"), "--features-from")
+
+
+def test_a_shipped_start_whose_card_holds_no_valid_seconds_is_recorded_as_unknown(tmp_path):
+    from vrnet_ext.learning.lineage import lineage_before
+
+    checkpoint = tmp_path / "scratch" / "last.pt"
+    _run(tmp_path, "scratch")
+    export_pretrained(checkpoint, tmp_path / "odd.pt",
+                      {"training": {"starting_point": None, "runs_seconds": float("inf")}})
+    lineage = lineage_before(str(tmp_path / "odd.pt"), "--features-from")
+    assert lineage == Lineage("odd", 0.0, {"starting_point": None, "runs_seconds": None})
+    assert Lineage.from_dict(lineage.to_dict(), "run") == lineage  # the record reads back

@@ -62,7 +62,10 @@ def run_seconds(state: dict) -> float:
 
 
 def lineage_before(start: str | None, source: str, depth: int = 0) -> Lineage:
-    """The lineage a run inherits when it starts from the checkpoint at ``start`` (``None``: from scratch)."""
+    """The lineage a run inherits when it starts from the checkpoint at ``start`` (``None``: from
+    scratch); ``source`` names the run in the error about too long a chain. A start's malformed
+    record is refused naming the start's file; a shipped start's card values that are no number of
+    seconds are recorded as unknown (``None``)."""
     if not start:
         return Lineage(None, 0.0)
     if not Path(start).is_file():
@@ -71,7 +74,8 @@ def lineage_before(start: str | None, source: str, depth: int = 0) -> Lineage:
     if state.get("format") == FORMAT:
         training = state.get("card", {}).get("training", {}) if isinstance(state.get("card"), dict) else {}
         training = training if isinstance(training, dict) else {}
-        before = {"runs_seconds": card_runs_seconds(training)}
+        runs = card_runs_seconds(training)
+        before = {"runs_seconds": runs if _is_seconds(runs) else None}
         if "starting_point" in training and (training["starting_point"] is None
                                              or isinstance(training["starting_point"], str)):
             before["starting_point"] = training["starting_point"]
@@ -79,7 +83,7 @@ def lineage_before(start: str | None, source: str, depth: int = 0) -> Lineage:
     if depth >= MAX_LINEAGE:
         raise ValueError(f"{source}: more than {MAX_LINEAGE} runs of warm starts before a shipped model or a run "
                          "from scratch")
-    return lineage_of(state, source, depth + 1)
+    return lineage_of(state, str(start), depth + 1)
 
 
 def lineage_of(state: dict, source: str, depth: int = 0) -> Lineage:
