@@ -135,13 +135,13 @@ def _svd_case(B):
     return Case("svd3x3", f"fwd+bwd (S) B={B}", make, impls)
 
 
-def _pdl_case(N, quick=True, skip_torch=None):
+def _pdl_case(N, quick=True, skip_torch=None, B=1):
     def make():
-        x = _clouds(1, N, 3)
-        return _grad(x, 1.1 * x + 0.01 * _clouds(1, N, 3, seed=1))
+        x = _clouds(B, N, 3)
+        return _grad(x, 1.1 * x + 0.01 * _clouds(B, N, 3, seed=1))
     impls = {b: _fwd_bwd(lambda x, y, b=b: ops.pairwise_distance_loss(x, y, backend=b)) for b in ("ext", "torch")}
     skip = {"torch": skip_torch} if skip_torch else None
-    return Case("pairwise_distance_loss", f"fwd+bwd B=1 N={N}", make, impls, quick, skip)
+    return Case("pairwise_distance_loss", f"fwd+bwd B={B} N={N}", make, impls, quick, skip)
 
 
 def _scan_points(voxel: float) -> torch.Tensor:
@@ -347,6 +347,7 @@ def all_cases(device: str = "cpu") -> list[Case]:
         _edge_conv_case(8, 64, 64, 1024, 20),
         _svd_case(65536),
         _kabsch_case(65536, 16),
+        _pdl_case(768, B=16),  # L2 on a training batch of ModelNet40 pairs
         _pdl_case(4096),
         _pdl_case(16384, quick=False, skip_torch="the reference needs ~7 GB of N x N matrices"),
         _scan_knn_case(),
