@@ -268,6 +268,36 @@ def test_eval_mode_features_of_both_clouds_in_one_batch_equal_separate_passes():
         torch.testing.assert_close(one, other, rtol=1e-5, atol=1e-6)
 
 
+def test_frozen_features_run_as_at_inference_and_the_walk_still_learns():
+    """Stage 2 (features frozen and in eval mode, the walk training): the features, VCPs and
+    matching statistics are those of an eval-mode forward bit for bit, recorded by no autograd
+    graph, while the walk's outputs carry gradients to its parameters. A cloud that requires a
+    gradient still gets one through the frozen features."""
+    from vrnet_ext.learning.train import set_stage, stage_train_mode
+
+    model = small_model(walk_gate=True, walk_confidence=True, walk_match_stats=True)
+    model.train()
+    model(*clouds(B=4, N=40, M=40))  # running statistics that are not the initial ones
+    src, tgt = clouds(B=3, N=50, M=50)
+    with torch.no_grad():
+        served = model.eval()(src, tgt)
+    params = set_stage(model, 2)
+    model.train()
+    stage_train_mode(model, 2)
+    assert model.walk.training and not model.features.training and not model.transformer.training
+    assert not model.features_need_grad(src, tgt)
+    out = model(src, tgt)
+    for name in ("src_embedding", "tgt_embedding", "vcp"):
+        assert torch.equal(getattr(out, name), getattr(served, name)), name
+        assert not getattr(out, name).requires_grad, name
+    out.rcp.square().sum().backward()
+    assert all(p.grad is not None for p in params)
+    src_with_grad = src.clone().requires_grad_()
+    assert model.features_need_grad(src_with_grad, tgt)
+    model(src_with_grad, tgt).vcp.sum().backward()
+    assert src_with_grad.grad is not None and bool(src_with_grad.grad.abs().sum() > 0)
+
+
 def test_transformer_precision_choice(monkeypatch):
     import vrnet_ext.model.vrnet as vrnet_module
 
@@ -277,6 +307,9 @@ def test_transformer_precision_choice(monkeypatch):
         model = small_model()
         assert model.train().transformer_in_bf16(src) is False  # training: its own autocast decides
         assert model.eval().transformer_in_bf16(src) is native
+        model.train().transformer.eval()  # stage 2 of training: the Transformer is frozen
+        assert model.transformer_in_bf16(src) is native
+        model.eval()
         assert model.transformer_in_bf16(src.double()) is False
         with torch.autocast("cpu", dtype=torch.bfloat16):
             assert model.transformer_in_bf16(src) is False  # an enclosing region decides

@@ -153,9 +153,10 @@ class VRNet(nn.Module):
         return out
 
     def _features(self, src: torch.Tensor, tgt: torch.Tensor, backend: str) -> tuple[torch.Tensor, torch.Tensor]:
-        """DGCNN features of both clouds: in eval mode, clouds of one size go through as one batch
-        of 2B (BatchNorm then uses its running statistics, so each cloud's features are its own)."""
-        if not self.training and src.shape == tgt.shape:
+        """DGCNN features of both clouds: with the DGCNN in eval mode, clouds of one size go through
+        as one batch of 2B (BatchNorm then uses its running statistics, so each cloud's features
+        are its own)."""
+        if not self.features.training and src.shape == tgt.shape:
             return self.features(torch.cat([src, tgt]), backend).chunk(2)
         return self.features(src, backend), self.features(tgt, backend)
 
@@ -167,20 +168,32 @@ class VRNet(nn.Module):
             return False
         if precision == "bf16":
             return True
-        return (src.device.type == "cpu" and src.dtype == torch.float32 and not self.training
+        return (src.device.type == "cpu" and src.dtype == torch.float32 and not self.transformer.training
                 and cpu_has_native_bf16())
+
+    def features_need_grad(self, src: torch.Tensor, tgt: torch.Tensor) -> bool:
+        """Whether autograd has to record the features and the matching: grad mode is on and the
+        clouds or a parameter of the feature extractor require a gradient (not when it is frozen
+        and the clouds are data, as in stage 2 of training)."""
+        if not torch.is_grad_enabled():
+            return False
+        return (src.requires_grad or tgt.requires_grad
+                or any(p.requires_grad for module in self.feature_modules() for p in module.parameters()))
 
     def _single_pass(self, src: torch.Tensor, tgt: torch.Tensor, backend: str,
                      return_matching: bool) -> VRNetOutput:
-        features = self._features(src, tgt, backend)
-        bf16 = self.transformer_in_bf16(src)
-        with torch.autocast(src.device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
-            phi_x, phi_y = self.transformer(*features, backend=backend)
-        # The soft matching decides where every VCP lands: it runs in float32 even under autocast
-        # (a bfloat16 score carries ~3 significant digits, a visible error on sharp softmax rows).
-        with torch.autocast(src.device.type, enabled=False):
-            phi_x, phi_y = phi_x.to(src.dtype), phi_y.to(src.dtype)
-            match = match_clouds(phi_x, phi_y, tgt, backend, return_matching)
+        # Where nothing upstream of the walk needs a gradient, no_grad changes no value; it lets the
+        # feature modules reuse their inference-time weights (nn.inference_cache).
+        with contextlib.nullcontext() if self.features_need_grad(src, tgt) else torch.no_grad():
+            features = self._features(src, tgt, backend)
+            bf16 = self.transformer_in_bf16(src)
+            with torch.autocast(src.device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
+                phi_x, phi_y = self.transformer(*features, backend=backend)
+            # The soft matching decides where every VCP lands: it runs in float32 even under autocast
+            # (a bfloat16 score carries ~3 significant digits, a visible error on sharp softmax rows).
+            with torch.autocast(src.device.type, enabled=False):
+                phi_x, phi_y = phi_x.to(src.dtype), phi_y.to(src.dtype)
+                match = match_clouds(phi_x, phi_y, tgt, backend, return_matching)
         if self.walk is None:
             offset, gate_logits, confidence_logits = torch.zeros_like(match.vcp), None, None
         else:
