@@ -47,9 +47,10 @@ class VRNetConfig:
       ``"bf16"`` (bfloat16 with float32 accumulation; its residual stream and LayerNorms stay float32,
       as under autocast) or ``"fp32"``; ``"auto"`` (the default) takes bf16 for float32 inputs on a
       CPU that multiplies bfloat16 in hardware (AVX512-BF16 / AMX) while the Transformer is in eval
-      mode (inference, and stage 2 of training, which freezes it), and fp32 otherwise. The shipped models were trained under bfloat16 autocast, so ``"auto"`` computes the
-      Transformer as in training. The DGCNN, the soft matching, the walk and the Procrustes solve
-      stay in the input's dtype; an enclosing autocast region decides for itself.
+      mode (inference, and stage 2 of training, which freezes it), and fp32 otherwise. The shipped
+      models' features were trained under bfloat16 autocast, so ``"auto"`` computes the Transformer
+      as in training. The DGCNN, the soft matching, the walk and the Procrustes solve stay in the
+      input's dtype; an enclosing autocast region decides for itself.
     """
 
     k: int = 20
