@@ -20,6 +20,12 @@ SHAPES = [  # (B, H, N, M, D)
 ]
 
 
+@pytest.fixture(autouse=True)
+def kernel_serves_on_any_cpu(monkeypatch):
+    """The kernel serves only CPUs with bfloat16 products; its tests run it on every CPU."""
+    monkeypatch.setattr(attention_module, "cpu_has_native_bf16", lambda: True)
+
+
 def _heads(B, H, N, M, D, seed=0, spread=2.0):
     g = torch.Generator().manual_seed(seed)
     q = (torch.randn(B, H, N, D, generator=g) * spread).bfloat16()
@@ -97,11 +103,13 @@ def test_the_vector_and_the_portable_softmax_agree(tmp_path):
     take (the plain loops in both) the results agree bit for bit, odd sizes and sharp rows included;
     with the tile products (head size 32) the portable path stays as close to float64 as the
     vector one."""
-    script = ("import sys, torch; from vrnet_ext import ops; g = torch.Generator().manual_seed(2); out = []\n"
+    script = ("import math, sys, torch, vrnet_ext; assert vrnet_ext.has_extension(); out = []\n"
+              "g = torch.Generator().manual_seed(2)\n"
               "for B, H, N, M, D, s in ((1, 2, 37, 29, 24, 2.0), (2, 1, 70, 131, 8, 9.0), (1, 3, 64, 17, 40, 1.0),\n"
               "                         (2, 4, 100, 120, 32, 2.0)):\n"
               "    q, k, v = (torch.randn(B, H, L, D, generator=g) * f for L, f in ((N, s), (M, s), (M, 1.0)))\n"
-              "    out.append((q, k, v, ops.attention(q.bfloat16(), k.bfloat16(), v.bfloat16())))\n"
+              "    heads = (q.bfloat16(), k.bfloat16(), v.bfloat16())\n"
+              "    out.append((q, k, v, torch.ops.vrnet_ext.attention(*heads, 1 / math.sqrt(D))))\n"
               "torch.save(out, sys.argv[1])")
     vector, generic = under_each_cpu_dispatch(script, tmp_path)
     for (q, k, v, got_vector), (_, _, _, got_generic) in zip(vector[:3], generic[:3]):
@@ -113,8 +121,8 @@ def test_the_vector_and_the_portable_softmax_agree(tmp_path):
 
 @requires_ext
 def test_reference_runs_where_the_kernel_does_not_serve(monkeypatch):
-    """float32 heads, backend="torch", dropout, recorded gradients and key sets over MAX_KEYS run
-    torch's kernel: its results bit for bit (and its gradients)."""
+    """float32 heads, backend="torch", dropout, recorded gradients, key sets over MAX_KEYS and a CPU
+    without bfloat16 products run torch's kernel: its results bit for bit (and its gradients)."""
     q, k, v = _heads(1, 2, 20, 30, 32)
     for args in ((q.float(), k.float(), v.float()), (q, k, v)):
         assert torch.equal(ops.attention(*args, backend="torch"), F.scaled_dot_product_attention(*args))
@@ -132,6 +140,9 @@ def test_reference_runs_where_the_kernel_does_not_serve(monkeypatch):
     torch.manual_seed(0)
     assert torch.equal(dropped, F.scaled_dot_product_attention(q, k, v, dropout_p=0.5))
     monkeypatch.setattr(attention_module, "MAX_KEYS", 29)
+    assert torch.equal(ops.attention(q, k, v), F.scaled_dot_product_attention(q, k, v))
+    monkeypatch.setattr(attention_module, "MAX_KEYS", 1 << 16)
+    monkeypatch.setattr(attention_module, "cpu_has_native_bf16", lambda: False)
     assert torch.equal(ops.attention(q, k, v), F.scaled_dot_product_attention(q, k, v))
 
 

@@ -258,3 +258,33 @@ def test_every_option_belongs_to_one_section():
     assert cfg.section("schedule")["batch_size"] == cfg.batch_size
     with pytest.raises(ValueError, match="section must be one of"):
         cfg.section("optimiser")
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_auto_precision_follows_the_cpu_and_resume_keeps_it(tmp_path, monkeypatch, native):
+    """--precision auto trains in bf16 only where the CPU multiplies bfloat16 in hardware; the run
+    records the precision chosen, and an auto resume on another CPU keeps it."""
+    import vrnet_ext.learning.train as train_module
+
+    monkeypatch.setattr(train_module, "device_has_native_bf16", lambda device: native)
+    data = (ChairPairs(8, 0), ChairPairs(4, 1))
+    run = tmp_path / "run"
+    train(TrainConfig.from_preset("tiny", out_dir=str(run), stage2_epochs=0, progress=False), datasets=data)
+    chosen = "bf16" if native else "fp32"
+    assert json.loads((run / "config.json").read_text())["precision"] == chosen
+    assert load_checkpoint(run / "last.pt")["config"]["precision"] == chosen
+    monkeypatch.setattr(train_module, "device_has_native_bf16", lambda device: not native)
+    train(TrainConfig.from_preset("tiny", out_dir=str(run), progress=False, resume=str(run / "last.pt")),
+          datasets=data)
+    assert load_checkpoint(run / "last.pt")["config"]["precision"] == chosen
+
+
+def test_explicit_bf16_on_a_cpu_without_it_warns(tmp_path, monkeypatch):
+    import vrnet_ext.learning.train as train_module
+
+    monkeypatch.setattr(train_module, "device_has_native_bf16", lambda device: False)
+    cfg = TrainConfig.from_preset("tiny", out_dir=str(tmp_path / "run"), precision="bf16", stage2_epochs=0,
+                                  progress=False)
+    with pytest.warns(UserWarning, match="precision bf16: this CPU has no bfloat16 matrix products"):
+        train(cfg, datasets=(ChairPairs(4, 0), ChairPairs(4, 1)))
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["precision"] == "bf16"

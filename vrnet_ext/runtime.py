@@ -32,3 +32,11 @@ def cpu_has_native_bf16() -> bool:
     there a bfloat16 product runs several times faster than a float32 one; elsewhere it is
     emulated and slower."""
     return _NATIVE_BF16
+
+
+def device_has_native_bf16(device: torch.device) -> bool:
+    """True where ``device`` multiplies bfloat16 matrices in hardware: a CPU with AVX512-BF16 or
+    AMX (:func:`cpu_has_native_bf16`), a CUDA GPU that supports bfloat16."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    return device.type == "cpu" and cpu_has_native_bf16()

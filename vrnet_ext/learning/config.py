@@ -23,7 +23,7 @@ PRESETS = {
 }
 
 
-PRECISIONS = ("bf16", "fp32")
+PRECISIONS = ("auto", "bf16", "fp32")
 MODELNET_POINTS = 1024  # points per shape in the ModelNet40 HDF5 files
 L4_FORMS = ("rmse", "log")
 
@@ -62,7 +62,10 @@ FIELD_HELP = {
                    "estimate (DCP's; not in the paper; 0: off)",
     "loss_motion_translation": "weight of LM's translation term rmse(t, t_gt) against its rotation term (1: DCP's; "
                                "a rotation error of 1 degree weighs about as much as a translation error of 0.014)",
-    "precision": "bf16: forward and loss under bfloat16 autocast (ops, matching and Procrustes stay float32) | fp32",
+    "precision": "auto: bf16 where the device multiplies bfloat16 in hardware (AVX512-BF16 / AMX CPUs, bf16 GPUs), "
+                 "fp32 elsewhere (emulated bfloat16 is several times slower) | bf16: forward and loss under bfloat16 "
+                 "autocast (ops, matching and Procrustes stay float32) | fp32. A run records what auto chose; "
+                 "--resume keeps it",
     "checkpoint_minutes": "also write last.pt every this many minutes inside an epoch",
     "resume": "continue from this last.pt (same model options as the run that wrote it; a larger epoch count "
               "extends a finished stage, and this run's --lr-milestones apply)",
@@ -128,7 +131,7 @@ class TrainConfig:
     loss_motion: float = 0.0
     loss_motion_translation: float = 1.0
     far_points: str = "prnet"
-    precision: str = "bf16"
+    precision: str = "auto"
     checkpoint_minutes: float = 10.0
     resume: str | None = None
     features_from: str | None = None

@@ -18,7 +18,9 @@ time loses at most that much work; ``--resume last.pt`` continues from the next 
 ``precision="bf16"`` runs forward and loss under ``torch.autocast(dtype=torch.bfloat16)``: the
 Transformer, DGCNN projections and correction walk multiply in bfloat16 (AMX / AVX-512-BF16 on
 x86), while the compiled ops, the soft matching, BatchNorm statistics and the Procrustes solve stay
-in float32. Weights and optimizer state are float32 either way.
+in float32. Weights and optimizer state are float32 either way. ``precision="auto"`` (the default)
+takes bf16 only where the device multiplies bfloat16 in hardware; a CPU without it emulates
+bfloat16 products several times slower than float32 ones.
 """
 from __future__ import annotations
 
@@ -28,8 +30,9 @@ import os
 import signal
 import threading
 import time
+import warnings
 from collections import Counter
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
@@ -45,7 +48,7 @@ from vrnet_ext.learning.evaluate import evaluate, to_device
 from vrnet_ext.learning.losses import HybridLossWeights, correspondence_loss, hybrid_loss
 from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.learning.curves import plot_metrics
-from vrnet_ext.runtime import set_flush_denormal
+from vrnet_ext.runtime import device_has_native_bf16, set_flush_denormal
 from vrnet_ext.geometry.atomic import save_atomically
 from vrnet_ext.learning.lineage import Lineage, lineage_before
 from vrnet_ext.learning.warm_start import init_features_from, init_walk_from
@@ -146,6 +149,22 @@ def _run_lineage(cfg: TrainConfig, state: dict | None) -> Lineage:
     return lineage_before(cfg.features_from or cfg.walk_from, "--features-from / --walk-from")
 
 
+def _resolved_precision(precision: str, device: torch.device, state: dict | None) -> str:
+    """The autocast precision a run trains in, ``"bf16"`` or ``"fp32"``: ``"auto"`` keeps what the
+    resumed checkpoint's run trained in (so ``--resume`` continues bit-exactly), else takes bf16
+    where ``device`` multiplies bfloat16 in hardware and fp32 elsewhere. An explicit bf16 on a CPU
+    that only emulates it is kept, with a warning (it runs several times slower than fp32)."""
+    if precision == "auto":
+        saved = state["config"].get("precision") if state is not None else None
+        if saved in ("bf16", "fp32"):
+            return saved
+        return "bf16" if device_has_native_bf16(device) else "fp32"
+    if precision == "bf16" and device.type == "cpu" and not device_has_native_bf16(device):
+        warnings.warn("precision bf16: this CPU has no bfloat16 matrix products (AVX512-BF16 / AMX); bfloat16 "
+                      "autocast is emulated and several times slower than fp32 (--precision auto picks fp32 here)")
+    return precision
+
+
 def _check_resumable(state: dict, model_cfg: VRNetConfig, path: str) -> None:
     """A run resumes only the model it was training (the file's config, not silently this run's),
     from a training checkpoint (not shipped weights or a scene model)."""
@@ -219,6 +238,8 @@ def train(cfg: TrainConfig, datasets: tuple[Dataset, Dataset] | None = None) -> 
     run = _Run(cfg.device)
     if cfg.flush_denormal:
         set_flush_denormal(True)
+    state = read_checkpoint(cfg.resume, run.device) if cfg.resume else None
+    cfg = replace(cfg, precision=_resolved_precision(cfg.precision, run.device, state))
     out_dir = Path(cfg.out_dir)
     if run.main:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -236,7 +257,6 @@ def train(cfg: TrainConfig, datasets: tuple[Dataset, Dataset] | None = None) -> 
         init_features_from(model, cfg.features_from)
     if cfg.walk_from and not cfg.resume:
         init_walk_from(model, cfg.walk_from)
-    state = read_checkpoint(cfg.resume, run.device) if cfg.resume else None
     if state is not None:
         _check_resumable(state, model_cfg, cfg.resume)
         model.load_state_dict(state["model"])
