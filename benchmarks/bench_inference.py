@@ -18,8 +18,6 @@ the run (all variants).
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import resource
 import statistics
 import time
@@ -29,7 +27,7 @@ import torch
 from vrnet_ext.data.modelnet import ModelNet40Pairs
 from vrnet_ext.geometry.metrics import rotation_error_deg
 from vrnet_ext.model.pretrained import load_pretrained
-from outputs import write_outputs  # benchmarks/, the script's folder
+from outputs import cpu_description, write_outputs  # benchmarks/, the script's folder
 
 # name: (backend, transformer_precision)
 VARIANTS = {"torch": ("torch", "fp32"), "torch, bf16 Transformer": ("torch", "bf16"),
@@ -65,21 +63,25 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data-dir", default=None)
     parser.add_argument("--json", default=None)
     parser.add_argument("--markdown", default=None)
+    parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
+                        help="variants to time (each with the reference of its Transformer precision)")
     args = parser.parse_args(argv)
+    needed = set(args.variants) | {"torch"} | {SAME_PRECISION_REFERENCE[VARIANTS[v][1]] for v in args.variants}
+    variants = {name: settings for name, settings in VARIANTS.items() if name in needed}
     torch.set_num_threads(args.threads)
     model = load_pretrained(args.model).eval()
     pairs = load_pairs(args.pairs, args.data_dir)
     count = len(pairs["src"])
     seconds: dict[tuple[str, int], list[float]] = {}
     accuracy: dict[str, dict[str, float]] = {}
-    for variant, settings in VARIANTS.items():  # warm-up and accuracy
+    for variant, settings in variants.items():  # warm-up and accuracy
         R, t = run_pass(model, pairs, max(args.batches), *settings)
         accuracy[variant] = {
             "rms_angle_deg": float(rotation_error_deg(R, pairs["rotation"]).square().mean().sqrt()),
             "rmse_t": float((t - pairs["translation"]).norm(dim=-1).square().mean().sqrt())}
     for _ in range(args.repeats):
         for batch in args.batches:
-            for variant, settings in VARIANTS.items():
+            for variant, settings in variants.items():
                 start = time.perf_counter()
                 run_pass(model, pairs, batch, *settings)
                 seconds.setdefault((variant, batch), []).append(time.perf_counter() - start)
@@ -93,7 +95,7 @@ def main(argv: list[str] | None = None) -> None:
                      **accuracy[variant]})
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     meta = {"model": args.model, "pairs": count, "threads": args.threads, "repeats": args.repeats,
-            "torch": torch.__version__, "machine": f"{platform.machine()}, {os.cpu_count()} cpus",
+            "torch": torch.__version__, "machine": cpu_description(),
             "date": time.strftime("%Y-%m-%d"), "peak_rss_mb": peak_mb}
     lines = ["| variant | batch | pairs/s | x reference | x same precision | RMS angle error (deg) | RMSE(t) |",
              "|---|---:|---:|---:|---:|---:|---:|"]

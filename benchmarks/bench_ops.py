@@ -31,6 +31,7 @@ import torch
 
 from vrnet_ext import ops
 from vrnet_ext.nn import EdgeConv
+from outputs import cpu_description  # benchmarks/, the script's folder
 
 
 @dataclass
@@ -534,14 +535,15 @@ def _run(args) -> None:
                   flush=True)
     print()
     gpu = f", GPU {torch.cuda.get_device_name()}" if args.device == "cuda" else ""
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus{gpu}, torch {torch.__version__}, "
+    print(f"machine: {cpu_description()}{gpu}, torch {torch.__version__}, "
           f"device {args.device}, threads {args.threads}, repeats {repeats}"
           + (", beside a busy process" if args.beside_busy else ""))
     print(_format_table(records))
     if args.json:
         meta = {"torch": torch.__version__, "threads": args.threads, "repeats": repeats, "cpu_count": os.cpu_count(),
                 "beside_busy": args.beside_busy,
-                "device": torch.cuda.get_device_name() if args.device == "cuda" else platform.machine()}
+                "device": torch.cuda.get_device_name() if args.device == "cuda" else platform.machine(),
+                "machine": cpu_description()}
         with open(args.json, "w") as f:
             json.dump([dict(r, **meta) for r in records], f, indent=1)
         print(f"wrote {args.json}")

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import time
 from collections.abc import Callable
@@ -31,6 +30,7 @@ from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.runtime import set_flush_denormal
 from vrnet_ext.learning.config import PRESETS
 from vrnet_ext.learning.train import set_stage, stage_train_mode
+from outputs import cpu_description  # benchmarks/, the script's folder
 
 IMPLS = {"ext": ("ext", False), "torch": ("torch", False), "ext-bf16": ("ext", True)}  # name: (backend, bf16)
 
@@ -150,7 +150,7 @@ def main() -> None:
             records.append({"stage": "inference", "impl": impl, "median_s": seconds, "batch_size": 1,
                             "points": args.inference_points, **common})
             print(f"inference, one pair of {args.inference_points} points, {impl:<8} {seconds * 1e3:.2f} ms")
-    print(f"machine: {platform.machine()}, device {common['device']}, threads {args.threads}, preset {args.preset} "
+    print(f"machine: {cpu_description()}, device {common['device']}, threads {args.threads}, preset {args.preset} "
           f"(batch {preset['batch_size']}, {preset['num_subsampled']} points), flush_denormal={flush}")
     if args.json:
         with open(args.json, "w") as f:

@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
+import platform
 from pathlib import Path
+
+from vrnet_ext.runtime import cpu_has_native_bf16
 
 
 def write_outputs(table: str, record: dict, markdown: str | None, json_path: str | None) -> None:
@@ -14,3 +18,17 @@ def write_outputs(table: str, record: dict, markdown: str | None, json_path: str
     if json_path:
         Path(json_path).write_text(json.dumps(record, indent=1))
         print(f"wrote {json_path}")
+
+
+def cpu_description() -> str:
+    """The CPU a result was measured on, e.g. ``"x86_64, AMD EPYC, 2 cpus, no native bf16"``: the
+    model name (Linux), the core count and whether it multiplies bfloat16 in hardware (speed ratios
+    of the bf16 paths depend on it)."""
+    name = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            name = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), "")
+    except OSError:
+        pass
+    bf16 = "native bf16" if cpu_has_native_bf16() else "no native bf16"
+    return ", ".join(part for part in (platform.machine(), name, f"{os.cpu_count()} cpus", bf16) if part)

@@ -267,11 +267,15 @@ void row_distances_portable(const scalar_t* dots, const scalar_t* r_norms, scala
 // Minimum of each of kBoundSubsets interleaved subsets of the row (column j in subset j % kBoundSubsets).
 constexpr int64_t kBoundSubsets = kMaxBoundValues;
 
+// Written as a select per column of whole subset-wide blocks, which compilers turn into vector
+// minima (x86 `minps` / `minpd` keep the minimum when the column is NaN, as the comparison does).
 template <typename scalar_t>
 void subset_minima_portable(const scalar_t* dist, int64_t width, scalar_t* minima) {
   std::fill(minima, minima + kBoundSubsets, std::numeric_limits<scalar_t>::infinity());
-  for (int64_t j = 0; j < width; ++j)
-    if (dist[j] < minima[j % kBoundSubsets]) minima[j % kBoundSubsets] = dist[j];
+  int64_t j0 = 0;
+  for (; j0 + kBoundSubsets <= width; j0 += kBoundSubsets)
+    for (int64_t s = 0; s < kBoundSubsets; ++s) minima[s] = dist[j0 + s] < minima[s] ? dist[j0 + s] : minima[s];
+  for (int64_t s = 0; j0 + s < width; ++s) minima[s] = dist[j0 + s] < minima[s] ? dist[j0 + s] : minima[s];
 }
 
 // Offers the row's columns at or under the reservoir's threshold, in column order.
@@ -367,11 +371,24 @@ void scan_row(const scalar_t* dots, const scalar_t* r_norms, scalar_t q_norm, in
 // kOneTileCandidates + 16): their count, or -1 when there are more than kOneTileCandidates.
 constexpr int64_t kOneTileCandidates = 128;
 
+// By blocks of 16 columns: a test of the whole block first (a vector comparison for the compiler;
+// a row passes few columns, so most blocks end there), then branch-free within a block that has
+// a passing column (every column is written, the count advances past the passing ones; a branch
+// per column mispredicts). The count is checked after each block, so at most 15 writes land past
+// the limit.
 template <typename scalar_t>
 int64_t collect_portable(const scalar_t* dist, int64_t width, scalar_t threshold, int32_t* columns) {
   int64_t count = 0;
-  for (int64_t j = 0; j < width && count <= kOneTileCandidates; ++j)
-    if (dist[j] <= threshold) columns[count++] = static_cast<int32_t>(j);
+  for (int64_t j0 = 0; j0 < width && count <= kOneTileCandidates; j0 += 16) {
+    const int64_t j1 = std::min(width, j0 + 16);
+    int passes = 0;
+    for (int64_t j = j0; j < j1; ++j) passes |= dist[j] <= threshold;
+    if (!passes) continue;
+    for (int64_t j = j0; j < j1; ++j) {
+      columns[count] = static_cast<int32_t>(j);
+      count += dist[j] <= threshold;
+    }
+  }
   return count > kOneTileCandidates ? -1 : count;
 }
 
