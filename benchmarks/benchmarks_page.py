@@ -49,6 +49,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "register_gicp": "Registration with GICP (`bench_register.py`)",
     "register_busy": "Registration beside a busy process (`bench_register.py --beside-busy`)",
     "inference": "ModelNet40 inference speed (`bench_inference.py`)",
+    "inference_avx2": "ModelNet40 inference speed on a CPU without bfloat16 products (`bench_inference.py --variants ext`)",
     "global_fit": "Spatial consistency vs RANSAC, matching + fit on the same descriptors (`bench_global_fit.py`)",
     "scene_validation": "Scene models on the validation pairs (`scene_validation.py`)",
     "ops": "Op timings (`bench_ops.py`)",
