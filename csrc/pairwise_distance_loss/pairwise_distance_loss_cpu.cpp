@@ -10,6 +10,7 @@
 #include <ATen/ops/empty_like.h>
 #include <torch/library.h>
 
+#include <algorithm>
 #include <cmath>
 #include <vector>
 
@@ -52,30 +53,55 @@ inline double distance(const Planes& p, int64_t i, int64_t j) {
   return std::sqrt(dx * dx + dy * dy + dz * dz);
 }
 
+// The portable loops run whole blocks of kLanes partners with a fixed lane count into local sums
+// (which alias nothing: loops compilers turn into vector code), then the remainder.
+
 // lanes[(j - first) % kLanes] += (|x_i - x_j| - |y_i - y_j|)^2 for first <= j < N.
 void add_row_squares_portable(const Planes& x, const Planes& y, int64_t i, int64_t first, int64_t N, double* lanes) {
-  for (int64_t j = first; j < N; ++j) {
+  double sums[kLanes];
+  std::copy(lanes, lanes + kLanes, sums);
+  const auto add = [&](int64_t j, int l) {
     const double e = distance(x, i, j) - distance(y, i, j);
-    lanes[(j - first) % kLanes] += e * e;
-  }
+    sums[l] += e * e;
+  };
+  int64_t j0 = first;
+  for (; j0 + kLanes <= N; j0 += kLanes)
+    for (int l = 0; l < kLanes; ++l) add(j0 + l, l);
+  for (int l = 0; j0 + l < N; ++l) add(j0 + l, l);
+  std::copy(sums, sums + kLanes, lanes);
 }
 
 // The gradient sums of row i over every j: gx += c_x (x_i - x_j), gy += c_y (y_i - y_j) with
 // e = |x_i - x_j| - |y_i - y_j|, c_x = e / |x_i - x_j| (0 where that is 0), c_y = e / |y_i - y_j|
 // (likewise); lane (j mod kLanes) of each of the 6 sums.
+// The quotients divide by 1 where a distance is 0 and then take 0: a select, not a branch.
 void add_row_gradients_portable(const Planes& x, const Planes& y, int64_t i, int64_t N, double (*gx)[kLanes],
                                 double (*gy)[kLanes]) {
-  for (int64_t j = 0; j < N; ++j) {
+  double sx[3][kLanes], sy[3][kLanes];
+  for (int a = 0; a < 3; ++a) {
+    std::copy(gx[a], gx[a] + kLanes, sx[a]);
+    std::copy(gy[a], gy[a] + kLanes, sy[a]);
+  }
+  const double xi[3] = {x.x[i], x.y[i], x.z[i]}, yi[3] = {y.x[i], y.y[i], y.z[i]};
+  const auto add = [&](int64_t j, int l) {
     const double dx = distance(x, i, j), dy = distance(y, i, j);
     const double e = dx - dy;
-    const double cx = dx > 0 ? e / dx : 0.0, cy = dy > 0 ? e / dy : 0.0;
-    const int l = j % kLanes;
-    gx[0][l] += cx * (x.x[i] - x.x[j]);
-    gx[1][l] += cx * (x.y[i] - x.y[j]);
-    gx[2][l] += cx * (x.z[i] - x.z[j]);
-    gy[0][l] += cy * (y.x[i] - y.x[j]);
-    gy[1][l] += cy * (y.y[i] - y.y[j]);
-    gy[2][l] += cy * (y.z[i] - y.z[j]);
+    const double qx = e / (dx > 0 ? dx : 1.0), qy = e / (dy > 0 ? dy : 1.0);
+    const double cx = dx > 0 ? qx : 0.0, cy = dy > 0 ? qy : 0.0;
+    sx[0][l] += cx * (xi[0] - x.x[j]);
+    sx[1][l] += cx * (xi[1] - x.y[j]);
+    sx[2][l] += cx * (xi[2] - x.z[j]);
+    sy[0][l] += cy * (yi[0] - y.x[j]);
+    sy[1][l] += cy * (yi[1] - y.y[j]);
+    sy[2][l] += cy * (yi[2] - y.z[j]);
+  };
+  int64_t j0 = 0;
+  for (; j0 + kLanes <= N; j0 += kLanes)
+    for (int l = 0; l < kLanes; ++l) add(j0 + l, l);
+  for (int l = 0; j0 + l < N; ++l) add(j0 + l, l);
+  for (int a = 0; a < 3; ++a) {
+    std::copy(sx[a], sx[a] + kLanes, gx[a]);
+    std::copy(sy[a], sy[a] + kLanes, gy[a]);
   }
 }
 
