@@ -61,6 +61,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "ops_knn": "kNN timings (`bench_ops.py --quick --only knn`)",
     "ops_knn_edge": "kNN, edge_norm_max and EdgeConv timings (`bench_ops.py --only knn,edge_norm_max,EdgeConv`)",
     "ops_attention": "Attention timings (`bench_ops.py --only attention`)",
+    "ops_avx2": "kNN, EdgeConv and L2 loss timings on a CPU without AVX-512 (`bench_ops.py --quick --only knn,pairwise_distance_loss,EdgeConv`)",
     "ablation_iterations": "Ablation: VRNet with iterations (`ablations.py iterations`)",
     "ablation_outliers": "Ablation: robustness to outliers (`ablations.py outliers`)",
     "ablation_matches": "Ablation: correct matches vs outlier ratio (`ablations.py matches`)",
@@ -80,7 +81,8 @@ def op_table(records: list[dict]) -> str:
         median = f"{1000 * r['median_s']:.3f}" if isinstance(r.get("median_s"), (int, float)) else "–"
         lines.append(f"| {r['op']} | {r['case']} | {r['impl']} | {median} | {peak} | {ratio} |")
     first = records[0]
-    lines.insert(0, f"{first.get('cpu_count', '?')} CPUs, {first.get('threads', '?')} threads, torch "
+    lines.insert(0, f"{first.get('machine') or str(first.get('cpu_count', '?')) + ' CPUs'}, "
+                    f"{first.get('threads', '?')} threads, torch "
                     f"{first.get('torch', '?')}, device {first.get('device', 'cpu')}"
                     f"{', beside a busy process' if first.get('beside_busy') else ''}.\n")
     return "\n".join(lines)
