@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -48,6 +47,7 @@ from vrnet_ext.ops import kabsch
 from vrnet_ext.model.checkpoints import read_checkpoint
 from vrnet_ext.model.pretrained import available, cells, load_vrnet, weights_path
 from vrnet_ext.registration import IcpFailure, icp
+from outputs import cpu_description  # benchmarks/, the script's folder
 
 METHODS = ("vrnet", "vcp", "vrnet2", "icp", "fpfh")
 LABELS = {"vrnet": "VRNet (ours)", "vcp": "VCP-only, same network (DCP-v2 estimator)",
@@ -226,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
         print("modelnet40_tables: no shipped model and no --models given", file=sys.stderr)
         return 2
     results = [cell for name in models for cell in evaluate_model(name, args)]
-    machine = f"{platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
+    machine = f"{cpu_description()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
     Path(args.json).write_text(json.dumps({"machine": machine, "results": results}, indent=1))
     Path(args.markdown).write_text(markdown(results, machine))
     print(markdown(results, machine))
