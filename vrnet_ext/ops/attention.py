@@ -9,7 +9,8 @@ weights rounded to bfloat16 for their product with ``v`` (as torch's fused CPU k
 products on AMX tiles where the CPU has them, a softmax on AVX-512 with a base-2 exponential.
 Every other call (float32 or float64 heads, a gradient to record, dropout, more than ``MAX_KEYS``
 keys, a CPU without bfloat16 products, where the kernel's portable loops are many times slower
-than torch's kernel, a device without the kernel) runs the reference, which is differentiable. The result's memory is (B, N, H, D) either way (a point's heads form one row).
+than torch's kernel, a device without the kernel) runs the reference, which is differentiable.
+The result's memory is (B, N, H, D) either way (a point's heads form one row).
 """
 from __future__ import annotations
 
