@@ -166,7 +166,7 @@ def run_eval(args) -> int:
     spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768),
                     far_points=args.far_points)
     data = ModelNet40Pairs(args.data_dir or cfg.get("data_dir"), partition="test", setting=setting, split=split,
-                           max_items=args.max_items, seed=cfg.get("seed", 1234), spec=spec)
+                           max_items=args.max_items, spec=spec)
     model.to(args.device)
     result = evaluate(model, data, args.batch_size, args.device, args.backend)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)

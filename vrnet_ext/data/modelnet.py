@@ -44,6 +44,11 @@ def load_h5(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return points, labels
 
 
+# The val / train division of TRAIN is drawn with this seed in every run, whatever the run's own
+# seed: a model warm-started from another run never trains on that run's validation shapes.
+HOLDOUT_SEED = 1234
+
+
 class ModelNet40Pairs(Dataset):
     """Registration pairs from ModelNet40 following DCP / PRNet / VRNet.
 
@@ -52,11 +57,12 @@ class ModelNet40Pairs(Dataset):
         partition: ``"train"``, ``"val"`` (held out of TRAIN, for model selection) or ``"test"``.
         setting: ``"CO"``, ``"PV"``, ``"RS"`` or ``"PV+RS"``.
         split: ``"UPC"`` (official), ``"UC"`` (train labels 0-19, test 20-39) or ``"ND"`` (UPC + noise).
-        val_fraction: share of the train shapes held out as ``val`` (seeded, disjoint from train).
+        val_fraction: share of the train shapes held out as ``val`` (drawn with :data:`HOLDOUT_SEED`,
+            disjoint from train).
         classes: optional subset of labels to keep (after the split's own filter).
         max_items: keep at most this many shapes (after filtering), for small runs.
-        seed: base seed. Test and val pairs are fixed per item; train pairs vary with
-            :meth:`set_epoch` and are reproducible from (seed, epoch, index).
+        seed: seed of the pairs. Test and val pairs are fixed per (seed, item); train pairs vary
+            with :meth:`set_epoch` and are reproducible from (seed, epoch, index).
         spec: :class:`PairSpec` overrides (point counts, angles).
 
     Items are dicts of tensors: ``src (N, 3)``, ``tgt (M, 3)``, ``rotation (3, 3)``,
@@ -80,7 +86,7 @@ class ModelNet40Pairs(Dataset):
         points, labels = load_h5(self.root / _FILES["test" if partition == "test" else "train"])
         keep = np.arange(points.shape[0])
         if partition != "test":
-            order = np.random.default_rng(seed).permutation(points.shape[0])
+            order = np.random.default_rng(HOLDOUT_SEED).permutation(points.shape[0])
             n_val = int(round(val_fraction * points.shape[0]))
             keep = np.sort(order[:n_val] if partition == "val" else order[n_val:])
         if split == "UC":
