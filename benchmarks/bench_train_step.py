@@ -56,8 +56,7 @@ def _now(device: torch.device) -> float:
 def make_step(model: VRNet, batch: dict, stage: int, impl: str) -> Callable[[int], float]:
     """A closure that runs training step ``i`` of ``stage`` with ``impl`` and returns its seconds."""
     backend, bf16 = IMPLS[impl]
-    params = set_stage(model, stage)
-    optimizer = torch.optim.Adam(params, lr=1e-4)
+    optimizer = torch.optim.Adam(set_stage(model, stage), lr=1e-4)
     device = batch["src"].device
 
     def step(i: int) -> float:

@@ -281,7 +281,7 @@ def test_frozen_features_run_as_at_inference_and_the_walk_still_learns():
     src, tgt = clouds(B=3, N=50, M=50)
     with torch.no_grad():
         served = model.eval()(src, tgt)
-    params = set_stage(model, 2)
+    params = [p for group in set_stage(model, 2) for p in group["params"]]
     model.train()
     stage_train_mode(model, 2)
     assert model.walk.training and not model.features.training and not model.transformer.training

@@ -185,14 +185,15 @@ def test_freeze_confidence_trains_the_offsets_only():
 
     model = VRNet(VRNetConfig.small(k=6, dgcnn_channels=(16, 16, 32), emb_dims=32, ff_dims=64,
                                     walk_channels=(32, 16, 3), walk_confidence=True, walk_confidence_trunk=True))
-    params = set_stage(model, 2, freeze_confidence=True)
+    groups = set_stage(model, 2, freeze_confidence=True)
     stage_train_mode(model, 2, freeze_confidence=True)
-    assert {id(p) for p in params} == {id(p) for p in model.walk.net.parameters()}
+    assert len(groups) == 1
+    assert {id(p) for p in groups[0]["params"]} == {id(p) for p in model.walk.net.parameters()}
     assert not any(p.requires_grad for p in model.walk.confidence_net.parameters())
     assert not any(p.requires_grad for m in model.feature_modules() for p in m.parameters())
     assert model.walk.net.training and not model.walk.confidence_net.training  # BatchNorm statistics kept
-    params = set_stage(model, 2)
-    assert {id(p) for p in params} == {id(p) for p in model.walk.parameters()}
+    groups = set_stage(model, 2)
+    assert len(groups) == 1 and {id(p) for p in groups[0]["params"]} == {id(p) for p in model.walk.parameters()}
     with pytest.raises(ValueError, match="freeze_confidence needs walk_confidence_trunk"):
         TrainConfig.from_preset("tiny", freeze_confidence=True)
     with pytest.raises(ValueError, match="loss_motion must be >= 0"):
@@ -200,6 +201,47 @@ def test_freeze_confidence_trains_the_offsets_only():
     for bad in (-1.0, float("inf"), float("nan")):
         with pytest.raises(ValueError, match="loss_motion_translation must be >= 0 and finite"):
             TrainConfig.from_preset("tiny", loss_motion_translation=bad)
+
+
+def test_features_fine_tuned_in_stage_2_form_their_own_group():
+    from vrnet_ext.model import VRNet, VRNetConfig
+    from vrnet_ext.learning.train import set_stage, stage_train_mode
+
+    model = VRNet(VRNetConfig.small(k=6, dgcnn_channels=(16, 16, 32), emb_dims=32, ff_dims=64,
+                                    walk_channels=(32, 16, 3), walk_confidence=True))
+    groups = set_stage(model, 2, features_lr=3e-5)
+    stage_train_mode(model, 2, features_lr=3e-5)
+    features = [p for m in model.feature_modules() for p in m.parameters()]
+    assert {id(p) for p in groups[0]["params"]} == {id(p) for p in model.walk.parameters()}
+    assert groups[1]["lr"] == 3e-5 and {id(p) for p in groups[1]["params"]} == {id(p) for p in features}
+    assert all(m.training for m in model.feature_modules()) and model.walk.training
+    src, tgt = torch.randn(2, 40, 3), torch.randn(2, 40, 3)
+    model(src, tgt).translation.sum().backward()  # the estimate reaches the features through the matching
+    assert all(p.grad is not None for p in features)
+    with pytest.raises(ValueError, match="--lr-features-stage2"):
+        TrainConfig.from_preset("tiny", lr_features_stage2=-1e-5)
+
+
+def test_stage_2_fine_tunes_the_features_only_when_asked(tmp_path):
+    """Stage 2 leaves the stage-1 features bit for bit by default and moves them with a rate of
+    their own; a run resumes only with the same choice (the optimizer's groups differ)."""
+    def feature_weights(path):
+        state = load_checkpoint(path)["model"]
+        return {k: v for k, v in state.items() if not k.startswith("walk.") and v.is_floating_point()}
+
+    runs = {}
+    for name, rate in (("frozen", 0.0), ("tuned", 1e-3)):
+        cfg = TrainConfig.from_preset("tiny", out_dir=str(tmp_path / name), progress=False, lr_features_stage2=rate)
+        train(cfg, datasets=(ChairPairs(8, 0), ChairPairs(4, 1)))
+        runs[name] = (feature_weights(tmp_path / name / "best_stage1.pt"), feature_weights(tmp_path / name / "last.pt"))
+    before, after = runs["frozen"]
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    before, after = runs["tuned"]
+    assert any(not torch.equal(before[k], after[k]) for k in before)
+    with pytest.raises(ValueError, match="--lr-features-stage2 0.001, this run with 0.0"):
+        train(TrainConfig.from_preset("tiny", out_dir=str(tmp_path / "tuned"), progress=False, stage2_epochs=2,
+                                      resume=str(tmp_path / "tuned" / "last.pt")),
+              datasets=(ChairPairs(8, 0), ChairPairs(4, 1)))
 
 
 @requires_modelnet

@@ -35,9 +35,12 @@ FIELD_HELP = {
     "split": "UPC | UC | ND",
     "batch_size": "pairs per step (per process under DDP)",
     "stage1_epochs": "epochs of stage 1 (features, L0)",
-    "stage2_epochs": "epochs of stage 2 (frozen features, correction walk, hybrid loss)",
+    "stage2_epochs": "epochs of stage 2 (correction walk, hybrid loss; features frozen unless --lr-features-stage2)",
     "lr_stage1": "Adam learning rate of stage 1",
     "lr_stage2": "Adam learning rate of stage 2",
+    "lr_features_stage2": "stage 2 also fine-tunes the feature extractor (DGCNN + Transformer, BatchNorm statistics "
+                          "included) with the hybrid loss at this Adam learning rate, end to end through the matching "
+                          "(0: frozen, the paper's schedule; not in the paper)",
     "weight_decay": "Adam weight decay",
     "lr_milestones": "the learning rate is multiplied by lr_gamma after each of these many epochs, counted within "
                      "each stage (2: the first two epochs at the full rate)",
@@ -48,7 +51,8 @@ FIELD_HELP = {
     "max_train_items": "use at most this many training shapes (default: all)",
     "max_val_items": "validate on at most this many held-out shapes (default: all)",
     "val_fraction": "share of the training shapes held out for validation",
-    "seed": "seed of pairs, batch order and initialisation",
+    "seed": "seed of the training pairs, batch order and initialisation (every run validates on the same held-out "
+            "shapes and pairs)",
     "device": "auto | cpu | cuda",
     "backend": "ext (compiled ops) | torch (pure PyTorch)",
     "num_workers": "DataLoader worker processes",
@@ -90,8 +94,8 @@ def preset_values(name: str) -> dict[str, object]:
 SECTIONS = {
     "data": ("data_dir", "setting", "split", "num_points", "num_subsampled", "far_points", "classes",
              "max_train_items", "max_val_items", "val_fraction", "seed"),
-    "schedule": ("batch_size", "stage1_epochs", "stage2_epochs", "lr_stage1", "lr_stage2", "weight_decay",
-                 "lr_milestones", "lr_gamma"),
+    "schedule": ("batch_size", "stage1_epochs", "stage2_epochs", "lr_stage1", "lr_stage2", "lr_features_stage2",
+                 "weight_decay", "lr_milestones", "lr_gamma"),
     "loss": ("loss_l4", "loss_l4_form", "loss_motion", "loss_motion_translation"),
     "start": ("resume", "features_from", "walk_from", "freeze_confidence"),
     "runtime": ("out_dir", "device", "backend", "num_workers", "precision", "flush_denormal", "checkpoint_minutes"),
@@ -113,6 +117,7 @@ class TrainConfig:
     stage2_epochs: int = 100
     lr_stage1: float = 1e-3
     lr_stage2: float = 1e-4
+    lr_features_stage2: float = 0.0
     weight_decay: float = 1e-4
     lr_milestones: list[int] = field(default_factory=lambda: [75])
     lr_gamma: float = 0.1
@@ -167,7 +172,7 @@ class TrainConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{option(name)} must be a finite number > 0, got {value!r}")
-        for name in ("weight_decay", "loss_l4", "val_fraction"):
+        for name in ("weight_decay", "loss_l4", "val_fraction", "lr_features_stage2"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{option(name)} must be a finite number >= 0, got {value!r}")

@@ -2,7 +2,8 @@
 
 Stage 1 trains the feature extractor (DGCNN + Transformer) with L0 (Adam, lr 1e-3); stage 2
 freezes it (weights and BatchNorm statistics) and trains the correction walk with the hybrid
-loss L (lr 1e-4). Each epoch ends with a validation pass on a split held out of TRAIN (model
+loss L (lr 1e-4). With ``lr_features_stage2`` > 0, stage 2 also fine-tunes the feature extractor
+with L at that rate, end to end through the soft matching (not in the paper). Each epoch ends with a validation pass on a split held out of TRAIN (model
 selection never looks at the test set), a line in ``metrics.jsonl`` / ``metrics.csv`` and the
 checkpoints (``torch.load(..., weights_only=True)`` compatible): ``last.pt``; ``best.pt``, the epoch
 with the lowest validation RMSE(R) over both stages (stage 1 measures it with the VCPs, stage 2
@@ -88,38 +89,47 @@ class _Run:
 def _datasets(cfg: TrainConfig):
     spec = dict(num_points=cfg.num_points, num_subsampled=cfg.num_subsampled, far_points=cfg.far_points)
     common = dict(root=cfg.data_dir, setting=cfg.setting, split=cfg.split, val_fraction=cfg.val_fraction,
-                  classes=cfg.classes, seed=cfg.seed)
-    train = ModelNet40Pairs(partition="train", max_items=cfg.max_train_items, spec=PairSpec(**spec), **common)
+                  classes=cfg.classes)
+    # Validation pairs are the dataset's fixed ones: runs of different seeds are selected on the same pairs.
+    train = ModelNet40Pairs(partition="train", max_items=cfg.max_train_items, spec=PairSpec(**spec), seed=cfg.seed,
+                            **common)
     val = ModelNet40Pairs(partition="val", max_items=cfg.max_val_items, spec=PairSpec(**spec), **common)
     return train, val
 
 
-def _stage_modules(model: VRNet, stage: int, freeze_confidence: bool) -> tuple[list, list]:
-    """(trainable, frozen) modules of a stage: stage 1 the feature extractor, stage 2 the walk
-    (without its confidence MLP when ``freeze_confidence``)."""
+def _stage_modules(model: VRNet, stage: int, freeze_confidence: bool,
+                   train_features: bool = False) -> tuple[list, list, list]:
+    """(trainable, fine-tuned, frozen) modules of a stage: stage 1 trains the feature extractor;
+    stage 2 the walk (without its confidence MLP when ``freeze_confidence``), and fine-tunes the
+    feature extractor when ``train_features`` (frozen otherwise)."""
     walk = [model.walk] if model.walk is not None else []
     if stage == 1:
-        return model.feature_modules(), walk
-    if freeze_confidence:
-        return [model.walk.net], model.feature_modules() + [model.walk.confidence_net]
-    return walk, model.feature_modules()
+        return model.feature_modules(), [], walk
+    features = model.feature_modules()
+    trainable, frozen = (([model.walk.net], [model.walk.confidence_net]) if freeze_confidence else (walk, []))
+    return (trainable, features, frozen) if train_features else (trainable, [], frozen + features)
 
 
-def set_stage(model: VRNet, stage: int, freeze_confidence: bool = False) -> list[torch.nn.Parameter]:
-    """Trainable parameters of a stage; frozen modules are put in eval mode by :func:`stage_train_mode`."""
-    trainable, frozen = _stage_modules(model, stage, freeze_confidence)
+def set_stage(model: VRNet, stage: int, freeze_confidence: bool = False,
+              features_lr: float = 0.0) -> list[dict]:
+    """The optimizer's parameter groups of a stage: its trainable modules (at the optimizer's own
+    rate), then in stage 2 with ``features_lr`` > 0 the feature extractor at that rate. Frozen
+    modules are put in eval mode by :func:`stage_train_mode`."""
+    trainable, fine_tuned, frozen = _stage_modules(model, stage, freeze_confidence, features_lr > 0)
     for module in frozen:
         module.requires_grad_(False)
-    for module in trainable:
+    for module in trainable + fine_tuned:
         module.requires_grad_(True)
-    return [p for m in trainable for p in m.parameters()]
+    groups = [{"params": [p for m in trainable for p in m.parameters()]}]
+    if fine_tuned:
+        groups.append({"params": [p for m in fine_tuned for p in m.parameters()], "lr": features_lr})
+    return groups
 
 
-def stage_train_mode(model: VRNet, stage: int, freeze_confidence: bool = False) -> None:
+def stage_train_mode(model: VRNet, stage: int, freeze_confidence: bool = False, features_lr: float = 0.0) -> None:
     model.train()
-    if stage == 2:
-        for module in _stage_modules(model, stage, freeze_confidence)[1]:
-            module.eval()
+    for module in _stage_modules(model, stage, freeze_confidence, features_lr > 0)[2]:
+        module.eval()
 
 
 def _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse, train_seconds, lineage,
@@ -314,11 +324,16 @@ def _train_stages(setup: _Setup, state: dict | None, progress: _Progress) -> dic
     for stage, epochs, lr in ((1, cfg.stage1_epochs, cfg.lr_stage1), (2, cfg.stage2_epochs, cfg.lr_stage2)):
         if state is not None and (state["stage"] > stage or (state["stage"] == stage and state["epoch"] + 1 >= epochs)):
             continue  # this stage is already complete in the checkpoint
-        params = set_stage(model, stage, cfg.freeze_confidence)
-        optimizer = torch.optim.Adam(params, lr=lr, weight_decay=cfg.weight_decay)
+        features_lr = cfg.lr_features_stage2 if stage == 2 else 0.0
+        groups = set_stage(model, stage, cfg.freeze_confidence, features_lr)
+        optimizer = torch.optim.Adam(groups, lr=lr, weight_decay=cfg.weight_decay)
         scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.lr_milestones, cfg.lr_gamma)
         first_epoch, best, partial = 0, float("inf"), None
         if state is not None and state["stage"] == stage:
+            if len(state["optimizer"]["param_groups"]) != len(groups):
+                saved = state["config"].get("lr_features_stage2", 0.0)
+                raise ValueError(f"resume: {cfg.resume} was trained with --lr-features-stage2 {saved}, this run "
+                                 f"with {cfg.lr_features_stage2}: pass the same value (zero or not) to continue it")
             optimizer.load_state_dict(state["optimizer"])
             scheduler.load_state_dict(state["scheduler"])
             # This run's schedule, not the saved one: extending a run (a larger --stage2-epochs)
@@ -331,7 +346,7 @@ def _train_stages(setup: _Setup, state: dict | None, progress: _Progress) -> dic
             if hasattr(train_set, "set_epoch"):
                 train_set.set_epoch(global_epoch)
             sampler.set_epoch(global_epoch)
-            stage_train_mode(model, stage, cfg.freeze_confidence)
+            stage_train_mode(model, stage, cfg.freeze_confidence, features_lr)
             epoch_started = started = time.time()
             totals, batches = {}, 0
             if partial is not None and partial["epoch"] == epoch:
