@@ -3,12 +3,13 @@
 Stage 1 trains the feature extractor (DGCNN + Transformer) with L0 (Adam, lr 1e-3); stage 2
 freezes it (weights and BatchNorm statistics) and trains the correction walk with the hybrid
 loss L (lr 1e-4). With ``lr_features_stage2`` > 0, stage 2 also fine-tunes the feature extractor
-with L at that rate, end to end through the soft matching (not in the paper). Each epoch ends with a validation pass on a split held out of TRAIN (model
-selection never looks at the test set), a line in ``metrics.jsonl`` / ``metrics.csv`` and the
-checkpoints (``torch.load(..., weights_only=True)`` compatible): ``last.pt``; ``best.pt``, the epoch
-with the lowest validation RMSE(R) over both stages (stage 1 measures it with the VCPs, stage 2
-with the RCPs); ``best_stage1.pt`` / ``best_stage2.pt``, each stage's best by its own criterion
-(validation L0 / RMSE(R)).
+with L at that rate, end to end through the soft matching (not in the paper). Each epoch ends
+with a validation pass on a split held out of TRAIN (model selection never looks at the test
+set), a line in ``metrics.jsonl`` / ``metrics.csv`` and the checkpoints (``torch.load(...,
+weights_only=True)`` compatible): ``last.pt``; ``best.pt``, the epoch with the lowest validation
+RMSE(R) over both stages (stage 1 measures it with the VCPs, stage 2 with the RCPs);
+``best_stage1.pt`` / ``best_stage2.pt``, each stage's best by its own criterion (validation L0 /
+RMSE(R)). The validation shapes and pairs are the same in every run, whatever its seed.
 
 Runs are reproducible: the train pairs of an epoch come from (seed, epoch, index), the batch
 order from a seeded sampler and the L1 subsets from (seed, step), so ``--resume`` continues
