@@ -38,9 +38,9 @@ FIELD_HELP = {
     "stage2_epochs": "epochs of stage 2 (correction walk, hybrid loss; features frozen unless --lr-features-stage2)",
     "lr_stage1": "Adam learning rate of stage 1",
     "lr_stage2": "Adam learning rate of stage 2",
-    "lr_features_stage2": "stage 2 also fine-tunes the feature extractor (DGCNN + Transformer, BatchNorm statistics "
-                          "included) with the hybrid loss at this Adam learning rate, end to end through the matching "
-                          "(0: frozen, the paper's schedule; not in the paper)",
+    "lr_features_stage2": "stage 2 also fine-tunes the feature extractor's weights (DGCNN + Transformer; its "
+                          "BatchNorm statistics stay as they are) with the hybrid loss at this Adam learning rate, end "
+                          "to end through the matching (0: frozen, the paper's schedule; not in the paper)",
     "weight_decay": "Adam weight decay",
     "lr_milestones": "the learning rate is multiplied by lr_gamma after each of these many epochs, counted within "
                      "each stage (2: the first two epochs at the full rate)",

@@ -128,9 +128,14 @@ def set_stage(model: VRNet, stage: int, freeze_confidence: bool = False,
 
 
 def stage_train_mode(model: VRNet, stage: int, freeze_confidence: bool = False, features_lr: float = 0.0) -> None:
+    """Train mode for the modules a stage trains; in stage 2 the frozen modules and a fine-tuned
+    feature extractor run in eval mode: their BatchNorm layers normalise with (and keep) the running
+    statistics the walk is trained and served on."""
     model.train()
-    for module in _stage_modules(model, stage, freeze_confidence, features_lr > 0)[2]:
-        module.eval()
+    if stage == 2:
+        _, fine_tuned, frozen = _stage_modules(model, stage, freeze_confidence, features_lr > 0)
+        for module in fine_tuned + frozen:
+            module.eval()
 
 
 def _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse, train_seconds, lineage,
