@@ -170,6 +170,11 @@ def test_splits():
     assert len(train) + len(val) == 9843 and len(test) == 2468
     train_keys = {p.tobytes() for p in train.points}
     assert not any(p.tobytes() in train_keys for p in val.points), "val must be disjoint from train"
+    # the held-out shapes do not follow a run's seed: a run of another seed never trains on them
+    other_train = ModelNet40Pairs(MODELNET_DIR, partition="train", seed=7)
+    other_val = ModelNet40Pairs(MODELNET_DIR, partition="val", seed=7)
+    assert np.array_equal(other_val.points, val.points) and np.array_equal(other_train.points, train.points)
+    assert not torch.equal(other_train[0]["src"], train[0]["src"]), "the seed still draws the training pairs"
     item = test[0]
     assert item["src"].dtype == torch.float32 and item["gt_idx"].dtype == torch.int64
 
