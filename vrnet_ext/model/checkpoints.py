@@ -18,6 +18,7 @@ Two kinds of file are read:
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import torch
@@ -50,7 +51,10 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
-        state = torch.load(path, map_location=map_location, weights_only=True)
+        with warnings.catch_warnings():
+            # torch warns about a raw pickle's protocol before refusing it; the error below says it all
+            warnings.filterwarnings("ignore", message="Detected pickle protocol", category=UserWarning)
+            state = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises many types here; none of its advice applies to untrusted files
         raise CheckpointError(f"{path}: not a vrnet checkpoint (it cannot be read as a weights-only torch "
                               f"file: {type(exc).__name__})") from None
