@@ -61,7 +61,9 @@ def test_files_that_are_not_checkpoints_raise_a_clear_error(tmp_path, capsys):
 
 @pytest.mark.parametrize("field, value", [("iterations", 10**6), ("emb_dims", 8192), ("k", 0), ("heads", 10**4),
                                           ("dgcnn_channels", [8] * 100), ("walk_channels", [10**6, 3]),
-                                          ("encoder_layers", 500), ("k", "many"), ("negative_slope", float("nan"))])
+                                          ("encoder_layers", 500), ("k", "many"), ("negative_slope", float("nan")),
+                                          ("irls_iterations", 10**9), ("irls_scale", float("nan")),
+                                          ("irls_kernel", "tukey")])
 def test_config_outside_the_limits_is_refused_before_anything_is_built(tmp_path, field, value):
     config = VRNetConfig.small(**TINY).to_dict()
     config[field] = value
@@ -134,6 +136,26 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert not model.training
     assert main(["export", str(run / "best.pt"), "x", "--out-dir", str(tmp_path), "--test-json",
                  str(tmp_path / "missing.json")]) == 2
+    # shipped weights re-exported with another robust solve: the card kept, the test measured with it
+    shipped_path = str(tmp_path / "weights" / "tiny-model.pt")
+    irls = ["--irls-iterations", "7", "--irls-kernel", "geman_mcclure", "--irls-scale", "0.5"]
+    assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *irls]) == 2
+    assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *irls,
+                 "--test-json", str(test_json)]) == 2  # measured with the model's own solve
+    gm_json = tmp_path / "test_gm.json"
+    assert main(["eval", "--checkpoint", shipped_path, "--data-dir", str(MODELNET_DIR), "--max-items", "4",
+                 "--json", str(gm_json), *irls]) == 0
+    assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *irls,
+                 "--test-json", str(gm_json), "--note", "Robust solve retuned."]) == 0
+    retuned = read_checkpoint(tmp_path / "weights" / "tiny-gm.pt")
+    assert retuned["card"]["summary"] == "A smoke-test model." and retuned["card"]["training"]["sessions"] == 1
+    assert retuned["card"]["notes"] == ["Robust solve retuned."]
+    assert retuned["card"]["test"]["irls_scale"] == 0.5 and retuned["card"]["test"]["irls_iterations"] == 7
+    model_config = retuned["config"]["model"]
+    assert (model_config["irls_iterations"], model_config["irls_kernel"], model_config["irls_scale"]) == (
+        7, "geman_mcclure", 0.5)
+    assert "irls_kernel: `geman_mcclure`" in (tmp_path / "weights" / "tiny-gm.md").read_text()
+    torch.testing.assert_close(retuned["model"], shipped["model"], rtol=0, atol=0)
     # a model trained on every setting: eval asks for the setting; the card holds one test per cell
     mixed = torch.load(run / "best.pt", weights_only=False)
     mixed["config"]["setting"] = "mixed"

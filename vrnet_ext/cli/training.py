@@ -13,6 +13,27 @@ from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, existing_folde
 from vrnet_ext.data.protocol import FAR_POINTS, MIXED, SETTINGS
 
 
+IRLS_KEYS = ("irls_iterations", "irls_kernel", "irls_scale")  # the robust solve's inference-time options
+
+
+def add_irls_options(parser, default: str) -> None:
+    """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale`` (VRNetConfig's IRLS fields); ``default``
+    says what applies when a flag is not given."""
+    from vrnet_ext.model.config import IRLS_KERNELS
+
+    parser.add_argument("--irls-iterations", type=nonnegative_int, default=None,
+                        help=f"robust reweighting steps after the Procrustes solve, 0: none (default: {default})")
+    parser.add_argument("--irls-kernel", choices=IRLS_KERNELS, default=None,
+                        help=f"the reweighting's robust weight of a residual (default: {default})")
+    parser.add_argument("--irls-scale", type=positive_float, default=None,
+                        help=f"the reweighting's scale in medians of a pair's residuals (default: {default})")
+
+
+def irls_overrides(args) -> dict:
+    """The IRLS fields given on the command line."""
+    return {k: getattr(args, k) for k in IRLS_KEYS if getattr(args, k) is not None}
+
+
 def add_train(sub) -> None:
     from vrnet_ext.learning.config import (FIELD_HELP, L4_FORMS, PRECISIONS, PRESETS, SECTIONS, TrainConfig,
                                            preset_values)
@@ -73,8 +94,7 @@ def add_train(sub) -> None:
                    help="1: the walk also sees each point's largest matching weight and matching entropy")
     model.add_argument("--walk-confidence-trunk", type=parse_bool, default=None,
                    help="1: the confidence has its own MLP (the offsets' loss L4 does not shape it)")
-    model.add_argument("--irls-iterations", type=int, default=None,
-                   help="Cauchy reweighting steps after the Procrustes solve (0: none)")
+    add_irls_options(model, "the preset's: none")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -83,7 +103,7 @@ def build_train_config(args):
     from vrnet_ext.learning.config import PRESETS, TrainConfig
 
     model_keys = ("emb_dims", "k", "iterations", "walk_gate", "walk_confidence", "walk_match_stats",
-                  "walk_confidence_trunk", "irls_iterations")
+                  "walk_confidence_trunk") + IRLS_KEYS
     overrides = {k: v for k, v in vars(args).items() if k not in ("command", "preset", "no_progress") + model_keys}
     model = dict(PRESETS[args.preset]["model"])
     for key in model_keys:
@@ -126,6 +146,7 @@ def add_eval(sub) -> None:
     p.add_argument("--max-items", type=positive_int, default=None,
                    help="evaluate the first N test shapes only (default: the whole test split)")
     p.add_argument("--iterations", type=int, default=None, help="ICP-like passes (paper Table 'with iteration')")
+    add_irls_options(p, "the model's")
     p.add_argument("--far-points", choices=FAR_POINTS, default="prnet",
                    help="partial views: prnet = the paper's: one far point near the diagonal cuts both clouds; "
                         "sphere = in a random direction for each cloud; mixed = one of the two per pair; "
@@ -158,6 +179,8 @@ def run_eval(args) -> int:
     cfg = state["config"]
     if args.iterations:
         model.config.iterations = args.iterations
+    for key, value in irls_overrides(args).items():
+        setattr(model.config, key, value)
     model.config.transformer_precision = args.transformer_precision
     # the paper's protocol unless the checkpoint says otherwise (shipped weights carry no data path)
     setting, split = args.setting or cfg.get("setting", "PV"), args.split or cfg.get("split", "UPC")
@@ -171,7 +194,8 @@ def run_eval(args) -> int:
     result = evaluate(model, data, args.batch_size, args.device, args.backend)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
     result.update(setting=setting, split=split, far_points=args.far_points, checkpoint=str(args.checkpoint),
-                  iterations=model.config.iterations, transformer_precision=args.transformer_precision,
+                  iterations=model.config.iterations, **{k: getattr(model.config, k) for k in IRLS_KEYS},
+                  transformer_precision=args.transformer_precision,
                   transformer_bf16=model.eval().transformer_in_bf16(data[0]["src"].to(args.device)))
     print(format_table({k: v for k, v in result.items() if isinstance(v, (int, float))}, f"VRNet {setting} {split}"))
     out = Path(args.json) if args.json else Path(args.checkpoint).with_name(f"eval_{setting}_{split}.json".replace("+", ""))
@@ -197,7 +221,8 @@ def add_export(sub) -> None:
                                    "paths, a card of training facts and metrics) and OUT_DIR/NAME.md (the model "
                                    "card). load_pretrained(NAME) then finds it when OUT_DIR is vrnet_ext/weights.",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("checkpoint", help="best.pt / last.pt of `vrnet train` (metrics.jsonl beside it is read too)")
+    p.add_argument("checkpoint", help="best.pt / last.pt of `vrnet train` (metrics.jsonl beside it is read too), or "
+                                      "shipped weights, whose card is kept and amended by the flags given")
     p.add_argument("name", help="model name, e.g. vrnet-pv-upc-rcp")
     p.add_argument("--out-dir", type=output_folder, default=None,
                    help="folder to write to (default: the package's weights folder)")
@@ -213,8 +238,7 @@ def add_export(sub) -> None:
     p.add_argument("--note", action="append", default=[], help="a note for the card (repeatable)")
     p.add_argument("--procrustes-points", choices=("rcp", "vcp"), default=None,
                    help="set the exported model's final Procrustes points (an inference-time choice; default: as trained)")
-    p.add_argument("--irls-iterations", type=nonnegative_int, default=None,
-                   help="set the exported model's Cauchy reweighting steps (default: as trained)")
+    add_irls_options(p, "as trained")
 
 
 def _cells(values: list[str]) -> list[str]:
@@ -247,11 +271,12 @@ def _read_test_results(path: str) -> str:
 def run_export(args) -> int:
     from vrnet_ext.model.checkpoints import read_checkpoint
     from vrnet_ext.model.scene import SCENE_FORMAT
-    from vrnet_ext.learning.export import export_pretrained, export_scene_model, training_facts
+    from vrnet_ext.learning.export import export_pretrained, export_scene_model
     from vrnet_ext.model.pretrained import WEIGHTS_DIR
 
     out = Path(args.out_dir) if args.out_dir else WEIGHTS_DIR
-    if read_checkpoint(args.checkpoint).get("format") == SCENE_FORMAT:
+    state = read_checkpoint(args.checkpoint)
+    if state.get("format") == SCENE_FORMAT:
         card = {"summary": args.summary, "notes": args.note,
                 "training": {k: v for k, v in (("machine", args.machine), ("sessions", args.sessions)) if v}}
         if args.test_json:
@@ -260,15 +285,19 @@ def run_export(args) -> int:
         path = export_scene_model(args.checkpoint, out / f"{args.name}.pt", card)
         print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")
         return 0
-    training = training_facts(args.checkpoint, args.name)
-    if args.machine:
-        training["machine"] = args.machine
-    if args.sessions:
-        training["sessions"] = args.sessions
-    card = {"summary": args.summary, "training": training, "notes": args.note}
+    overrides = irls_overrides(args)
+    if args.procrustes_points is not None:
+        overrides["procrustes_points"] = args.procrustes_points
+    card = _base_card(args, state, overrides)
     if args.cells:
         card["cells"] = _cells(args.cells)
     tests = [_read_eval_json(path) for path in args.test_json or []]
+    served = {**state["config"]["model"], **overrides}
+    for path, test in zip(args.test_json or [], tests):
+        differing = [k for k in IRLS_KEYS if k in test and test[k] != served.get(k)]
+        if differing:
+            raise ValueError(f"--test-json {path}: measured with {', '.join(f'{k} {test[k]}' for k in differing)}, "
+                             f"the exported model solves with {', '.join(f'{k} {served.get(k)}' for k in differing)}")
     for test in tests:
         cell = f"{test.get('setting')}/{test.get('split')}"
         metrics = {k: v for k, v in test.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
@@ -281,10 +310,33 @@ def run_export(args) -> int:
     elif tests:
         card["tests_note"] = ("`vrnet eval` on the ModelNet40 test pairs of each cell (the whole official test split "
                               "unless fewer are stated).")
-    overrides = {k: getattr(args, k) for k in ("procrustes_points", "irls_iterations") if getattr(args, k) is not None}
     path = export_pretrained(args.checkpoint, out / f"{args.name}.pt", card, overrides)
     print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")
     return 0
+
+
+def _base_card(args, state: dict, overrides: dict) -> dict:
+    """The card before test results: from a training run, its facts and the flags; from shipped
+    weights (a file with a card), that card, the flags given changing or adding to it. Shipped
+    weights given other inference options need test results measured with them (``--test-json``)."""
+    from vrnet_ext.learning.export import training_facts
+
+    if "card" not in state:
+        training = training_facts(args.checkpoint, args.name)
+        card = {"summary": args.summary, "training": training, "notes": list(args.note)}
+    else:
+        if overrides and not args.test_json:
+            raise ValueError("--test-json: shipped weights exported with other inference options need test results "
+                             "measured with them (`vrnet eval --json` with the same --irls-* flags)")
+        card = {k: v for k, v in state["card"].items() if not (args.test_json and k.startswith("test"))}
+        card["summary"] = args.summary or card.get("summary", "")
+        card["notes"] = list(card.get("notes", [])) + list(args.note)
+        training = card.setdefault("training", {})
+    if args.machine:
+        training["machine"] = args.machine
+    if args.sessions:
+        training["sessions"] = args.sessions
+    return card
 
 
 def add_train_scene(sub) -> None:

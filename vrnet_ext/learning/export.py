@@ -14,6 +14,10 @@ from vrnet_ext.model.pretrained import (DEFAULT_MODEL, FORMAT, available, card_r
 from vrnet_ext.model.scene import SCENE_FORMAT
 
 
+# Model-config fields an export may change: they choose how the estimate is solved, not the weights.
+INFERENCE_FIELDS = ("procrustes_points", "irls_iterations", "irls_kernel", "irls_scale")
+
+
 def training_facts(checkpoint: str | os.PathLike, name: str | None = None) -> dict:
     """What a model card says about training, read from a ``vrnet train`` checkpoint and the
     ``metrics.jsonl`` beside it: setting, split, preset, the selected epoch, steps, wall time, the
@@ -62,14 +66,14 @@ def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike
     """Writes a training checkpoint's model as shipped weights: float16 tensors (integer buffers as
     they are), the training config without local paths, and ``card`` (plain JSON values); and the
     model card ``<out_path>.md`` beside it (:func:`model_card_markdown`). ``model_overrides`` change
-    inference-time fields of the model config (``procrustes_points``, ``irls_iterations``)."""
+    inference-time fields of the model config (:data:`INFERENCE_FIELDS`)."""
 
     state = read_checkpoint(checkpoint)
     weights = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
     config = {k: v for k, v in state["config"].items() if k not in ("data_dir", "out_dir", "resume", "features_from", "walk_from")}
     overrides = dict(model_overrides or {})
-    if set(overrides) - {"procrustes_points", "irls_iterations"}:
-        raise ValueError(f"model_overrides may set procrustes_points and irls_iterations only, got {sorted(overrides)}")
+    if set(overrides) - set(INFERENCE_FIELDS):
+        raise ValueError(f"model_overrides may set {', '.join(INFERENCE_FIELDS)} only, got {sorted(overrides)}")
     config["model"] = validate_model_config(dict(config["model"], **overrides), str(out_path)).to_dict()
     card = json.loads(json.dumps(card))
     out_path = Path(out_path)

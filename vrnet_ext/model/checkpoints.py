@@ -36,6 +36,7 @@ MODEL_LIMITS = {
     "encoder_layers": (0, 12),
     "decoder_layers": (0, 12),
     "iterations": (1, 20),
+    "irls_iterations": (0, 100),
 }
 WIDTH_LIMIT = 2048   # every DGCNN / walk layer width
 DEPTH_LIMIT = 16     # layers in dgcnn_channels / walk_channels

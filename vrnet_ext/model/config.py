@@ -4,6 +4,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 
 
+IRLS_KERNELS = ("cauchy", "geman_mcclure", "welsch")  # robust weights of the IRLS steps (VRNetConfig)
+
+
 @dataclass
 class VRNetConfig:
     """Architecture of :class:`vrnet_ext.VRNet`.
@@ -35,9 +38,12 @@ class VRNetConfig:
       paper) or with its VCPs (``"vcp"``), weighted by the walk's confidences either way; the walk's
       offsets then only shape the confidences (through training) and ``out.rcp``.
     * ``irls_iterations``: after the (weighted) Procrustes, this many reweighting steps: each point's
-      weight is multiplied by the Cauchy weight 1 / (1 + (r / s)^2) of its residual r under the
-      current estimate, s = 3 x the median residual (at least ``irls_min_scale``), and Procrustes is
-      solved again (not in the paper; 0: a single solve).
+      weight is multiplied by a robust weight w(r / s) of its residual r under the current estimate,
+      s = ``irls_scale`` x the median residual of the pair (at least ``irls_min_scale``), and
+      Procrustes is solved again (not in the paper; 0: a single solve). ``irls_kernel`` names w:
+      ``"cauchy"`` 1 / (1 + u^2), ``"geman_mcclure"`` 1 / (1 + u^2)^2 or ``"welsch"`` exp(-u^2) (each
+      flatter for far points than the one before). A smaller scale and a steeper kernel trust fewer
+      points: right where most RCPs sit on their counterparts and a minority is far off.
     * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.
 
     Run-time choices (no effect on the weights):
@@ -72,6 +78,8 @@ class VRNetConfig:
     correction_walk: bool = True
     procrustes_points: str = "rcp"
     irls_iterations: int = 0
+    irls_kernel: str = "cauchy"
+    irls_scale: float = 3.0
     irls_min_scale: float = 1e-3
     iterations: int = 1
     backend: str = "ext"
@@ -90,8 +98,10 @@ class VRNetConfig:
             raise ValueError("walk_confidence_trunk needs walk_confidence=True")
         if self.procrustes_points not in ("rcp", "vcp"):
             raise ValueError(f"procrustes_points must be 'rcp' or 'vcp', got {self.procrustes_points!r}")
-        if self.irls_iterations < 0 or not self.irls_min_scale > 0:
-            raise ValueError("irls_iterations must be >= 0 and irls_min_scale > 0")
+        if self.irls_iterations < 0 or not self.irls_min_scale > 0 or not self.irls_scale > 0:
+            raise ValueError("irls_iterations must be >= 0, irls_scale and irls_min_scale > 0")
+        if self.irls_kernel not in IRLS_KERNELS:
+            raise ValueError(f"irls_kernel must be one of {IRLS_KERNELS}, got {self.irls_kernel!r}")
         if self.backend not in ("ext", "torch"):
             raise ValueError(f"backend must be 'ext' or 'torch', got {self.backend!r}")
         if self.transformer_precision not in ("auto", "bf16", "fp32"):

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from vrnet_ext.model.config import VRNetConfig
+from vrnet_ext.model.config import IRLS_KERNELS, VRNetConfig
 from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
@@ -41,21 +41,36 @@ class VRNetOutput:
         return procrustes_weights(self.confidence_logits).to(self.rcp.dtype)
 
 
-def robust_procrustes(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None, iterations: int,
-                      min_scale: float, backend: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """Weighted Procrustes src (B, N, 3) -> tgt (B, N, 3), then ``iterations`` Cauchy reweightings.
+def robust_weights(kernel: str, scaled_residual: torch.Tensor) -> torch.Tensor:
+    """Robust weight w(u) of residuals in units of the scale (any shape): ``"cauchy"`` 1 / (1 + u^2),
+    ``"geman_mcclure"`` 1 / (1 + u^2)^2, ``"welsch"`` exp(-u^2); all 1 at u = 0."""
+    squared = scaled_residual.square()
+    if kernel == "cauchy":
+        return 1 / (1 + squared)
+    if kernel == "geman_mcclure":
+        return 1 / (1 + squared).square()
+    if kernel == "welsch":
+        return torch.exp(-squared)
+    raise ValueError(f"kernel must be one of {IRLS_KERNELS}, got {kernel!r}")
 
-    Each step multiplies ``weights`` (uniform when None) by 1 / (1 + (r_i / s)^2), where r_i is point
-    i's residual |R x_i + t - y_i| under the current estimate and s = max(3 median_i r_i, min_scale)
-    per pair, and solves again: correspondences far off the consensus of the rest lose their say.
-    Returns (R (B, 3, 3), t (B, 3)).
+
+def robust_procrustes(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None, iterations: int,
+                      min_scale: float, backend: str, kernel: str = "cauchy",
+                      scale: float = 3.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weighted Procrustes src (B, N, 3) -> tgt (B, N, 3), then ``iterations`` robust reweightings.
+
+    Each step multiplies ``weights`` (uniform when None) by w(r_i / s) (:func:`robust_weights` of
+    ``kernel``), where r_i is point i's residual |R x_i + t - y_i| under the current estimate and
+    s = max(``scale`` x median_i r_i, min_scale) per pair, and solves again: correspondences far off
+    the consensus of the rest lose their say. Returns (R (B, 3, 3), t (B, 3)).
     """
     rotation, translation = kabsch(src, tgt, weights, backend=backend)
     base = torch.ones(src.shape[:2], dtype=src.dtype, device=src.device) if weights is None else weights
     for _ in range(iterations):
         residual = (move(src, rotation, translation) - tgt).norm(dim=-1)
-        scale = (3 * residual.median(dim=1, keepdim=True).values).clamp_min(min_scale)
-        rotation, translation = kabsch(src, tgt, base / (1 + (residual / scale).square()), backend=backend)
+        pair_scale = (scale * residual.median(dim=1, keepdim=True).values).clamp_min(min_scale)
+        rotation, translation = kabsch(src, tgt, base * robust_weights(kernel, residual / pair_scale),
+                                       backend=backend)
     return rotation, translation
 
 
@@ -211,6 +226,7 @@ class VRNet(nn.Module):
         weights = None if confidence_logits is None else procrustes_weights(confidence_logits).to(src.dtype)
         aligned_to = rcp if self.config.procrustes_points == "rcp" else vcp
         rotation, translation = robust_procrustes(src, aligned_to, weights, self.config.irls_iterations,
-                                                  self.config.irls_min_scale, backend)
+                                                  self.config.irls_min_scale, backend, self.config.irls_kernel,
+                                                  self.config.irls_scale)
         return VRNetOutput(rotation, translation, matching, vcp, rcp, offset, phi_x, phi_y, gate_logits,
                            confidence_logits)
