@@ -8,10 +8,11 @@ those: information, not the comparison with the paper's one-pass tables.
     python benchmarks/modelnet40_summary.py [--results benchmarks/results] [--json F] [--markdown F] [--png F]
 
 Reads every ``modelnet40_tables*.json`` under ``--results`` (written by ``modelnet40_tables.py``). A
-measurement that names the digest of other weights than the model's file holds now is stale and
+measurement that names the digest of other weights than the model's file holds now, or another
+solve of the estimate (``solve``: the IRLS and Procrustes options its file holds), is stale and
 skipped, and so is one of a partial-view cell (PV, PV+RS) whose pairs were not cut the way
-``vrnet_ext.data.protocol`` cuts them now (``views``); one that names the current digest beats any
-that names none; otherwise, for a (model, cell) measured more than once, the newest folder wins (in
+``vrnet_ext.data.protocol`` cuts them now (``views``); one that names the current digest and solve
+beats any that does not name both; otherwise, for a (model, cell) measured more than once, the newest folder wins (in
 one folder, the file that sorts last). A cell whose serving model was never measured is listed as
 such. The target is the paper's VRNet row, except RS / UC rotation, where it is PRNet's (the
 paper's VRNet is worse than PRNet there). The PNG colours each cell by its worst ratio ours / target
@@ -25,7 +26,7 @@ import json
 import math
 from pathlib import Path
 
-from modelnet40_tables import PAPER, SPLITS, weights_digest  # benchmarks/, the script's folder
+from modelnet40_tables import PAPER, SPLITS, solve_options, weights_digest  # benchmarks/, the script's folder
 from outputs import write_outputs
 from vrnet_ext.data.protocol import SETTINGS, VIEW_PROTOCOL
 from vrnet_ext.model.pretrained import model_for, training_seconds
@@ -47,22 +48,25 @@ def measurements(results: Path, method: str = "vrnet") -> dict[tuple[str, str, s
     """(model, setting, split) -> the row of ``method`` ("vrnet": one pass; "vrnet2": two passes) of
     its newest measurement, with the file it came from."""
     found: dict[tuple[str, str, str], dict] = {}
-    digests: dict[str, str | None] = {}
+    current: dict[str, tuple[str | None, dict | None]] = {}
     for path in sorted(results.glob("*/modelnet40_tables*.json")):  # date folders sort in time order
         for cell in json.loads(path.read_text())["results"]:
-            if cell["model"] not in digests:
+            if cell["model"] not in current:
                 try:
-                    digests[cell["model"]] = weights_digest(cell["model"])
+                    current[cell["model"]] = (weights_digest(cell["model"]), solve_options(cell["model"]))
                 except (OSError, ValueError):  # a model that is no longer shipped
-                    digests[cell["model"]] = None
-            stale = ("weights" in cell and cell["weights"] != digests[cell["model"]]) or (
-                cell["setting"] in PARTIAL_VIEWS and cell.get("views") != VIEW_PROTOCOL)
+                    current[cell["model"]] = (None, None)
+            weights, solve = current[cell["model"]]
+            stale = (("weights" in cell and cell["weights"] != weights) or ("solve" in cell and cell["solve"] != solve)
+                     or (cell["setting"] in PARTIAL_VIEWS and cell.get("views") != VIEW_PROTOCOL))
+            verified = "weights" in cell and "solve" in cell
             key = (cell["model"], cell["setting"], cell["split"])
-            if method not in cell["methods"] or stale or ("weights" not in cell and found.get(key, {}).get("weights")):
-                continue  # a measurement known to be of the current weights beats one that names none
+            if method not in cell["methods"] or stale or (not verified and found.get(key, {}).get("verified")):
+                continue  # a measurement known to be of the current model beats one that does not say
             found[key] = {
                 **{k: cell["methods"][method][k] for k in COLUMNS}, "pairs": cell["pairs"],
-                "weights": cell.get("weights"), "source": str(path.relative_to(results.parent))}
+                "weights": cell.get("weights"), "solve": cell.get("solve"), "verified": verified,
+                "source": str(path.relative_to(results.parent))}
     return found
 
 

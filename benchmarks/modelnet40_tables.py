@@ -43,6 +43,8 @@ from vrnet_ext.data.modelnet import SPLITS
 from vrnet_ext.data.protocol import MIXED, SETTINGS, VIEW_PROTOCOL
 from vrnet_ext.registration.ransac import fpfh_ransac
 from vrnet_ext.geometry.metrics import summarize
+from vrnet_ext.learning.export import INFERENCE_FIELDS
+from vrnet_ext.model import VRNetConfig
 from vrnet_ext.ops import kabsch
 from vrnet_ext.model.checkpoints import read_checkpoint
 from vrnet_ext.model.pretrained import available, cells, load_vrnet, weights_path
@@ -138,6 +140,15 @@ def classical_estimates(data, method: str, icp_max_distance: float, fpfh_voxel: 
     return np.stack(rotations), np.stack(translations), seconds, failures
 
 
+def solve_options(name: str) -> dict:
+    """How a model solves its estimate from its network's output (the model config's inference-time
+    fields, :data:`vrnet_ext.learning.export.INFERENCE_FIELDS`): a measurement holds for these and
+    its weights; ``vrnet export`` may change them without touching the weights."""
+    path = weights_path(name) if name in available("vrnet") else Path(name)
+    config = VRNetConfig.from_dict(read_checkpoint(path)["config"]["model"])
+    return {field: getattr(config, field) for field in INFERENCE_FIELDS}
+
+
 def weights_digest(name: str) -> str:
     """The first 16 hex digits of a SHA-256 over a shipped model's (or a checkpoint's) parameters,
     name by name: which weights a measurement was taken with (its card may change, they may not)."""
@@ -186,7 +197,8 @@ def evaluate_cell(name: str, model, config: dict, setting: str, split: str, args
         rows[method] = row
         print(f"{name} {setting}/{split} {method}: RMSE(R) {row['RMSE(R)']:.3f}, MAE(R) {row['MAE(R)']:.3f}, "
               f"RMSE(t) {row['RMSE(t)']:.4f}, {row['seconds_per_pair'] * 1e3:.1f} ms/pair", flush=True)
-    return {"model": name, "weights": weights_digest(name), "setting": setting, "split": split, "pairs": len(data),
+    return {"model": name, "weights": weights_digest(name), "solve": solve_options(name), "setting": setting,
+            "split": split, "pairs": len(data),
             "views": VIEW_PROTOCOL, "methods": rows,
             "paper": {k: dict(zip(COLUMNS[:4], v)) for k, v in PAPER.get((setting, split), {}).items()}}
 

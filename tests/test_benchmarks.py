@@ -115,25 +115,30 @@ def test_ablations_write_json_and_png(tmp_path, ablation):
 
 def test_modelnet40_summary_takes_each_cells_serving_model_and_its_newest_measurement(tmp_path):
     """Dated measurements of CO / UPC by the model that serves it: the one naming its current weights
-    beats newer ones that name none, one naming other weights is stale; a measurement of a model
-    that does not serve a cell is ignored; unmeasured cells say so."""
+    and solve beats newer ones that name neither, one naming other weights or another solve is stale;
+    a measurement of a model that does not serve a cell is ignored; unmeasured cells say so."""
     from vrnet_ext.model.pretrained import model_for
 
     serving = model_for("CO", "UPC")
     errors = {"RMSE(R)": 0.05, "MAE(R)": 0.01, "RMSE(t)": 2e-4, "MAE(t)": 3e-5}
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from modelnet40_tables import weights_digest
+    from modelnet40_tables import solve_options, weights_digest
 
-    current = weights_digest(serving)
-    for day, scale, model, weights in (("2026-01-00", 1.0, serving, current), ("2026-01-01", 10.0, serving, None),
-                                       ("2026-01-02", 3.0, serving, None),
-                                       ("2026-01-03", 0.1, "another-model", None),
-                                       ("2026-01-04", 0.5, serving, "0" * 16)):  # other weights: stale
+    current, solve = weights_digest(serving), solve_options(serving)
+    other_solve = dict(solve, irls_scale=solve["irls_scale"] * 2)
+    for day, scale, model, weights, solved in (
+            ("2026-01-00", 1.0, serving, current, solve), ("2026-01-01", 10.0, serving, None, None),
+            ("2026-01-02", 3.0, serving, current, None),  # weights named, solve not: not known to be current
+            ("2026-01-03", 0.1, "another-model", None, None),
+            ("2026-01-04", 0.5, serving, "0" * 16, solve),  # other weights: stale
+            ("2026-01-05", 0.2, serving, current, other_solve)):  # another solve: stale
         (tmp_path / "results" / day).mkdir(parents=True)
         cell = {"model": model, "setting": "CO", "split": "UPC", "pairs": 2468,
                 "methods": {"vrnet": {k: v * scale for k, v in errors.items()}}}
         if weights:
             cell["weights"] = weights
+        if solved:
+            cell["solve"] = solved
         (tmp_path / "results" / day / "modelnet40_tables_x.json").write_text(json.dumps({"results": [cell]}))
     run([str(ROOT / "benchmarks" / "modelnet40_summary.py"), "--results", str(tmp_path / "results"),
          "--json", "summary.json", "--png", "summary.png"], tmp_path)
