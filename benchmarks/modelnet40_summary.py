@@ -9,11 +9,12 @@ those: information, not the comparison with the paper's one-pass tables.
 
 Reads every ``modelnet40_tables*.json`` under ``--results`` (written by ``modelnet40_tables.py``). A
 measurement that names the digest of other weights than the model's file holds now, or another
-solve of the estimate (``solve``: the IRLS and Procrustes options its file holds), is stale and
+solve of the estimate (``solve``: the IRLS and Procrustes options its file holds; one that names
+none was taken with the Cauchy kernel at 3 medians, the only ones there were), is stale and
 skipped, and so is one of a partial-view cell (PV, PV+RS) whose pairs were not cut the way
 ``vrnet_ext.data.protocol`` cuts them now (``views``); one that names the current digest and solve
-beats any that does not name both; otherwise, for a (model, cell) measured more than once, the newest folder wins (in
-one folder, the file that sorts last). A cell whose serving model was never measured is listed as
+beats any that does not name both; otherwise, for a (model, cell) measured more than once, the
+newest folder wins (in one folder, the file that sorts last). A cell whose serving model was never measured is listed as
 such. The target is the paper's VRNet row, except RS / UC rotation, where it is PRNet's (the
 paper's VRNet is worse than PRNet there). The PNG colours each cell by its worst ratio ours / target
 over the four columns: green where it is at most 1 (every column reached), red where not, deeper the
@@ -33,6 +34,8 @@ from vrnet_ext.model.pretrained import model_for, training_seconds
 
 COLUMNS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)")
 PARTIAL_VIEWS = ("PV", "PV+RS")  # the settings whose pairs depend on how views are cut
+# A measurement that names no solve was taken when the reweighting's kernel and scale were fixed.
+UNRECORDED_SOLVE = {"irls_kernel": "cauchy", "irls_scale": 3.0}
 
 
 def target(setting: str, split: str) -> tuple[tuple[float, ...], str]:
@@ -57,7 +60,9 @@ def measurements(results: Path, method: str = "vrnet") -> dict[tuple[str, str, s
                 except (OSError, ValueError):  # a model that is no longer shipped
                     current[cell["model"]] = (None, None)
             weights, solve = current[cell["model"]]
-            stale = (("weights" in cell and cell["weights"] != weights) or ("solve" in cell and cell["solve"] != solve)
+            recorded = cell.get("solve", UNRECORDED_SOLVE)
+            stale = (("weights" in cell and cell["weights"] != weights)
+                     or (solve is not None and any(recorded[k] != solve[k] for k in recorded))
                      or (cell["setting"] in PARTIAL_VIEWS and cell.get("views") != VIEW_PROTOCOL))
             verified = "weights" in cell and "solve" in cell
             key = (cell["model"], cell["setting"], cell["split"])

@@ -8,7 +8,8 @@ split it was trained for (every setting of its split for a model trained on ``mi
 those of ``--settings``) define the test pairs: ``ModelNet40Pairs(partition="test")`` with seed
 1234, the same deterministic pairs for every method. Methods:
 
-* ``vrnet``: the model's own estimate (RCPs, weighted when the model has a confidence head);
+* ``vrnet``: the model's own estimate (RCPs, weighted when the model has a confidence head, with the
+  robust solve its file names: ``solve`` in the JSON);
 * ``vcp``: Kabsch on the VCPs of the same forward pass (the network without its walk: DCP-v2's
   estimator on our features);
 * ``vrnet2`` (not run by default): the network twice per pair, the second pass registering the

@@ -128,7 +128,7 @@ def test_modelnet40_summary_takes_each_cells_serving_model_and_its_newest_measur
     other_solve = dict(solve, irls_scale=solve["irls_scale"] * 2)
     for day, scale, model, weights, solved in (
             ("2026-01-00", 1.0, serving, current, solve), ("2026-01-01", 10.0, serving, None, None),
-            ("2026-01-02", 3.0, serving, current, None),  # weights named, solve not: not known to be current
+            ("2026-01-02", 3.0, serving, current, None),  # no solve named: the Cauchy one at 3 medians
             ("2026-01-03", 0.1, "another-model", None, None),
             ("2026-01-04", 0.5, serving, "0" * 16, solve),  # other weights: stale
             ("2026-01-05", 0.2, serving, current, other_solve)):  # another solve: stale
@@ -157,11 +157,15 @@ def test_modelnet40_summary_skips_partial_view_measurements_of_other_views(tmp_p
     from vrnet_ext.data.protocol import VIEW_PROTOCOL
     from vrnet_ext.model.pretrained import model_for
 
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from modelnet40_tables import solve_options
+
     errors = {"RMSE(R)": 0.3, "MAE(R)": 0.05, "RMSE(t)": 2e-3, "MAE(t)": 3e-4}
     for day, scale, views in (("2026-01-00", 1.0, VIEW_PROTOCOL), ("2026-01-01", 2.0, None),
                               ("2026-01-02", 3.0, "another cut")):
         (tmp_path / "results" / day).mkdir(parents=True)
         results = [{"model": model_for(setting, "UPC"), "setting": setting, "split": "UPC", "pairs": 10,
+                    "solve": solve_options(model_for(setting, "UPC")),
                     "methods": {"vrnet": {k: v * scale for k, v in errors.items()}}} for setting in ("PV", "CO")]
         for cell in results:
             if views:
@@ -197,8 +201,11 @@ def test_modelnet40_summary_lists_two_pass_rows_apart_from_the_comparison(tmp_pa
     one_pass = {"RMSE(R)": 0.5, "MAE(R)": 0.05, "RMSE(t)": 1e-3, "MAE(t)": 1e-4}  # CO / UC: above the paper
     two_passes = {k: v / 100 for k, v in one_pass.items()}
     (tmp_path / "results" / "2026-01-00").mkdir(parents=True)
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from modelnet40_tables import solve_options
+
     cell = {"model": model_for("CO", "UC"), "setting": "CO", "split": "UC", "pairs": 2468,
-            "methods": {"vrnet": one_pass, "vrnet2": two_passes}}
+            "solve": solve_options(model_for("CO", "UC")), "methods": {"vrnet": one_pass, "vrnet2": two_passes}}
     (tmp_path / "results" / "2026-01-00" / "modelnet40_tables_x.json").write_text(json.dumps({"results": [cell]}))
     run([str(ROOT / "benchmarks" / "modelnet40_summary.py"), "--results", str(tmp_path / "results"),
          "--json", "summary.json", "--markdown", "summary.md"], tmp_path)

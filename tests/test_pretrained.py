@@ -31,6 +31,10 @@ def test_the_default_model_ships_as_small_float16_weights_with_a_card():
             whole = 1266 if card["training"]["split"] == "UC" else 2468
             tests = card.get("tests") or {f"{card['training']['setting']}/{card['training']['split']}": card["test"]}
             assert card["training"]["setting"] and all(t["pairs"] >= whole for t in tests.values()), name
+            solve = state["config"]["model"]  # a test that records its robust solve was measured with the model's
+            for test in tests.values():
+                for key in ("irls_iterations", "irls_scale"):
+                    assert key not in test or test[key] == solve.get(key), (name, key)
 
 
 def test_load_pretrained_registers_a_partial_view_pair():
