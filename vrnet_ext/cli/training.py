@@ -270,6 +270,7 @@ def _read_test_results(path: str) -> str:
 
 def run_export(args) -> int:
     from vrnet_ext.model.checkpoints import read_checkpoint
+    from vrnet_ext.model.config import VRNetConfig
     from vrnet_ext.model.scene import SCENE_FORMAT
     from vrnet_ext.learning.export import export_pretrained, export_scene_model
     from vrnet_ext.model.pretrained import WEIGHTS_DIR
@@ -292,7 +293,7 @@ def run_export(args) -> int:
     if args.cells:
         card["cells"] = _cells(args.cells)
     tests = [_read_eval_json(path) for path in args.test_json or []]
-    served = {**state["config"]["model"], **overrides}
+    served = {**VRNetConfig().to_dict(), **state["config"]["model"], **overrides}  # older files name fewer fields
     for path, test in zip(args.test_json or [], tests):
         differing = [k for k in IRLS_KEYS if k in test and test[k] != served.get(k)]
         if differing:
