@@ -56,7 +56,8 @@ def test_correspondence_error_is_the_distance_from_the_true_position():
 class _PerfectWalk(torch.nn.Module):
     """Stands in for VRNet: exact matches for inliers, random soft rows for outliers, RCPs = truth."""
 
-    config = type("Config", (), {"backend": "torch", "irls_min_scale": 1e-3})()
+    config = type("Config", (), {"backend": "torch", "irls_min_scale": 1e-3, "irls_iterations": 0,
+                                 "irls_kernel": "cauchy", "irls_scale": 3.0})()
 
     def forward(self, src, tgt, backend=None, return_matching=False):
         from vrnet_ext.ops import kabsch

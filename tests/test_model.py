@@ -187,7 +187,7 @@ def test_robust_procrustes_ignores_gross_outliers_that_spoil_plain_kabsch():
 
 @pytest.mark.parametrize("kernel", ["cauchy", "geman_mcclure", "welsch"])
 def test_robust_weights_are_one_at_zero_and_fall_with_the_residual(kernel):
-    from vrnet_ext.model.vrnet import robust_weights
+    from vrnet_ext.geometry.robust import robust_weights
 
     u = torch.linspace(0, 5, 51, dtype=torch.float64)
     w = robust_weights(kernel, u)

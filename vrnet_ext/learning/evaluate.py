@@ -24,16 +24,18 @@ def to_device(batch: dict, device: torch.device) -> dict:
     return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
 
-IRLS_STEPS = 3  # reweighting steps of the "+ IRLS" estimates (robust_procrustes)
+IRLS_STEPS = 3  # reweighting steps of the "+ IRLS" estimates of a model that has none of its own
 
 
-def estimators(src: torch.Tensor, out, backend: str, min_scale: float) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+def estimators(src: torch.Tensor, out, backend: str, config) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
     """Every Procrustes estimate one forward pass offers, for the walk's ablation.
 
     ``VCP``: Kabsch on source <-> VCPs (DCP-v2); ``RCP``: on source <-> RCPs, unweighted (the paper's
     VRNet); with a confidence head also ``VCP weighted`` / ``RCP weighted`` (the confidences as
-    weights). Each also ``+ IRLS``: followed by :data:`IRLS_STEPS` Cauchy reweightings
-    (:func:`~vrnet_ext.model.vrnet.robust_procrustes`).
+    weights). Each also ``+ IRLS``: followed by the reweightings of the model's ``config`` (its
+    ``irls_kernel``, ``irls_scale``, ``irls_min_scale`` and ``irls_iterations``, or :data:`IRLS_STEPS`
+    where that is 0; :func:`~vrnet_ext.model.vrnet.robust_procrustes`), so ``RCP weighted + IRLS`` is
+    the model's own estimate when it solves on the RCPs.
     """
     points = {"VCP": (out.vcp, None), "RCP": (out.rcp, None)}
     weights = getattr(out, "weights", None)
@@ -42,7 +44,9 @@ def estimators(src: torch.Tensor, out, backend: str, min_scale: float) -> dict[s
     result = {}
     for name, (tgt, w) in points.items():
         result[name] = kabsch(src, tgt, w, backend=backend)
-        result[f"{name} + IRLS"] = robust_procrustes(src, tgt, w, IRLS_STEPS, min_scale, backend)
+        result[f"{name} + IRLS"] = robust_procrustes(src, tgt, w, config.irls_iterations or IRLS_STEPS,
+                                                     config.irls_min_scale, backend, config.irls_kernel,
+                                                     config.irls_scale)
     return result
 
 
@@ -72,7 +76,7 @@ def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str |
         batch = to_device(batch, device)
         src, tgt, R_gt, t_gt = batch["src"], batch["tgt"], batch["rotation"], batch["translation"]
         out = model(src, tgt, backend=backend, return_matching=True)  # L0 needs the matrix
-        solved = estimators(src, out, solver_backend, model.config.irls_min_scale)
+        solved = estimators(src, out, solver_backend, model.config)
         for name, (R_est, _) in solved.items():
             by_estimator.setdefault(name, []).append(R_est.cpu())
         R, t = (out.rotation, out.translation) if use_rcp else solved["VCP"]

@@ -3,8 +3,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-
-IRLS_KERNELS = ("cauchy", "geman_mcclure", "welsch")  # robust weights of the IRLS steps (VRNetConfig)
+from vrnet_ext.geometry.robust import ROBUST_KERNELS
 
 
 @dataclass
@@ -40,10 +39,10 @@ class VRNetConfig:
     * ``irls_iterations``: after the (weighted) Procrustes, this many reweighting steps: each point's
       weight is multiplied by a robust weight w(r / s) of its residual r under the current estimate,
       s = ``irls_scale`` x the median residual of the pair (at least ``irls_min_scale``), and
-      Procrustes is solved again (not in the paper; 0: a single solve). ``irls_kernel`` names w:
-      ``"cauchy"`` 1 / (1 + u^2), ``"geman_mcclure"`` 1 / (1 + u^2)^2 or ``"welsch"`` exp(-u^2) (each
-      flatter for far points than the one before). A smaller scale and a steeper kernel trust fewer
-      points: right where most RCPs sit on their counterparts and a minority is far off.
+      Procrustes is solved again (not in the paper; 0: a single solve). ``irls_kernel`` names w
+      (:func:`vrnet_ext.geometry.robust.robust_weights`: ``"cauchy"``, ``"geman_mcclure"``,
+      ``"welsch"``). A smaller scale and a steeper kernel trust fewer points: right where most RCPs
+      sit on their counterparts and a minority is far off.
     * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.
 
     Run-time choices (no effect on the weights):
@@ -100,8 +99,8 @@ class VRNetConfig:
             raise ValueError(f"procrustes_points must be 'rcp' or 'vcp', got {self.procrustes_points!r}")
         if self.irls_iterations < 0 or not self.irls_min_scale > 0 or not self.irls_scale > 0:
             raise ValueError("irls_iterations must be >= 0, irls_scale and irls_min_scale > 0")
-        if self.irls_kernel not in IRLS_KERNELS:
-            raise ValueError(f"irls_kernel must be one of {IRLS_KERNELS}, got {self.irls_kernel!r}")
+        if self.irls_kernel not in ROBUST_KERNELS:
+            raise ValueError(f"irls_kernel must be one of {ROBUST_KERNELS}, got {self.irls_kernel!r}")
         if self.backend not in ("ext", "torch"):
             raise ValueError(f"backend must be 'ext' or 'torch', got {self.backend!r}")
         if self.transformer_precision not in ("auto", "bf16", "fp32"):

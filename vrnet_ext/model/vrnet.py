@@ -8,11 +8,12 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from vrnet_ext.model.config import IRLS_KERNELS, VRNetConfig
+from vrnet_ext.model.config import VRNetConfig
 from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
 from vrnet_ext.ops import kabsch, soft_match
+from vrnet_ext.geometry.robust import robust_weights
 from vrnet_ext.geometry.transforms import compose, move
 from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
 from vrnet_ext.runtime import cpu_has_native_bf16
@@ -39,19 +40,6 @@ class VRNetOutput:
         if self.confidence_logits is None:
             return None
         return procrustes_weights(self.confidence_logits).to(self.rcp.dtype)
-
-
-def robust_weights(kernel: str, scaled_residual: torch.Tensor) -> torch.Tensor:
-    """Robust weight w(u) of residuals in units of the scale (any shape): ``"cauchy"`` 1 / (1 + u^2),
-    ``"geman_mcclure"`` 1 / (1 + u^2)^2, ``"welsch"`` exp(-u^2); all 1 at u = 0."""
-    squared = scaled_residual.square()
-    if kernel == "cauchy":
-        return 1 / (1 + squared)
-    if kernel == "geman_mcclure":
-        return 1 / (1 + squared).square()
-    if kernel == "welsch":
-        return torch.exp(-squared)
-    raise ValueError(f"kernel must be one of {IRLS_KERNELS}, got {kernel!r}")
 
 
 def robust_procrustes(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None, iterations: int,

@@ -18,9 +18,12 @@ Options and defaults are those of the authors' code and Open3D's ``FastGlobalReg
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
 from vrnet_ext.geometry.features import nearest_both_ways
+from vrnet_ext.geometry.robust import robust_weights
 from vrnet_ext.registration.estimators import gauss_newton_step, skew
 from vrnet_ext.geometry.transforms import apply, from_normalised
 
@@ -82,7 +85,7 @@ def fast_global_registration(src: torch.Tensor, tgt: torch.Tensor, src_features:
             mu /= division_factor
         moved = apply(T, x)
         residual = moved - y
-        weights = (mu / (mu + residual.square().sum(-1))).square()
+        weights = robust_weights("geman_mcclure", residual.norm(dim=-1) / math.sqrt(mu))  # (mu / (mu + r^2))^2
         J = torch.cat([-skew(moved), eye], -1)  # (C, 3, 6)
         T = gauss_newton_step(J, residual, weights, T)
     R, t = from_normalised(T[:3, :3], T[:3, 3], src_centre, tgt_centre, scale)
