@@ -31,6 +31,7 @@ import torch
 
 from vrnet_ext import ops
 from vrnet_ext.nn import EdgeConv
+from vrnet_ext.ops.kabsch import reweighting_steps
 from outputs import cpu_description  # benchmarks/, the script's folder
 
 
@@ -127,6 +128,26 @@ def _kabsch_case(B, N):
     if importlib.util.find_spec("roma"):
         impls["roma"] = _fwd_bwd(_roma_procrustes)
     return Case("kabsch", f"fwd+bwd B={B} N={N}", make, impls)
+
+
+def _robust_kabsch_case(B, N, iterations=20):
+    """VRNet's serving solve: 20 Geman-McClure steps at 0.15 medians, a third of the targets off."""
+    def make():
+        src = _clouds(B, N, 3)
+        tgt = src + 0.01 * _clouds(B, N, 3, seed=1)
+        tgt[:, : N // 3] += _clouds(B, N // 3, 3, seed=2)
+        return src, tgt, torch.rand(B, N, generator=torch.Generator().manual_seed(3)) + 0.05
+
+    def solve(backend, per_step=False):
+        def run(s, t, w):
+            with torch.no_grad():
+                if per_step:  # the same steps as tensor ops around the compiled kabsch
+                    return reweighting_steps(s, t, w, iterations, "geman_mcclure", 0.15, 1e-3, "ext")
+                return ops.robust_kabsch(s, t, w, iterations, "geman_mcclure", 0.15, backend=backend)
+        return run
+
+    impls = {"ext": solve("ext"), "torch": solve("torch"), "ext kabsch per step": solve("ext", per_step=True)}
+    return Case("robust_kabsch", f"fwd {iterations} steps B={B} N={N}", make, impls)
 
 
 def _svd_case(B):
@@ -326,6 +347,7 @@ def cuda_cases() -> list[Case]:
         _edge_conv_case(28, 64, 64, 1024, 20),
         _svd_case(1 << 20),
         _kabsch_case(1 << 20, 16),
+        _robust_kabsch_case(64, 768),
         _pdl_case(4096),
         _pdl_case(65536, skip_torch="the reference needs ~70 GB of N x N matrices"),
         _soft_match_case(28, 768, 512, 515),
@@ -348,6 +370,8 @@ def all_cases(device: str = "cpu") -> list[Case]:
         _edge_conv_case(8, 64, 64, 1024, 20),
         _svd_case(65536),
         _kabsch_case(65536, 16),
+        _robust_kabsch_case(1, 768),  # one pair's serving solve
+        _robust_kabsch_case(16, 768),
         _pdl_case(768, B=16),  # L2 on a training batch of ModelNet40 pairs
         _pdl_case(4096),
         _pdl_case(16384, quick=False, skip_torch="the reference needs ~7 GB of N x N matrices"),

@@ -17,8 +17,7 @@ from torch.utils.data import DataLoader
 from vrnet_ext.model.pretrained import load_vrnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.geometry.metrics import euler_zyx_deg, rotation_error_deg
-from vrnet_ext.model.vrnet import robust_procrustes
-from vrnet_ext.ops import kabsch
+from vrnet_ext.ops import kabsch, robust_kabsch
 
 
 def main() -> None:
@@ -50,7 +49,7 @@ def main() -> None:
             }
             for name, weights in weightings.items():
                 rotations.setdefault(name, []).append(kabsch(src, vcp, weights)[0])
-            rotations.setdefault("Cauchy IRLS (5 steps)", []).append(robust_procrustes(src, vcp, None, 5, 1e-3, "ext")[0])
+            rotations.setdefault("Cauchy IRLS (5 steps)", []).append(robust_kabsch(src, vcp, None, 5)[0])
             truths.append(batch["rotation"])
     gt = torch.cat(truths)
     print(f"{args.checkpoint}: {len(data)} validation pairs; {100 * np.mean(close):.1f} % of VCPs within 0.03")

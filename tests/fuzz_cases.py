@@ -240,6 +240,24 @@ def check_kabsch(src, tgt, weights):
 
 
 @st.composite
+def robust_kabsch_case(draw):
+    src, tgt, weights = draw(kabsch_case())
+    return (src, tgt, weights, draw(st.integers(0, 30)), draw(st.sampled_from(["cauchy", "geman_mcclure", "welsch"])),
+            draw(st.sampled_from([1e-3, 0.07, 0.75, 3.0, 1e3])), draw(st.sampled_from([1e-30, 1e-3, 1.0])))
+
+
+def check_robust_kabsch(src, tgt, weights, iterations, kernel, scale, min_scale):
+    R, t = ops.robust_kabsch(src, tgt, weights, iterations, kernel, scale, min_scale)
+    assert bool(torch.isfinite(R).all()) and bool(torch.isfinite(t).all())
+    eye = torch.eye(3, dtype=torch.float64)
+    assert float((R.double().mT @ R.double() - eye).abs().max()) <= 64 * EPS[src.dtype]
+    assert bool((torch.linalg.det(R.double()) > 0).all())
+    # no steps: the kabsch op's own solve, bit for bit
+    for a, b in zip(ops.robust_kabsch(src, tgt, weights, 0, kernel, scale, min_scale), ops.kabsch(src, tgt, weights)):
+        assert torch.equal(a, b)
+
+
+@st.composite
 def pdl_case(draw):
     x = draw(clouds(channels=[3], min_points=2, max_points=40))
     seed = draw(st.integers(0, 2**31 - 1))
@@ -500,6 +518,7 @@ OPS = {
     "edge_norm_max": (edge_norm_max_case(), check_edge_norm_max),
     "svd3x3": (matrices().map(lambda A: (A,)), check_svd3x3),
     "kabsch": (kabsch_case(), check_kabsch),
+    "robust_kabsch": (robust_kabsch_case(), check_robust_kabsch),
     "pairwise_distance_loss": (pdl_case(), check_pairwise_distance_loss),
 }
 RUNNERS = {"malformed": run_malformed, "readers": run_readers, "checkpoints": run_checkpoints,

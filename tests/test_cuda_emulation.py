@@ -257,10 +257,38 @@ def test_kabsch_weight_gradient_terms_stay_double():
     assert torch.isfinite(grads[2]).all()
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("B,N", [(1, 6), (9, 45), (2, 300)])
+@pytest.mark.parametrize("kernel", ["cauchy", "geman_mcclure", "welsch"])
+def test_robust_kabsch(dtype, B, N, kernel):
+    src = torch.randn(B, N, 3, dtype=dtype)
+    tgt = src.flip(2) + 0.01 * torch.randn(B, N, 3, dtype=dtype)
+    tgt[:, : N // 3] += torch.randn(B, N // 3, 3, dtype=dtype)  # a third far off
+    weights = torch.rand(B, N, dtype=dtype) + 0.05
+    for iterations, scale in ((0, 3.0), (4, 0.5)):
+        assert_same("robust_kabsch", src, tgt, weights, iterations, kernel, scale, 1e-3, scale=10)
+    assert_same("robust_kabsch", non_contiguous(src), tgt, weights, 2, kernel, 1.0, 1e-3, scale=10)
+
+
+def test_robust_kabsch_selects_the_lower_median_of_ties_and_stops_where_weights_vanish():
+    src = torch.randn(3, 8, 3, dtype=torch.float64)
+    tgt = src.clone()
+    tgt[0, :4] += 1.0  # residuals in two tied groups
+    tgt[1, :, 0] *= -1
+    tgt[2] = 0  # every residual the same
+    for scale in (3.0, 0.01):
+        R, t = assert_same("robust_kabsch", src, tgt, torch.ones(3, 8, dtype=torch.float64), 6, "welsch", scale, 1e-3,
+                           scale=10)
+        assert torch.isfinite(R).all() and torch.isfinite(t).all()
+
+
 def test_kabsch_bad_input_same_errors():
     src = torch.randn(1, 5, 3)
     assert run_both("kabsch", src, src, -torch.ones(1, 5)) == (None, None)
     assert run_both("kabsch", src, src, torch.zeros(1, 5)) == (None, None)
+    assert run_both("robust_kabsch", src, src, torch.ones(1, 5), -1, "cauchy", 1.0, 1e-3) == (None, None)
+    assert run_both("robust_kabsch", src, src, torch.ones(1, 5), 3, "tukey", 1.0, 1e-3) == (None, None)
+    assert run_both("robust_kabsch", src, src, torch.zeros(1, 5), 3, "cauchy", 1.0, 1e-3) == (None, None)
 
 
 @pytest.mark.parametrize("dtype", DTYPES)

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from conftest import compile_fullgraph, requires_ext
-from vrnet_ext import VRNet, VRNetConfig, has_extension
+from vrnet_ext import VRNet, VRNetConfig, has_extension, ops
 from vrnet_ext.geometry.metrics import rotation_error_deg
 
 
@@ -164,63 +164,15 @@ def test_gate_scales_the_offset_and_confidence_weights_the_procrustes():
     torch.testing.assert_close(opened.offset, raw[:, :3].transpose(1, 2))
 
 
-def test_robust_procrustes_ignores_gross_outliers_that_spoil_plain_kabsch():
-    from scipy.spatial.transform import Rotation
-
-    from vrnet_ext.model.vrnet import robust_procrustes
-    from vrnet_ext.geometry.metrics import rotation_error_deg
-
-    g = torch.Generator().manual_seed(0)
-    src = torch.rand(3, 200, 3, generator=g, dtype=torch.float64) * 2 - 1
-    R = torch.tensor(Rotation.from_euler("zyx", [30, -20, 10], degrees=True).as_matrix()).expand(3, 3, 3)
-    tgt = src @ R.mT + 0.3
-    tgt[:, :60] = torch.rand(3, 60, 3, generator=g, dtype=torch.float64)  # 30 % wrong correspondences
-    plain, _ = robust_procrustes(src, tgt, None, 0, 1e-3, "ext")
-    robust, t = robust_procrustes(src, tgt, None, 5, 1e-3, "ext")
-    assert rotation_error_deg(plain, R).min() > 0.5
-    assert rotation_error_deg(robust, R).max() < 1e-3 and (t - 0.3).abs().max() < 1e-5
-    weights = torch.ones(3, 200, dtype=torch.float64)
-    weights[:, :60] = 1e-6  # a confidence that already knows the outliers: one solve is enough
-    known, _ = robust_procrustes(src, tgt, weights, 0, 1e-3, "ext")
-    assert rotation_error_deg(known, R).max() < 1e-3
-
-
-@pytest.mark.parametrize("kernel", ["cauchy", "geman_mcclure", "welsch"])
-def test_robust_weights_are_one_at_zero_and_fall_with_the_residual(kernel):
-    from vrnet_ext.geometry.robust import robust_weights
-
-    u = torch.linspace(0, 5, 51, dtype=torch.float64)
-    w = robust_weights(kernel, u)
-    expected = {"cauchy": 1 / (1 + u**2), "geman_mcclure": 1 / (1 + u**2) ** 2, "welsch": torch.exp(-u**2)}[kernel]
-    torch.testing.assert_close(w, expected)
-    assert w[0] == 1 and (w.diff() < 0).all()
-    with pytest.raises(ValueError, match="kernel"):
-        robust_weights("tukey", u)
-
-
-@pytest.mark.parametrize("kernel, scale", [("cauchy", 0.5), ("geman_mcclure", 1.0), ("geman_mcclure", 3.0),
-                                           ("welsch", 0.75)])
-def test_a_tight_or_steep_irls_kernel_removes_the_bias_of_outliers_near_the_inliers(kernel, scale):
-    from scipy.spatial.transform import Rotation
-
-    from vrnet_ext.model.vrnet import robust_procrustes
-    from vrnet_ext.geometry.metrics import rotation_error_deg
-
-    g = torch.Generator().manual_seed(1)
-    src = torch.rand(2, 300, 3, generator=g, dtype=torch.float64) * 2 - 1
-    R = torch.tensor(Rotation.from_euler("zyx", [-40, 25, 5], degrees=True).as_matrix()).expand(2, 3, 3)
-    tgt = src @ R.mT - 0.2 + 1e-4 * torch.randn(2, 300, 3, generator=g, dtype=torch.float64)
-    tgt[:, :120] += 0.3 * torch.rand(2, 120, 3, generator=g, dtype=torch.float64)  # 40 % pushed off, some slightly
-    rotation, translation = robust_procrustes(src, tgt, None, 10, 1e-6, "torch", kernel, scale)
-    assert rotation_error_deg(rotation, R).max() < 0.005 and (translation + 0.2).abs().max() < 1e-4
-    _, wide = robust_procrustes(src, tgt, None, 10, 1e-6, "torch", "cauchy", 3.0)
-    assert (wide + 0.2).abs().max() > 1e-3  # Cauchy at 3 medians still lets the near outliers pull
+@pytest.mark.parametrize("kernel, scale", [("cauchy", 0.5), ("geman_mcclure", 1.0), ("welsch", 0.75)])
+def test_the_model_solves_with_its_irls_options(kernel, scale):
     model = small_model(irls_iterations=4, irls_kernel=kernel, irls_scale=scale).eval()
     a, b = clouds()
     with torch.no_grad():
         out = model(a, b)
-        again = robust_procrustes(a, out.rcp, out.weights, 4, model.config.irls_min_scale, "ext", kernel, scale)
+    again = ops.robust_kabsch(a, out.rcp, out.weights, 4, kernel, scale, model.config.irls_min_scale)
     torch.testing.assert_close(out.rotation, again[0])
+    torch.testing.assert_close(out.translation, again[1])
 
 
 def test_irls_options_are_checked():

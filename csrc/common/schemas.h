@@ -16,6 +16,7 @@
   X("svd3x3_backward(Tensor grad_U, Tensor grad_S, Tensor grad_V, Tensor U, Tensor S, Tensor V) -> Tensor") \
   X("kabsch(Tensor src, Tensor tgt, Tensor weights) -> (Tensor, Tensor)") \
   X("kabsch_backward(Tensor grad_R, Tensor grad_t, Tensor src, Tensor tgt, Tensor weights) -> (Tensor, Tensor, Tensor)") \
+  X("robust_kabsch(Tensor src, Tensor tgt, Tensor weights, int iterations, str kernel, float scale, float min_scale) -> (Tensor, Tensor)") \
   X("pairwise_distance_loss(Tensor x, Tensor y) -> Tensor") \
   X("pairwise_distance_loss_backward(Tensor grad_loss, Tensor x, Tensor y, Tensor loss) -> (Tensor, Tensor)") \
   X("soft_match(Tensor query, Tensor key, Tensor values, float scale) -> (Tensor, Tensor, Tensor)") \

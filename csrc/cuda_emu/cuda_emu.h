@@ -169,6 +169,17 @@ inline float __expf(float x) { return std::exp(x); }
 inline float __logf(float x) { return std::log(x); }
 inline float rsqrtf(float x) { return 1.0f / std::sqrt(x); }
 inline double rsqrt(double x) { return 1.0 / std::sqrt(x); }
+// Reinterpretation of a double's bits, as the CUDA intrinsics.
+inline long long __double_as_longlong(double x) {
+  long long bits;
+  std::memcpy(&bits, &x, sizeof bits);
+  return bits;
+}
+inline double __longlong_as_double(long long bits) {
+  double x;
+  std::memcpy(&x, &bits, sizeof x);
+  return x;
+}
 
 #define VRNET_EMU_CAT2(a, b) a##b
 #define VRNET_EMU_CAT(a, b) VRNET_EMU_CAT2(a, b)

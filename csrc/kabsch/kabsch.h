@@ -3,6 +3,7 @@
 
 #include "common/common.h"
 #include "kabsch/procrustes.h"
+#include "kabsch/robust.h"
 
 namespace vrnet {
 
@@ -27,6 +28,32 @@ inline void check_kabsch_backward_inputs(const at::Tensor& grad_R, const at::Ten
   check_kabsch_inputs(src, tgt, weights);
   check_like(grad_R, "grad_R", {src.size(0), 3, 3}, src, "src");
   check_like(grad_t, "grad_t", {src.size(0), 3}, src, "src");
+}
+
+constexpr int64_t kMaxRobustIterations = 1000;
+
+// robust_kabsch(src, tgt, weights, iterations, kernel, scale, min_scale): the kabsch inputs and the
+// reweighting options, checked and parsed.
+inline RobustOptions check_robust_kabsch_inputs(const at::Tensor& src, const at::Tensor& tgt, const at::Tensor& weights,
+                                                int64_t iterations, c10::string_view kernel, double scale,
+                                                double min_scale) {
+  check_kabsch_inputs(src, tgt, weights);
+  TORCH_CHECK_VALUE(iterations >= 0 && iterations <= kMaxRobustIterations, "iterations must be in [0, ",
+                    kMaxRobustIterations, "], got ", iterations);
+  TORCH_CHECK_VALUE(std::isfinite(scale) && scale > 0, "scale must be a positive finite number, got ", scale);
+  TORCH_CHECK_VALUE(std::isfinite(min_scale) && min_scale > 0, "min_scale must be a positive finite number, got ",
+                    min_scale);
+  RobustKernel parsed;
+  if (kernel == "cauchy") {
+    parsed = RobustKernel::kCauchy;
+  } else if (kernel == "geman_mcclure") {
+    parsed = RobustKernel::kGemanMcClure;
+  } else if (kernel == "welsch") {
+    parsed = RobustKernel::kWelsch;
+  } else {
+    TORCH_CHECK_VALUE(false, "kernel must be one of cauchy, geman_mcclure, welsch, got ", kernel);
+  }
+  return {parsed, scale, min_scale, iterations};
 }
 
 }  // namespace vrnet

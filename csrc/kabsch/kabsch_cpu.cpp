@@ -1,6 +1,8 @@
 // Weighted Kabsch / Procrustes on CPU: R, t = argmin sum_i w_i |R x_i + t - y_i|^2 over proper
 // rotations. Weights enter once (normalised to sum 1), centroids and covariance are fused, the 3x3
 // solve runs in double (kabsch/kabsch.h holds the solve and the backward shared with CUDA).
+// robust_kabsch: the same solve, then reweighting steps on one problem's points (median by
+// selection, weights in double), no tensor op per step.
 #include <ATen/ops/empty.h>
 #include <ATen/ops/empty_like.h>
 #include <torch/library.h>
@@ -14,8 +16,8 @@ namespace vrnet {
 namespace {
 
 // Two passes over one problem's points: centroids, then the centred covariance; then the solve.
-template <typename scalar_t>
-Procrustes solve(const scalar_t* x, const scalar_t* y, const scalar_t* w, int64_t n) {
+template <typename scalar_t, typename weight_t>
+Procrustes solve(const scalar_t* x, const scalar_t* y, const weight_t* w, int64_t n) {
   Procrustes p;
   p.wscale = 0;
   for (int64_t i = 0; i < n; ++i) p.wscale = std::max(p.wscale, double(w[i]));
@@ -70,6 +72,57 @@ std::tuple<at::Tensor, at::Tensor> kabsch_cpu(const at::Tensor& src_in, const at
   return {R, t};
 }
 
+// The weighted solve, then options.iterations steps: residuals r_i, s = robust_pair_scale(median r),
+// weights w_i * robust_weight(r_i / s), solve again. A step whose weights all vanish (possible only in
+// Welsch's tail) ends the problem's steps. `scratch` holds 3 n doubles.
+template <typename scalar_t>
+Procrustes robust_solve(const scalar_t* x, const scalar_t* y, const scalar_t* w, int64_t n, const RobustOptions& options,
+                        double* scratch) {
+  Procrustes p = solve(x, y, w, n);
+  double *residual = scratch, *selected = scratch + n, *weight = scratch + 2 * n;
+  const int64_t middle = (n - 1) / 2;  // the lower median, as torch.median
+  for (int64_t step = 0; step < options.iterations; ++step) {
+    for (int64_t i = 0; i < n; ++i) residual[i] = procrustes_residual(p, x + 3 * i, y + 3 * i);
+    std::copy(residual, residual + n, selected);
+    std::nth_element(selected, selected + middle, selected + n);
+    const double pair_scale = robust_pair_scale(options, selected[middle]);
+    double largest = 0;
+    for (int64_t i = 0; i < n; ++i) {
+      weight[i] = double(w[i]) * robust_weight(options.kernel, residual[i] / pair_scale);
+      largest = std::max(largest, weight[i]);
+    }
+    if (!(largest > 0)) break;
+    p = solve(x, y, weight, n);
+  }
+  return p;
+}
+
+std::tuple<at::Tensor, at::Tensor> robust_kabsch_cpu(const at::Tensor& src_in, const at::Tensor& tgt_in,
+                                                     const at::Tensor& weights_in, int64_t iterations,
+                                                     c10::string_view kernel, double scale, double min_scale) {
+  const RobustOptions options =
+      check_robust_kabsch_inputs(src_in, tgt_in, weights_in, iterations, kernel, scale, min_scale);
+  const at::Tensor src = src_in.contiguous(), tgt = tgt_in.contiguous(), weights = weights_in.contiguous();
+  check_finite(src, "src");
+  check_finite(tgt, "tgt");
+  check_finite(weights, "weights");
+  const int64_t B = src.size(0), N = src.size(1);
+  at::Tensor R = at::empty({B, 3, 3}, src.options()), t = at::empty({B, 3}, src.options());
+  AT_DISPATCH_FLOATING_TYPES(src.scalar_type(), "robust_kabsch_cpu", [&] {
+    const scalar_t *xp = src.const_data_ptr<scalar_t>(), *yp = tgt.const_data_ptr<scalar_t>();
+    const scalar_t* wp = weights.const_data_ptr<scalar_t>();
+    for (int64_t b = 0; b < B; ++b) check_weights(wp + b * N, N, b);
+    scalar_t *rp = R.mutable_data_ptr<scalar_t>(), *tp = t.mutable_data_ptr<scalar_t>();
+    parallel_ranges(B, 1, [&](int64_t begin, int64_t end) {
+      std::vector<double> scratch(3 * N);
+      for (int64_t b = begin; b < end; ++b)
+        robust_solve(xp + b * N * 3, yp + b * N * 3, wp + b * N, N, options, scratch.data())
+            .write(rp + 9 * b, tp + 3 * b);
+    });
+  });
+  return {R, t};
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor> kabsch_backward_cpu(const at::Tensor& gR_in, const at::Tensor& gt_in,
                                                                    const at::Tensor& src_in, const at::Tensor& tgt_in,
                                                                    const at::Tensor& weights_in) {
@@ -111,6 +164,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> kabsch_backward_cpu(const at::Ten
 TORCH_LIBRARY_IMPL(vrnet_ext, CPU, m) {
   m.impl("kabsch", &kabsch_cpu);
   m.impl("kabsch_backward", &kabsch_backward_cpu);
+  m.impl("robust_kabsch", &robust_kabsch_cpu);
 }
 
 }  // namespace vrnet

@@ -42,6 +42,30 @@ std::tuple<at::Tensor, at::Tensor> kabsch_cuda(const at::Tensor& src_in, const a
   return {R, t};
 }
 
+std::tuple<at::Tensor, at::Tensor> robust_kabsch_cuda(const at::Tensor& src_in, const at::Tensor& tgt_in,
+                                                      const at::Tensor& weights_in, int64_t iterations,
+                                                      c10::string_view kernel, double scale, double min_scale) {
+  const RobustOptions options =
+      check_robust_kabsch_inputs(src_in, tgt_in, weights_in, iterations, kernel, scale, min_scale);
+  VRNET_CUDA_GUARD(src_in);
+  const at::Tensor src = src_in.contiguous(), tgt = tgt_in.contiguous(), weights = weights_in.contiguous();
+  const int64_t B = src.size(0), N = src.size(1);
+  at::Tensor R = at::empty({B, 3, 3}, src.options()), t = at::empty({B, 3}, src.options());
+  if (B == 0) return {R, t};
+  check_on_device({finite_condition(src, "src"), finite_condition(tgt, "tgt"), finite_condition(weights, "weights"),
+                   {weights.min().ge(0), "weights must be non-negative"},
+                   {weights.sum(1).min().gt(0),
+                    "weights of some batch sum to zero: at least one point per problem needs a positive weight"}});
+  const int64_t scratch_per_problem = options.iterations > 0 ? N : 0;
+  at::Tensor residuals = at::empty({B, scratch_per_problem}, src.options().dtype(at::kDouble));
+  at::Tensor robust_weights = at::empty({B, scratch_per_problem}, src.options().dtype(at::kDouble));
+  AT_DISPATCH_FLOATING_TYPES(src.scalar_type(), "robust_kabsch_cuda", [&] {
+    launch<robust_kabsch_kernel<scalar_t>>(per_problem_warp(B), src, tgt, weights, B, N, options, residuals,
+                                           robust_weights, R, t);
+  });
+  return {R, t};
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor> kabsch_backward_cuda(const at::Tensor& gR_in, const at::Tensor& gt_in,
                                                                     const at::Tensor& src_in, const at::Tensor& tgt_in,
                                                                     const at::Tensor& weights_in) {
@@ -67,6 +91,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> kabsch_backward_cuda(const at::Te
 VRNET_CUDA_IMPL(m) {
   m.impl("kabsch", &kabsch_cuda);
   m.impl("kabsch_backward", &kabsch_backward_cuda);
+  m.impl("robust_kabsch", &robust_kabsch_cuda);
 }
 
 }  // namespace vrnet

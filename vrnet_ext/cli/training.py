@@ -19,7 +19,7 @@ IRLS_KEYS = ("irls_iterations", "irls_kernel", "irls_scale")  # the robust solve
 def add_irls_options(parser, default: str) -> None:
     """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale`` (VRNetConfig's IRLS fields); ``default``
     says what applies when a flag is not given."""
-    from vrnet_ext.geometry.robust import ROBUST_KERNELS
+    from vrnet_ext.ops.kabsch import ROBUST_KERNELS
 
     parser.add_argument("--irls-iterations", type=nonnegative_int, default=None,
                         help=f"robust reweighting steps after the Procrustes solve, 0: none (default: {default})")

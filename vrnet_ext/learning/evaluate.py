@@ -14,8 +14,7 @@ from vrnet_ext.geometry.metrics import (chamfer_distance, correct_match_ratio, c
                                rotation_error_deg, summarize)
 from vrnet_ext.geometry.transforms import move
 from vrnet_ext.model import VRNet
-from vrnet_ext.model.vrnet import robust_procrustes
-from vrnet_ext.ops import kabsch
+from vrnet_ext.ops import kabsch, robust_kabsch
 
 PAPER_COLUMNS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)")
 
@@ -34,7 +33,7 @@ def estimators(src: torch.Tensor, out, backend: str, config) -> dict[str, tuple[
     VRNet); with a confidence head also ``VCP weighted`` / ``RCP weighted`` (the confidences as
     weights). Each also ``+ IRLS``: followed by the reweightings of the model's ``config`` (its
     ``irls_kernel``, ``irls_scale``, ``irls_min_scale`` and ``irls_iterations``, or :data:`IRLS_STEPS`
-    where that is 0; :func:`~vrnet_ext.model.vrnet.robust_procrustes`), so ``RCP weighted + IRLS`` is
+    where that is 0; :func:`~vrnet_ext.ops.robust_kabsch`), so ``RCP weighted + IRLS`` is
     the model's own estimate when it solves on the RCPs.
     """
     points = {"VCP": (out.vcp, None), "RCP": (out.rcp, None)}
@@ -44,9 +43,9 @@ def estimators(src: torch.Tensor, out, backend: str, config) -> dict[str, tuple[
     result = {}
     for name, (tgt, w) in points.items():
         result[name] = kabsch(src, tgt, w, backend=backend)
-        result[f"{name} + IRLS"] = robust_procrustes(src, tgt, w, config.irls_iterations or IRLS_STEPS,
-                                                     config.irls_min_scale, backend, config.irls_kernel,
-                                                     config.irls_scale)
+        result[f"{name} + IRLS"] = robust_kabsch(src, tgt, w, config.irls_iterations or IRLS_STEPS,
+                                                 config.irls_kernel, config.irls_scale, config.irls_min_scale,
+                                                 backend=backend)
     return result
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from vrnet_ext.geometry.robust import ROBUST_KERNELS
+from vrnet_ext.ops.kabsch import ROBUST_KERNELS
 
 
 @dataclass
@@ -40,7 +40,7 @@ class VRNetConfig:
       weight is multiplied by a robust weight w(r / s) of its residual r under the current estimate,
       s = ``irls_scale`` x the median residual of the pair (at least ``irls_min_scale``), and
       Procrustes is solved again (not in the paper; 0: a single solve). ``irls_kernel`` names w
-      (:func:`vrnet_ext.geometry.robust.robust_weights`: ``"cauchy"``, ``"geman_mcclure"``,
+      (:func:`vrnet_ext.ops.kabsch.robust_weights`: ``"cauchy"``, ``"geman_mcclure"``,
       ``"welsch"``). A smaller scale and a steeper kernel trust fewer points: right where most RCPs
       sit on their counterparts and a minority is far off.
     * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.

@@ -12,8 +12,7 @@ from vrnet_ext.model.config import VRNetConfig
 from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
-from vrnet_ext.ops import kabsch, soft_match
-from vrnet_ext.geometry.robust import robust_weights
+from vrnet_ext.ops import robust_kabsch, soft_match
 from vrnet_ext.geometry.transforms import compose, move
 from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
 from vrnet_ext.runtime import cpu_has_native_bf16
@@ -40,26 +39,6 @@ class VRNetOutput:
         if self.confidence_logits is None:
             return None
         return procrustes_weights(self.confidence_logits).to(self.rcp.dtype)
-
-
-def robust_procrustes(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None, iterations: int,
-                      min_scale: float, backend: str, kernel: str = "cauchy",
-                      scale: float = 3.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Weighted Procrustes src (B, N, 3) -> tgt (B, N, 3), then ``iterations`` robust reweightings.
-
-    Each step multiplies ``weights`` (uniform when None) by w(r_i / s) (:func:`robust_weights` of
-    ``kernel``), where r_i is point i's residual |R x_i + t - y_i| under the current estimate and
-    s = max(``scale`` x median_i r_i, min_scale) per pair, and solves again: correspondences far off
-    the consensus of the rest lose their say. Returns (R (B, 3, 3), t (B, 3)).
-    """
-    rotation, translation = kabsch(src, tgt, weights, backend=backend)
-    base = torch.ones(src.shape[:2], dtype=src.dtype, device=src.device) if weights is None else weights
-    for _ in range(iterations):
-        residual = (move(src, rotation, translation) - tgt).norm(dim=-1)
-        pair_scale = (scale * residual.median(dim=1, keepdim=True).values).clamp_min(min_scale)
-        rotation, translation = kabsch(src, tgt, base * robust_weights(kernel, residual / pair_scale),
-                                       backend=backend)
-    return rotation, translation
 
 
 @dataclass
@@ -213,8 +192,8 @@ class VRNet(nn.Module):
         rcp = vcp + offset
         weights = None if confidence_logits is None else procrustes_weights(confidence_logits).to(src.dtype)
         aligned_to = rcp if self.config.procrustes_points == "rcp" else vcp
-        rotation, translation = robust_procrustes(src, aligned_to, weights, self.config.irls_iterations,
-                                                  self.config.irls_min_scale, backend, self.config.irls_kernel,
-                                                  self.config.irls_scale)
+        rotation, translation = robust_kabsch(src, aligned_to, weights, self.config.irls_iterations,
+                                              self.config.irls_kernel, self.config.irls_scale,
+                                              self.config.irls_min_scale, backend=backend)
         return VRNetOutput(rotation, translation, matching, vcp, rcp, offset, phi_x, phi_y, gate_logits,
                            confidence_logits)

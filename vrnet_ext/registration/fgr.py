@@ -23,7 +23,7 @@ import math
 import torch
 
 from vrnet_ext.geometry.features import nearest_both_ways
-from vrnet_ext.geometry.robust import robust_weights
+from vrnet_ext.ops.kabsch import robust_weights
 from vrnet_ext.registration.estimators import gauss_newton_step, skew
 from vrnet_ext.geometry.transforms import apply, from_normalised
 
