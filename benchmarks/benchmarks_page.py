@@ -54,6 +54,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "scene_validation": "Scene models on the validation pairs (`scene_validation.py`)",
     "ops": "Op timings (`bench_ops.py`)",
     "ops_spatial_consistency": "Spatial consistency op timings (`bench_ops.py --only spatial_consistency`)",
+    "ops_robust_kabsch_avx2": "Kabsch and robust Kabsch timings on a CPU without AVX-512 (`bench_ops.py --only robust_kabsch,kabsch`)",
     "busy": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
     "busy_1": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
     "busy_2": "Op timings beside a busy process (`bench_ops.py --beside-busy`)",
