@@ -301,3 +301,8 @@ def test_robust_kabsch_opcheck_and_compile(device):
     fn = compile_fullgraph(lambda s, g: ops.robust_kabsch(s, g, None, 5, "geman_mcclure", 0.15))
     with torch.no_grad():
         torch.testing.assert_close(fn(src, tgt), ops.robust_kabsch(src, tgt, None, 5, "geman_mcclure", 0.15))
+    src_grad = src.clone().requires_grad_()  # the differentiable steps compile too
+    R, t = fn(src_grad, tgt)
+    (R.sum() + t.sum()).backward()
+    torch.testing.assert_close(R.detach(), ops.robust_kabsch(src, tgt, None, 5, "geman_mcclure", 0.15)[0])
+    assert torch.isfinite(src_grad.grad).all()

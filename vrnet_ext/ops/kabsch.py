@@ -121,8 +121,8 @@ def _validate_robust(iterations: int, kernel: str, scale: float, min_scale: floa
             raise ValueError(f"{name} must be a positive finite number, got {value!r}")
 
 
-def reweighting_steps(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None, iterations: int, kernel: str,
-                scale: float, min_scale: float, backend: str) -> tuple[torch.Tensor, torch.Tensor]:
+def reweighting_steps(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor | None, iterations: int,
+                      kernel: str, scale: float, min_scale: float, backend: str) -> tuple[torch.Tensor, torch.Tensor]:
     """The steps of :func:`robust_kabsch` as tensor ops around :func:`kabsch` (differentiable)."""
     R, t = kabsch(src, tgt, weights, backend=backend)
     base = torch.ones(src.shape[:2], dtype=torch.float64, device=src.device) if weights is None else weights.double()
@@ -132,8 +132,6 @@ def reweighting_steps(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tenso
         step = base * robust_weights(kernel, residual / pair_scale)
         largest = step.amax(dim=1, keepdim=True)
         alive = largest > 0
-        if not bool(alive.any()):
-            break
         step = torch.where(alive, step / largest.clamp_min(torch.finfo(torch.float64).tiny), base)
         R_next, t_next = kabsch(src, tgt, step.to(src.dtype), backend=backend)
         R, t = torch.where(alive.unsqueeze(-1), R_next, R), torch.where(alive, t_next, t)
