@@ -50,9 +50,13 @@ void check_weights(const scalar_t* w, int64_t n, int64_t b) {
   TORCH_CHECK_VALUE(total > 0, "weights of batch ", b, " sum to zero: at least one point needs a positive weight");
 }
 
-std::tuple<at::Tensor, at::Tensor> kabsch_cpu(const at::Tensor& src_in, const at::Tensor& tgt_in,
-                                              const at::Tensor& weights_in) {
-  check_kabsch_inputs(src_in, tgt_in, weights_in);
+// A forward's common part: the inputs made contiguous and checked (finite; per problem non-negative
+// weights with a positive sum), the outputs allocated, then solve_range(x, y, w, N, R, t, begin, end)
+// on typed pointers for ranges of problems of at least `grain`.
+template <typename SolveRange>
+std::tuple<at::Tensor, at::Tensor> solve_problems(const at::Tensor& src_in, const at::Tensor& tgt_in,
+                                                  const at::Tensor& weights_in, int64_t grain,
+                                                  const SolveRange& solve_range) {
   const at::Tensor src = src_in.contiguous(), tgt = tgt_in.contiguous(), weights = weights_in.contiguous();
   check_finite(src, "src");
   check_finite(tgt, "tgt");
@@ -64,12 +68,21 @@ std::tuple<at::Tensor, at::Tensor> kabsch_cpu(const at::Tensor& src_in, const at
     const scalar_t* wp = weights.const_data_ptr<scalar_t>();
     for (int64_t b = 0; b < B; ++b) check_weights(wp + b * N, N, b);
     scalar_t *rp = R.mutable_data_ptr<scalar_t>(), *tp = t.mutable_data_ptr<scalar_t>();
-    parallel_ranges(B, std::max<int64_t>(1, 4096 / N), [&](int64_t begin, int64_t end) {
-      for (int64_t b = begin; b < end; ++b)
-        solve(xp + b * N * 3, yp + b * N * 3, wp + b * N, N).write(rp + 9 * b, tp + 3 * b);
-    });
+    parallel_ranges(B, grain, [&](int64_t begin, int64_t end) { solve_range(xp, yp, wp, N, rp, tp, begin, end); });
   });
   return {R, t};
+}
+
+std::tuple<at::Tensor, at::Tensor> kabsch_cpu(const at::Tensor& src_in, const at::Tensor& tgt_in,
+                                              const at::Tensor& weights_in) {
+  check_kabsch_inputs(src_in, tgt_in, weights_in);
+  const int64_t grain = std::max<int64_t>(1, 4096 / src_in.size(1));
+  return solve_problems(src_in, tgt_in, weights_in, grain,
+                        [](const auto* x, const auto* y, const auto* w, int64_t N, auto* R, auto* t, int64_t begin,
+                           int64_t end) {
+                          for (int64_t b = begin; b < end; ++b)
+                            solve(x + b * N * 3, y + b * N * 3, w + b * N, N).write(R + 9 * b, t + 3 * b);
+                        });
 }
 
 // The weighted solve, then options.iterations steps: residuals r_i, s = robust_pair_scale(median r),
@@ -102,25 +115,14 @@ std::tuple<at::Tensor, at::Tensor> robust_kabsch_cpu(const at::Tensor& src_in, c
                                                      c10::string_view kernel, double scale, double min_scale) {
   const RobustOptions options =
       check_robust_kabsch_inputs(src_in, tgt_in, weights_in, iterations, kernel, scale, min_scale);
-  const at::Tensor src = src_in.contiguous(), tgt = tgt_in.contiguous(), weights = weights_in.contiguous();
-  check_finite(src, "src");
-  check_finite(tgt, "tgt");
-  check_finite(weights, "weights");
-  const int64_t B = src.size(0), N = src.size(1);
-  at::Tensor R = at::empty({B, 3, 3}, src.options()), t = at::empty({B, 3}, src.options());
-  AT_DISPATCH_FLOATING_TYPES(src.scalar_type(), "robust_kabsch_cpu", [&] {
-    const scalar_t *xp = src.const_data_ptr<scalar_t>(), *yp = tgt.const_data_ptr<scalar_t>();
-    const scalar_t* wp = weights.const_data_ptr<scalar_t>();
-    for (int64_t b = 0; b < B; ++b) check_weights(wp + b * N, N, b);
-    scalar_t *rp = R.mutable_data_ptr<scalar_t>(), *tp = t.mutable_data_ptr<scalar_t>();
-    parallel_ranges(B, 1, [&](int64_t begin, int64_t end) {
-      std::vector<double> scratch(3 * N);
-      for (int64_t b = begin; b < end; ++b)
-        robust_solve(xp + b * N * 3, yp + b * N * 3, wp + b * N, N, options, scratch.data())
-            .write(rp + 9 * b, tp + 3 * b);
-    });
-  });
-  return {R, t};
+  return solve_problems(src_in, tgt_in, weights_in, 1,
+                        [&](const auto* x, const auto* y, const auto* w, int64_t N, auto* R, auto* t, int64_t begin,
+                            int64_t end) {
+                          std::vector<double> scratch(3 * N);
+                          for (int64_t b = begin; b < end; ++b)
+                            robust_solve(x + b * N * 3, y + b * N * 3, w + b * N, N, options, scratch.data())
+                                .write(R + 9 * b, t + 3 * b);
+                        });
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> kabsch_backward_cpu(const at::Tensor& gR_in, const at::Tensor& gt_in,

@@ -23,6 +23,14 @@ at::Tensor compute_moments(const at::Tensor& src, const at::Tensor& tgt, const a
   return moments;
 }
 
+// Finite inputs, per problem non-negative weights with a positive sum (one synchronisation).
+void check_forward_on_device(const at::Tensor& src, const at::Tensor& tgt, const at::Tensor& weights) {
+  check_on_device({finite_condition(src, "src"), finite_condition(tgt, "tgt"), finite_condition(weights, "weights"),
+                   {weights.min().ge(0), "weights must be non-negative"},
+                   {weights.sum(1).min().gt(0),
+                    "weights of some batch sum to zero: at least one point per problem needs a positive weight"}});
+}
+
 std::tuple<at::Tensor, at::Tensor> kabsch_cuda(const at::Tensor& src_in, const at::Tensor& tgt_in,
                                                const at::Tensor& weights_in) {
   check_kabsch_inputs(src_in, tgt_in, weights_in);
@@ -31,10 +39,7 @@ std::tuple<at::Tensor, at::Tensor> kabsch_cuda(const at::Tensor& src_in, const a
   const int64_t B = src.size(0);
   at::Tensor R = at::empty({B, 3, 3}, src.options()), t = at::empty({B, 3}, src.options());
   if (B == 0) return {R, t};
-  check_on_device({finite_condition(src, "src"), finite_condition(tgt, "tgt"), finite_condition(weights, "weights"),
-                   {weights.min().ge(0), "weights must be non-negative"},
-                   {weights.sum(1).min().gt(0),
-                    "weights of some batch sum to zero: at least one point per problem needs a positive weight"}});
+  check_forward_on_device(src, tgt, weights);
   const at::Tensor moments = compute_moments(src, tgt, weights);
   AT_DISPATCH_FLOATING_TYPES(src.scalar_type(), "kabsch_cuda", [&] {
     launch<kabsch_solve_kernel<scalar_t>>(per_item(B, 128), moments, B, R, t);
@@ -52,10 +57,7 @@ std::tuple<at::Tensor, at::Tensor> robust_kabsch_cuda(const at::Tensor& src_in, 
   const int64_t B = src.size(0), N = src.size(1);
   at::Tensor R = at::empty({B, 3, 3}, src.options()), t = at::empty({B, 3}, src.options());
   if (B == 0) return {R, t};
-  check_on_device({finite_condition(src, "src"), finite_condition(tgt, "tgt"), finite_condition(weights, "weights"),
-                   {weights.min().ge(0), "weights must be non-negative"},
-                   {weights.sum(1).min().gt(0),
-                    "weights of some batch sum to zero: at least one point per problem needs a positive weight"}});
+  check_forward_on_device(src, tgt, weights);
   const int64_t scratch_per_problem = options.iterations > 0 ? N : 0;
   at::Tensor residuals = at::empty({B, scratch_per_problem}, src.options().dtype(at::kDouble));
   at::Tensor robust_weights = at::empty({B, scratch_per_problem}, src.options().dtype(at::kDouble));
