@@ -176,6 +176,10 @@ def test_the_model_solves_with_its_irls_options(kernel, scale):
 
 
 def test_irls_options_are_checked():
+    from vrnet_ext.model.config import IRLS_KERNELS
+    from vrnet_ext.ops.kabsch import ROBUST_KERNELS
+
+    assert IRLS_KERNELS == ROBUST_KERNELS  # the torch-free config names the op's kernels
     with pytest.raises(ValueError, match="irls_kernel"):
         VRNetConfig(irls_kernel="huber")
     with pytest.raises(ValueError, match="irls_scale"):

@@ -19,11 +19,11 @@ IRLS_KEYS = ("irls_iterations", "irls_kernel", "irls_scale")  # the robust solve
 def add_irls_options(parser, default: str) -> None:
     """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale`` (VRNetConfig's IRLS fields); ``default``
     says what applies when a flag is not given."""
-    from vrnet_ext.ops.kabsch import ROBUST_KERNELS
+    from vrnet_ext.model.config import IRLS_KERNELS
 
     parser.add_argument("--irls-iterations", type=nonnegative_int, default=None,
                         help=f"robust reweighting steps after the Procrustes solve, 0: none (default: {default})")
-    parser.add_argument("--irls-kernel", choices=ROBUST_KERNELS, default=None,
+    parser.add_argument("--irls-kernel", choices=IRLS_KERNELS, default=None,
                         help=f"the reweighting's robust weight of a residual (default: {default})")
     parser.add_argument("--irls-scale", type=positive_float, default=None,
                         help=f"the reweighting's scale in medians of a pair's residuals (default: {default})")

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from vrnet_ext.ops.kabsch import ROBUST_KERNELS
+# The robust weights of the IRLS steps (vrnet_ext.ops.kabsch.ROBUST_KERNELS, named here too so that
+# this module stays free of torch: the CLI builds its parsers from it).
+IRLS_KERNELS = ("cauchy", "geman_mcclure", "welsch")
 
 
 @dataclass
@@ -99,8 +101,8 @@ class VRNetConfig:
             raise ValueError(f"procrustes_points must be 'rcp' or 'vcp', got {self.procrustes_points!r}")
         if self.irls_iterations < 0 or not self.irls_min_scale > 0 or not self.irls_scale > 0:
             raise ValueError("irls_iterations must be >= 0, irls_scale and irls_min_scale > 0")
-        if self.irls_kernel not in ROBUST_KERNELS:
-            raise ValueError(f"irls_kernel must be one of {ROBUST_KERNELS}, got {self.irls_kernel!r}")
+        if self.irls_kernel not in IRLS_KERNELS:
+            raise ValueError(f"irls_kernel must be one of {IRLS_KERNELS}, got {self.irls_kernel!r}")
         if self.backend not in ("ext", "torch"):
             raise ValueError(f"backend must be 'ext' or 'torch', got {self.backend!r}")
         if self.transformer_precision not in ("auto", "bf16", "fp32"):
