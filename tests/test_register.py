@@ -193,6 +193,16 @@ def test_the_vrnet_executable_writes_everything_and_keeps_its_exit_status(tmp_pa
     assert subprocess.run(vrnet + ["--help"], capture_output=True, text=True, timeout=300).returncode == 0
 
 
+@pytest.mark.parametrize("command", [[], ["register"], ["eval"], ["train"]])
+def test_help_does_not_load_torch(command):
+    """`vrnet --help` and a subcommand's help answer without importing torch (seconds on a small CPU)."""
+    probe = ("import sys\nfrom vrnet_ext.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+             "print('torch' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", probe, *command, "--help"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "usage: vrnet" in done.stdout and done.stdout.split()[-1] == "False", done.stdout[-300:]
+
+
 def test_short_commands_let_openmp_threads_sleep_unless_told_otherwise(tmp_path):
     """OMP_WAIT_POLICY=PASSIVE for `vrnet register` (set before torch loads OpenMP); a value in the
     environment is kept, and training commands leave it unset."""

@@ -10,7 +10,7 @@ from vrnet_ext.cli.common import (device_name, memory_size, nonnegative_int, pos
 
 
 def add_register(sub) -> None:
-    from vrnet_ext.registration.global_estimators import DEFAULT_METHOD, GLOBAL_ESTIMATORS
+    from vrnet_ext.registration.methods import DEFAULT_METHOD, GLOBAL_ESTIMATORS
 
     p = sub.add_parser(
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
@@ -71,7 +71,7 @@ def run_register(args) -> int:
     from vrnet_ext.geometry.io import read_points, read_transform, write_ply
     from vrnet_ext.model.pretrained import DEFAULT_SCENE_MODEL
     from vrnet_ext.registration import IcpSettings, register, transform_errors
-    from vrnet_ext.registration.global_estimators import DEFAULT_METHOD
+    from vrnet_ext.registration.methods import DEFAULT_METHOD
     from vrnet_ext.geometry.transforms import apply
 
     if args.max_memory is not None:

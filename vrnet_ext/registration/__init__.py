@@ -15,14 +15,16 @@
 
 Conventions (frames, 4x4 transforms) are those of :mod:`vrnet_ext.geometry.transforms`.
 """
-from vrnet_ext.registration.estimators import ESTIMATORS, Estimator, make_estimator
-from vrnet_ext.registration.global_estimators import (GLOBAL_ESTIMATORS, Fgr, FpfhRansac, GlobalEstimator, NoMotion,
-                                                      ObjectNetwork, SceneNetwork, SpatialConsistency,
-                                                      make_global_estimator)
-from vrnet_ext.registration.refinement import IcpFailure, IcpProblem, IcpSettings, fitness, icp
-from vrnet_ext.registration.pipeline import register
-from vrnet_ext.registration.result import RegistrationResult, transform_errors
+from vrnet_ext._lazy import lazy_attributes
 
-__all__ = ["ESTIMATORS", "Estimator", "make_estimator", "GLOBAL_ESTIMATORS", "GlobalEstimator", "FpfhRansac", "Fgr",
-           "NoMotion", "ObjectNetwork", "SceneNetwork", "SpatialConsistency", "make_global_estimator", "IcpFailure",
-           "IcpProblem", "IcpSettings", "fitness", "icp", "register", "RegistrationResult", "transform_errors"]
+_EXPORTS = {
+    **dict.fromkeys(("ESTIMATORS", "Estimator", "make_estimator"), "vrnet_ext.registration.estimators"),
+    "GLOBAL_ESTIMATORS": "vrnet_ext.registration.methods",
+    **dict.fromkeys(("Fgr", "FpfhRansac", "GlobalEstimator", "NoMotion", "ObjectNetwork", "SceneNetwork",
+                     "SpatialConsistency", "make_global_estimator"), "vrnet_ext.registration.global_estimators"),
+    **dict.fromkeys(("IcpFailure", "IcpProblem", "IcpSettings", "fitness", "icp"), "vrnet_ext.registration.refinement"),
+    "register": "vrnet_ext.registration.pipeline",
+    **dict.fromkeys(("RegistrationResult", "transform_errors"), "vrnet_ext.registration.result"),
+}
+__all__ = list(_EXPORTS)
+__getattr__ = lazy_attributes(__name__, _EXPORTS)

@@ -25,6 +25,7 @@ from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.geometry.preprocessing import subsample, voxel_downsample, voxel_size_for
 from vrnet_ext.registration.fgr import fast_global_registration
+from vrnet_ext.registration.methods import GLOBAL_ESTIMATORS
 from vrnet_ext import ops
 from vrnet_ext.geometry.features import nearest_features, voxel_fpfh
 from vrnet_ext.registration.ransac import fpfh_ransac, ransac
@@ -244,12 +245,6 @@ class ObjectNetwork(GlobalEstimator):
         return RegistrationResult.global_estimate(to_homogeneous(*from_normalised(R, t_normalised, centre, centre, scale)),
                                                   self.name, len(src_small), {"source_global": len(src_small),
                                                                               "target_global": len(tgt_small)})
-
-
-GLOBAL_ESTIMATORS = ("sc2", "fpfh", "vrnet", "fgr", "icp")
-# The best recall on the real pairs (benchmarks/bench_real_pairs.py; docs/user_guide.md), and on those
-# the scene model never saw.
-DEFAULT_METHOD = "sc2"
 
 
 def make_global_estimator(method: str, model: VRNet | SceneVRNet | None = None, global_points: int = 5000,

@@ -12,7 +12,8 @@ from vrnet_ext.registration.budget import plan_registration
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.geometry.preprocessing import coarse_in_float32, voxel_downsample, voxel_size_for
-from vrnet_ext.registration.global_estimators import DEFAULT_METHOD, GlobalEstimator, make_global_estimator
+from vrnet_ext.registration.global_estimators import GlobalEstimator, make_global_estimator
+from vrnet_ext.registration.methods import DEFAULT_METHOD
 from vrnet_ext.registration.refinement import COARSE_FACTOR, IcpFailure, IcpProblem, IcpSettings, icp
 from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import in_shifted_frames
