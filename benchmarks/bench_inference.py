@@ -14,6 +14,12 @@ so a faster variant can be seen to keep the numbers. "x reference": against the 
 with everything in float32 (the plain-PyTorch model); "x same precision": against the reference
 backend with the same Transformer precision. Peak memory: the process's peak resident set after
 the run (all variants).
+
+Arithmetic: the floating-point operations of one pair as the reference backend computes it in
+float32 (matrix products, convolutions and attention, 2 per multiply-add; torch's
+``FlopCounterMode``), and this machine's float32 matrix-product rate in the same run (a 2048^3
+product on ``--threads`` threads). Their ratio bounds the pairs per second of any float32 run that
+does the reference's products; the "GFLOP/s" column is pairs/s times the reference's count.
 """
 from __future__ import annotations
 
@@ -23,6 +29,7 @@ import statistics
 import time
 
 import torch
+from torch.utils.flop_counter import FlopCounterMode, sdpa_flop_count
 
 from vrnet_ext.data.modelnet import ModelNet40Pairs
 from vrnet_ext.geometry.metrics import rotation_error_deg
@@ -52,6 +59,31 @@ def run_pass(model, pairs: dict[str, torch.Tensor], batch: int, backend: str, tr
     return torch.cat(rotations), torch.cat(translations)
 
 
+def reference_flops_per_pair(model, pairs: dict[str, torch.Tensor]) -> float:
+    """Floating-point operations of one pair on the reference backend in float32 (its first pair)."""
+    model.config.transformer_precision = "fp32"
+
+    def attention(query, key, value, *args, out_shape=None, **kwargs) -> int:  # torch counts no CPU flash attention
+        return sdpa_flop_count(query, key, value)
+
+    counter = FlopCounterMode(display=False, custom_mapping={
+        torch.ops.aten._scaled_dot_product_flash_attention_for_cpu: attention})
+    with torch.no_grad(), counter:
+        model(pairs["src"][:1], pairs["tgt"][:1], backend="torch")
+    return float(counter.get_total_flops())
+
+
+def matmul_rate(seconds: float = 1.0, size: int = 2048) -> float:
+    """This machine's float32 matrix-product rate (FLOP/s) on the current threads."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    a @ b
+    start, products = time.perf_counter(), 0
+    while time.perf_counter() - start < seconds:
+        a @ b
+        products += 1
+    return 2.0 * size ** 3 * products / (time.perf_counter() - start)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -72,6 +104,8 @@ def main(argv: list[str] | None = None) -> None:
     model = load_pretrained(args.model).eval()
     pairs = load_pairs(args.pairs, args.data_dir)
     count = len(pairs["src"])
+    flops_per_pair = reference_flops_per_pair(model, pairs)
+    gemm_rate = matmul_rate()
     seconds: dict[tuple[str, int], list[float]] = {}
     accuracy: dict[str, dict[str, float]] = {}
     for variant, settings in variants.items():  # warm-up and accuracy
@@ -92,19 +126,24 @@ def main(argv: list[str] | None = None) -> None:
         same_precision = statistics.median(seconds[(SAME_PRECISION_REFERENCE[VARIANTS[variant][1]], batch)])
         rows.append({"variant": variant, "batch": batch, "pairs_per_s": count / median,
                      "vs_reference": reference / median, "vs_same_precision": same_precision / median,
-                     **accuracy[variant]})
+                     "gflop_per_s": flops_per_pair * count / median / 1e9, **accuracy[variant]})
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     meta = {"model": args.model, "pairs": count, "threads": args.threads, "repeats": args.repeats,
             "torch": torch.__version__, "machine": cpu_description(),
-            "date": time.strftime("%Y-%m-%d"), "peak_rss_mb": peak_mb}
-    lines = ["| variant | batch | pairs/s | x reference | x same precision | RMS angle error (deg) | RMSE(t) |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+            "date": time.strftime("%Y-%m-%d"), "peak_rss_mb": peak_mb,
+            "reference_gflop_per_pair": flops_per_pair / 1e9, "fp32_matmul_gflop_per_s": gemm_rate / 1e9,
+            "fp32_bound_pairs_per_s": gemm_rate / flops_per_pair}
+    lines = ["| variant | batch | pairs/s | x reference | x same precision | GFLOP/s | RMS angle error (deg) | RMSE(t) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
     lines += [f"| {row['variant']} | {row['batch']} | {row['pairs_per_s']:.1f} | {row['vs_reference']:.2f} | "
-              f"{row['vs_same_precision']:.2f} | "
+              f"{row['vs_same_precision']:.2f} | {row['gflop_per_s']:.0f} | "
               f"{row['rms_angle_deg']:.4f} | {row['rmse_t']:.6f} |"
               for row in sorted(rows, key=lambda r: (r["batch"], r["variant"]))]
     lines.append(f"\n`{args.model}`, {count} test pairs (PV, UPC), {args.threads} threads, {meta['machine']}, torch "
-                 f"{torch.__version__}, median of {args.repeats} passes; peak RSS {peak_mb:.0f} MB (all variants).")
+                 f"{torch.__version__}, median of {args.repeats} passes; peak RSS {peak_mb:.0f} MB (all variants). "
+                 f"Arithmetic: {flops_per_pair / 1e9:.2f} GFLOP per pair on the reference backend in float32; "
+                 f"this machine's float32 matrix products {gemm_rate / 1e9:.0f} GFLOP/s, so at most "
+                 f"{gemm_rate / flops_per_pair:.1f} pairs/s for float32 runs of those products.")
     write_outputs("\n".join(lines), {"meta": meta, "rows": rows}, args.markdown, args.json)
 
 

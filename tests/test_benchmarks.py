@@ -40,7 +40,8 @@ def test_bench_inference_times_every_variant_on_the_same_pairs(tmp_path):
     out = tmp_path / "inference.json"
     run([str(ROOT / "benchmarks" / "bench_inference.py"), "--batches", "1", "2", "--pairs", "4", "--repeats", "1",
          "--data-dir", str(MODELNET_DIR), "--json", str(out)], tmp_path)
-    rows = json.loads(out.read_text())["rows"]
+    record = json.loads(out.read_text())
+    rows, meta = record["rows"], record["meta"]
     variants = ("torch", "torch, bf16 Transformer", "ext", "ext, bf16 Transformer")
     assert {(r["variant"], r["batch"]) for r in rows} == {(v, b) for v in variants for b in (1, 2)}
     by_variant = {r["variant"]: r for r in rows if r["batch"] == 1}
@@ -48,6 +49,10 @@ def test_bench_inference_times_every_variant_on_the_same_pairs(tmp_path):
     assert by_variant["torch, bf16 Transformer"]["vs_same_precision"] == 1.0
     assert abs(by_variant["ext"]["rms_angle_deg"] - by_variant["torch"]["rms_angle_deg"]) < 0.01
     assert abs(by_variant["ext, bf16 Transformer"]["rms_angle_deg"] - by_variant["ext"]["rms_angle_deg"]) < 0.05
+    # the count includes the Transformer's attention (6 of them, 2 x 2 N^2 x 128 each: 1.8 GFLOP at N = 768)
+    assert meta["reference_gflop_per_pair"] > 1.8 and meta["fp32_matmul_gflop_per_s"] > 0
+    assert meta["fp32_bound_pairs_per_s"] == pytest.approx(meta["fp32_matmul_gflop_per_s"] / meta["reference_gflop_per_pair"])
+    assert all(r["gflop_per_s"] == pytest.approx(r["pairs_per_s"] * meta["reference_gflop_per_pair"]) for r in rows)
 
 
 LIDAR = ROOT.parent / "shared" / "data" / "scenes" / "lidar_pair"
