@@ -11,7 +11,11 @@
   several starts), its settings (:class:`IcpSettings`) and
   :func:`fitness`, a score of any transform on a pair;
 - :mod:`~vrnet_ext.registration.result`: the one result type, :class:`RegistrationResult`;
-- :mod:`~vrnet_ext.registration.pipeline`: :func:`register`, global estimate + ICP + warnings.
+- :mod:`~vrnet_ext.registration.pipeline`: :func:`register`, global estimate + ICP + warnings;
+- :mod:`~vrnet_ext.registration.methods`: the names of the built-in global estimates and the
+  default one (no torch, for the command line).
+
+The names below load on first use (``import vrnet_ext.registration`` imports no torch).
 
 Conventions (frames, 4x4 transforms) are those of :mod:`vrnet_ext.geometry.transforms`.
 """
