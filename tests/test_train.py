@@ -263,7 +263,9 @@ def test_invalid_options_are_refused_naming_the_flag():
     for overrides, flag in ((dict(stage1_epochs=-1), "--stage1-epochs"), (dict(seed=-1), "--seed"),
                             (dict(num_points=5000), "--num-points"), (dict(lr_milestones=[-5]), "--lr-milestones"),
                             (dict(loss_l4=float("nan")), "--loss-l4"), (dict(lr_stage2=0.0), "--lr-stage2"),
-                            (dict(num_subsampled=2000, num_points=1024), "--num-subsampled")):
+                            (dict(num_subsampled=2000, num_points=1024), "--num-subsampled"),
+                            (dict(train_max_angle=0.0), "--train-max-angle"),
+                            (dict(train_max_angle=720.0), "--train-max-angle")):
         with pytest.raises(ValueError, match=flag):
             TrainConfig.from_preset("tiny", **overrides)
 
@@ -282,6 +284,25 @@ def test_cli_refuses_an_output_file_and_a_missing_gpu_naming_the_flag(tmp_path, 
             main(["train", "--preset", "tiny", *flags])
         assert info.value.code == 2
         assert re.search(message, capsys.readouterr().err)
+
+
+@requires_modelnet
+def test_wider_training_rotations_leave_the_validation_pairs_as_the_protocol_draws_them():
+    import numpy as np
+
+    from vrnet_ext.learning.train import _datasets
+    from vrnet_ext.geometry.metrics import euler_zyx_deg
+
+    def largest_angle(dataset) -> float:
+        return max(float(np.abs(euler_zyx_deg(dataset[i]["rotation"])).max()) for i in range(len(dataset)))
+
+    wide_train, wide_val = _datasets(TrainConfig.from_preset("tiny", data_dir=str(MODELNET_DIR), train_max_angle=90.0))
+    train_pairs, val_pairs = _datasets(TrainConfig.from_preset("tiny", data_dir=str(MODELNET_DIR)))
+    assert wide_train.spec.max_angle_deg == 90.0 and wide_val.spec.max_angle_deg == 45.0
+    assert largest_angle(train_pairs) <= 45.0 + 1e-3 < 60.0 < largest_angle(wide_train)
+    for i in range(4):
+        assert np.array_equal(wide_val[i]["src"].numpy(), val_pairs[i]["src"].numpy())
+        assert np.array_equal(wide_val[i]["rotation"].numpy(), val_pairs[i]["rotation"].numpy())
 
 
 def test_train_takes_any_pair_provider(tmp_path):

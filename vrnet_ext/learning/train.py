@@ -92,8 +92,8 @@ def _datasets(cfg: TrainConfig):
     common = dict(root=cfg.data_dir, setting=cfg.setting, split=cfg.split, val_fraction=cfg.val_fraction,
                   classes=cfg.classes)
     # Validation pairs are the dataset's fixed ones: runs of different seeds are selected on the same pairs.
-    train = ModelNet40Pairs(partition="train", max_items=cfg.max_train_items, spec=PairSpec(**spec), seed=cfg.seed,
-                            **common)
+    train = ModelNet40Pairs(partition="train", max_items=cfg.max_train_items,
+                            spec=PairSpec(**spec, max_angle_deg=cfg.train_max_angle), seed=cfg.seed, **common)
     val = ModelNet40Pairs(partition="val", max_items=cfg.max_val_items, spec=PairSpec(**spec), **common)
     return train, val
 
