@@ -37,6 +37,7 @@ from torch.utils.data import DataLoader
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from modelnet40_tables import classical_estimates  # noqa: E402
 
+from vrnet_ext.cli.common import DefaultsHelpFormatter  # noqa: E402
 from vrnet_ext import ops  # noqa: E402
 from vrnet_ext.data import ModelNet40Pairs, PairSpec  # noqa: E402
 from vrnet_ext.geometry.features import voxel_fpfh  # noqa: E402
@@ -226,7 +227,7 @@ RUNNERS = {"iterations": run_iterations, "outliers": run_outliers, "matches": ru
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                     formatter_class=DefaultsHelpFormatter)
     parser.add_argument("ablation", choices=sorted(RUNNERS))
     parser.add_argument("--model", default="vrnet-pv-upc-rcp", help="shipped name or checkpoint")
     parser.add_argument("--data-dir", default=None, help="folder of modelnet40_1024_test.h5 (default: ../shared)")

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext import ops
 from vrnet_ext.data.real_pairs import read_manifest
 from vrnet_ext.geometry.features import mutual_matches, nearest_features, voxel_fpfh
@@ -53,7 +54,7 @@ METHODS = {"sc2": fit_sc2, "fpfh": fit_fpfh}
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                     formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--real-pairs", default=str(DEFAULT_PAIRS))
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--max-pairs", type=int, default=None, help="first N pairs only")

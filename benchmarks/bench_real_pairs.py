@@ -37,6 +37,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_large_scene import DEFAULT_DATA, pairs as shared_pairs  # noqa: E402
 from bench_register import errors, run_open3d, run_ours  # noqa: E402
 
+from vrnet_ext.cli.common import DefaultsHelpFormatter  # noqa: E402
 from vrnet_ext.data.real_pairs import SUCCESS_THRESHOLDS, read_manifest  # noqa: E402
 
 METHODS = ("default", "fpfh", "sc2", "vrnet", "fgr", "open3d-ransac", "open3d-fgr")
@@ -155,7 +156,7 @@ def plot(records: list[dict], methods: list[str], path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                     formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="the shared scenes folder")
     parser.add_argument("--seeds", type=int, default=2, help="runs per pair and method (seeds 0, 1, ...)")
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)

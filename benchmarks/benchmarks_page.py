@@ -9,6 +9,7 @@ docs/benchmarks.md is exactly this rendering of the results folder.
 """
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -143,4 +144,5 @@ def render() -> str:
 
 
 if __name__ == "__main__":
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     print(render(), end="")

@@ -29,6 +29,7 @@ from pathlib import Path
 
 from modelnet40_tables import PAPER, SPLITS, solve_options, weights_digest  # benchmarks/, the script's folder
 from outputs import write_outputs
+from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data.protocol import SETTINGS, VIEW_PROTOCOL
 from vrnet_ext.model.pretrained import model_for, training_seconds
 
@@ -196,7 +197,7 @@ def picture(rows: list[dict], path: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                     formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--results", default=str(Path(__file__).parent / "results"),
                         help="folder of dated result folders holding modelnet40_tables*.json")
     parser.add_argument("--json", default=None)

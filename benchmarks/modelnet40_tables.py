@@ -39,6 +39,7 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.data.modelnet import SPLITS
 from vrnet_ext.data.protocol import MIXED, SETTINGS, VIEW_PROTOCOL
@@ -221,18 +222,19 @@ def markdown(results: list[dict], machine: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                     formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--models", nargs="+", default=None, help="shipped names or checkpoints (default: every shipped ModelNet40 VRNet)")
     parser.add_argument("--data-dir", default=None, help="folder of modelnet40_1024_test.h5 (default: ../shared)")
-    parser.add_argument("--methods", nargs="+", choices=METHODS, default=["vrnet", "vcp", "icp", "fpfh"])
+    parser.add_argument("--methods", nargs="+", choices=METHODS, default=["vrnet", "vcp", "icp", "fpfh"],
+                        help="methods to run: VRNet, its VCPs alone, VRNet in two passes, ICP, FPFH + RANSAC")
     parser.add_argument("--settings", nargs="+", choices=SETTINGS, default=None,
                         help="only these settings of the models' cells (default: every cell a model serves)")
     parser.add_argument("--max-items", type=int, default=None, help="first N test shapes only (default: all)")
-    parser.add_argument("--batch-size", type=int, default=16)
-    parser.add_argument("--icp-max-distance", type=float, default=1.0)
-    parser.add_argument("--fpfh-voxel", type=float, default=0.05)
-    parser.add_argument("--json", default="modelnet40_tables.json")
-    parser.add_argument("--markdown", default="modelnet40_tables.md")
+    parser.add_argument("--batch-size", type=int, default=16, help="pairs per network forward")
+    parser.add_argument("--icp-max-distance", type=float, default=1.0, help="ICP's correspondence reach")
+    parser.add_argument("--fpfh-voxel", type=float, default=0.05, help="FPFH + RANSAC's voxel edge")
+    parser.add_argument("--json", default="modelnet40_tables.json", help="where the JSON goes")
+    parser.add_argument("--markdown", default="modelnet40_tables.md", help="where the Markdown goes")
     args = parser.parse_args(argv)
     models = args.models or available("vrnet")
     if not models:

@@ -6,8 +6,8 @@ tests/test_docs.py checks that the README holds exactly this rendering of the JS
 """
 from __future__ import annotations
 
+import argparse
 import json
-import sys
 from pathlib import Path
 
 SUBSETS = ("3DMatch", "3DLoMatch", "KITTI", "kitchen/LiDAR", "all")
@@ -36,4 +36,9 @@ def render(record: dict) -> str:
 
 
 if __name__ == "__main__":
-    print(render(json.loads(Path(sys.argv[1]).read_text())))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("json", help="a bench_real_pairs.py JSON")
+    path = Path(parser.parse_args().json)
+    if not path.is_file():
+        parser.error(f"json: {path} is not a file")
+    print(render(json.loads(path.read_text())))

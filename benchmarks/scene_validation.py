@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data.real_pairs import read_manifest, split
 from vrnet_ext.geometry.io import read_points, read_transform
 from vrnet_ext.model.pretrained import load_model
@@ -58,7 +59,7 @@ def summary(records: list[dict]) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                     formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--real-pairs", required=True, help="a real_pairs folder (MANIFEST.tsv, clouds/, gt/)")
     parser.add_argument("--checkpoint", action="append", default=[], help="a scene model (file or shipped name)")
     parser.add_argument("--seeds", type=int, default=3)

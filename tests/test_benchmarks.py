@@ -1,5 +1,6 @@
 """The benchmark scripts run and write the documented JSON records (no timing assertions)."""
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +16,12 @@ def run(args, tmp_path):
     result = subprocess.run([sys.executable, *args], capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert result.returncode == 0, result.stderr[-2000:]
     return result.stdout
+
+
+@pytest.mark.parametrize("script", sorted(p.name for p in (ROOT / "benchmarks").glob("*.py") if p.name != "outputs.py"))
+def test_every_benchmark_answers_help_and_names_each_default_once(script, tmp_path):
+    text = " ".join(run([str(ROOT / "benchmarks" / script), "--help"], tmp_path).split())
+    assert text.startswith("usage:") and not re.search(r"\(default: [^)]*\) \(default:", text), text
 
 
 def test_bench_ops_writes_records(tmp_path):

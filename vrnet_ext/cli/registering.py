@@ -5,7 +5,7 @@ import argparse
 import resource
 import sys
 
-from vrnet_ext.cli.common import (device_name, memory_size, nonnegative_int, positive_float, positive_int,
+from vrnet_ext.cli.common import (DefaultsHelpFormatter, device_name, memory_size, nonnegative_int, positive_float, positive_int,
                                   writable_path, write_json)
 
 
@@ -21,7 +21,7 @@ def add_register(sub) -> None:
                     "Global Registration; --method icp: none), refined by ICP (--estimator) on voxel-downsampled "
                     "clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform (source -> "
                     "target); --json, --out and --plot write the result, the moved source and a picture.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=DefaultsHelpFormatter)
     p.add_argument("source", help="point-cloud file to move")
     p.add_argument("target", help="point-cloud file to align to (same unit)")
     p.add_argument("--method", choices=GLOBAL_ESTIMATORS, default=argparse.SUPPRESS,
@@ -141,7 +141,7 @@ def add_demo(sub) -> None:
                                    "[0, 45) deg) from procedural chairs, or from ModelNet40 test shapes with "
                                    "--data-dir, registers them with a shipped model, prints the errors and times "
                                    "and draws the first pair.",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=DefaultsHelpFormatter)
     p.add_argument("--model", default=None,
                    help="shipped model name or checkpoint path (default: the shipped PV/UPC model)")
     p.add_argument("--data-dir", default=None, help="use ModelNet40 test shapes from this folder instead")

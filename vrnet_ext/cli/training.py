@@ -7,7 +7,7 @@ import typing
 from dataclasses import fields
 from pathlib import Path
 
-from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, existing_folder, nonnegative_int, output_folder,
+from vrnet_ext.cli.common import (DefaultsHelpFormatter, DATA_DIR_HELP, MAX_VIEW_POINTS, existing_folder, nonnegative_int, output_folder,
                                   parse_bool, positive_float, positive_int, train_device, unit_interval, view_points,
                                   writable_path, write_json)
 from vrnet_ext.data.protocol import FAR_POINTS, MIXED, SETTINGS
@@ -220,7 +220,7 @@ def add_export(sub) -> None:
                        description="Writes OUT_DIR/NAME.pt (float16 weights, the training config without local "
                                    "paths, a card of training facts and metrics) and OUT_DIR/NAME.md (the model "
                                    "card). load_pretrained(NAME) then finds it when OUT_DIR is vrnet_ext/weights.",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=DefaultsHelpFormatter)
     p.add_argument("checkpoint", help="best.pt / last.pt of `vrnet train` (metrics.jsonl beside it is read too), or "
                                       "shipped weights, whose card is kept and amended by the flags given")
     p.add_argument("name", help="model name, e.g. vrnet-pv-upc-rcp")
@@ -347,7 +347,7 @@ def add_train_scene(sub) -> None:
                                    "network learns to match them. With --real-pairs, also supervised by the ground "
                                    "truth of real pairs (their training pairs; the validation pairs are never used). "
                                    "Resumes from --out when it exists.",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=DefaultsHelpFormatter)
     p.add_argument("scans", nargs="*", help="point-cloud files (sensor at the origin), e.g. 3DMatch fragments")
     p.add_argument("--real-pairs", type=existing_folder, default=None,
                    help="a real_pairs folder (MANIFEST.tsv, clouds/, gt/): train on its training pairs "

@@ -48,8 +48,8 @@ FIELD_HELP = {
     "num_points": "points per shape before the crop",
     "num_subsampled": "points per cloud after the PV / RS crop",
     "classes": "keep only these ModelNet40 labels",
-    "max_train_items": "use at most this many training shapes (default: all)",
-    "max_val_items": "validate on at most this many held-out shapes (default: all)",
+    "max_train_items": "use at most this many training shapes (None: all)",
+    "max_val_items": "validate on at most this many held-out shapes (None: all)",
     "val_fraction": "share of the training shapes held out for validation",
     "train_max_angle": "largest rotation about each axis of the training pairs, in degrees (validation pairs keep "
                        "the protocol's 45: a wider range trains the features on the large motions where the errors "
