@@ -11,11 +11,13 @@ from pathlib import Path
 
 class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Shows each option's default, unless its help already says what the default is (options whose
-    default ``None`` stands for something computed)."""
+    default ``None`` stands for something computed) or there is none to show (``None``, empty)."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        return text if "(default:" in text else super()._get_help_string(action)
+        if "default:" in text or action.default is None or action.default in ("", []):
+            return text
+        return super()._get_help_string(action)
 
 
 def parse_bool(text: str) -> bool:

@@ -54,9 +54,9 @@ def add_train(sub) -> None:
         kind = hints[f.name]
         values = preset_values(f.name)
         shown = {str(v) for v in values.values()}
-        default = (f"default: {shown.pop()}" if len(shown) == 1
+        default = (f"default: {next(iter(shown))}" if len(shown) == 1
                    else "default: " + ", ".join(f"{k} {v}" for k, v in values.items()))
-        description = f"{FIELD_HELP.get(f.name, f.name)} ({default})"
+        description = FIELD_HELP.get(f.name, f.name) + ("" if shown == {"None"} else f" ({default})")
         if f.name in ("classes", "lr_milestones"):
             add(flag, type=int, nargs="+", default=None, help=description)
         elif f.name == "setting":
