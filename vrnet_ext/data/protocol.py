@@ -38,6 +38,14 @@ VIEW_PROTOCOL = "prnet, one far point for both clouds"
 
 @dataclass
 class PairSpec:
+    """How :func:`make_pair` cuts and moves a pair (the module docstring gives the protocol).
+
+    ``setting``: one of SETTINGS or "mixed"; ``noise``: ND's jitter on both clouds; ``num_points``
+    points per shape before the crop, ``num_subsampled`` per cloud after it; ``max_angle_deg``: the
+    largest rotation about each axis (degrees); ``max_translation``: per axis, in the shape's unit;
+    ``far_points``: one of FAR_POINTS.
+    """
+
     setting: str = "PV"
     noise: bool = False
     num_points: int = 1024
@@ -111,6 +119,8 @@ def select(points: np.ndarray, spec: PairSpec, setting: str, rng: np.random.Gene
 
 
 def jitter(points: np.ndarray, rng: np.random.Generator, sigma: float = 0.01, clip: float = 0.05) -> np.ndarray:
+    """ND's noise: (N, 3) points plus Gaussian noise of ``sigma`` per coordinate, clipped to +-``clip``
+    (a new array)."""
     return points + np.clip(sigma * rng.standard_normal(points.shape), -clip, clip)
 
 

@@ -18,6 +18,9 @@ from vrnet_ext.geometry.transforms import move
 
 @dataclass
 class ScanPair:
+    """Two views of one scan and the motion between them (``T_tgt_src`` maps source coordinates,
+    in the scan's unit, into the target's frame)."""
+
     src: ScanView
     tgt: ScanView
     T_tgt_src: np.ndarray  # (4, 4): tgt ~ R src + t

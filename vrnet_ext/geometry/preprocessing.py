@@ -70,6 +70,7 @@ def voxel_size_for(points: np.ndarray, target_points: int) -> float:
 
 
 def subsample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """At most ``count`` of the (N, 3) points, drawn without replacement, in their original order."""
     if len(points) <= count:
         return points
     return points[np.sort(rng.choice(len(points), count, replace=False))]

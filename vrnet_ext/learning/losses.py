@@ -83,6 +83,10 @@ def offset_log_loss(rcp: torch.Tensor, truth: torch.Tensor, scale: float) -> tor
 
 @dataclass
 class HybridLossWeights:
+    """Weights and shape of the hybrid loss: L1-L4 as in the paper (``l4_form`` "rmse", the paper's
+    L4, or "log", :func:`offset_log_loss` at ``l4_log_scale``), L2's ``groups`` of ``subset_size``
+    points, and the walk's gate and confidence terms (``gate``, ``confidence``)."""
+
     l1: float = 1.0
     l2: float = 1.0
     l3: float = 1.0

@@ -37,6 +37,9 @@ CORRECT_VOXELS = 2.0
 
 @dataclass
 class SceneTrainConfig:
+    """A scene-model run: Adam steps at ``lr``, views of about ``points`` points, the pair draws'
+    ``seed``, and a checkpoint every ``checkpoint_every`` steps."""
+
     steps: int = 600
     points: int = 3000          # about this many points per training view
     lr: float = 2e-3
@@ -55,6 +58,9 @@ def pair_tensors(pair: ScanPair) -> dict[str, torch.Tensor]:
 
 
 def scene_loss(model: SceneVRNet, out: SceneOutput, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict]:
+    """The scene model's loss on one pair (:func:`pair_tensors`): InfoNCE of each source point that has
+    a target point within PARTNER_VOXELS against its nearest one, log(1 + error) of its RCP, and the
+    confidence's cross-entropy against "RCP within CORRECT_VOXELS". Returns (loss, statistics)."""
     dist2, partner = ops.knn(batch["truth"], batch["tgt"], 1)
     has_partner = dist2[..., 0] <= PARTNER_VOXELS ** 2
     logits = model.scores(out)

@@ -98,6 +98,12 @@ def _mlp(widths: list[int]) -> nn.Sequential:
 
 
 class SceneVRNet(nn.Module):
+    """The scene model: a per-point MLP over FPFH descriptors and an edge MLP over each point's
+    neighbours give unit embeddings; soft matching at a learned temperature gives VCPs; a small walk
+    reads each point's match (its embedding, the matched embedding, the peak weight and the
+    entropy) and returns a sharpening of that point's matching, which gives its RCP, and a
+    confidence logit. Points are in voxel units (see :meth:`embed`)."""
+
     def __init__(self, config: SceneConfig | None = None) -> None:
         super().__init__()
         self.config = config or SceneConfig()

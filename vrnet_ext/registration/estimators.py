@@ -98,6 +98,8 @@ class Estimator:
 
 
 class PointToPoint(Estimator):
+    """ICP's step by weighted Procrustes between the matched points (Besl-McKay)."""
+
     name = "point_to_point"
 
     def step(self, T, src_idx, tgt_idx, weights):
@@ -108,6 +110,8 @@ class PointToPoint(Estimator):
 
 
 class PointToPlane(Estimator):
+    """ICP's Gauss-Newton step on distances along the target's normals (from ``neighbours`` points)."""
+
     name = "point_to_plane"
 
     def __init__(self, neighbours: int = 20) -> None:
@@ -126,6 +130,9 @@ class PointToPlane(Estimator):
 
 
 class Gicp(Estimator):
+    """Generalized ICP's Gauss-Newton step: residuals weighted by the inverse of both points' plane
+    covariances (from ``neighbours`` points), the source's rotated into the target frame."""
+
     name = "gicp"
 
     def __init__(self, neighbours: int = 20) -> None:

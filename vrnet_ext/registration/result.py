@@ -41,6 +41,7 @@ class RegistrationResult:
                    float("nan"), 0, points=dict(points or {}), start=method, consensus=int(consensus))
 
     def to_dict(self) -> dict:
+        """Every field, the 4x4 matrices as nested lists (for JSON)."""
         out = asdict(self)
         out["T_target_source"] = self.T_target_source.tolist()
         out["initial"] = self.initial.tolist()
