@@ -228,12 +228,15 @@ RUNNERS = {"iterations": run_iterations, "outliers": run_outliers, "matches": ru
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=DefaultsHelpFormatter)
-    parser.add_argument("ablation", choices=sorted(RUNNERS))
+    parser.add_argument("ablation", choices=sorted(RUNNERS),
+                        help="iterations: errors against passes; outliers: errors against the outlier ratio; "
+                             "matches: correct-match ratios of VCPs and RCPs; ransac: RANSAC on source-RCP, "
+                             "source-VCP and source-target pairs against VRNet alone")
     parser.add_argument("--model", default="vrnet-pv-upc-rcp", help="shipped name or checkpoint")
     parser.add_argument("--data-dir", default=None, help="folder of modelnet40_1024_test.h5 (default: ../shared)")
     parser.add_argument("--max-items", type=int, default=None, help="first N test shapes only (default: all)")
-    parser.add_argument("--batch-size", type=int, default=16)
-    parser.add_argument("--out-dir", type=Path, default=Path("."))
+    parser.add_argument("--batch-size", type=int, default=16, help="pairs per network forward")
+    parser.add_argument("--out-dir", type=Path, default=Path("."), help="where ablation_NAME.json and .png go")
     args = parser.parse_args(argv)
     model, _ = load_vrnet(args.model)
     result = RUNNERS[args.ablation](model, args)
