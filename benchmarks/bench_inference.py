@@ -88,14 +88,14 @@ def matmul_rate(seconds: float = 1.0, size: int = 2048) -> float:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=DefaultsHelpFormatter)
-    parser.add_argument("--model", default="vrnet-pv-upc-rcp")
-    parser.add_argument("--batches", type=int, nargs="+", default=[1, 16, 64])
+    parser.add_argument("--model", default="vrnet-pv-upc-rcp", help="shipped name or checkpoint")
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 16, 64], help="pairs per forward, each timed")
     parser.add_argument("--pairs", type=int, default=256, help="test pairs per pass (a multiple of every batch size)")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--data-dir", default=None)
-    parser.add_argument("--json", default=None)
-    parser.add_argument("--markdown", default=None)
+    parser.add_argument("--repeats", type=int, default=3, help="timed passes per variant and batch size, in turns")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads")
+    parser.add_argument("--data-dir", default=None, help="folder of modelnet40_1024_test.h5 (default: ../shared)")
+    parser.add_argument("--json", default=None, help="write the record to this JSON file (none: print only)")
+    parser.add_argument("--markdown", default=None, help="write the table to this Markdown file (none: print only)")
     parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
                         help="variants to time (each with the reference of its Transformer precision)")
     args = parser.parse_args(argv)

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data.procedural import room_scan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -165,17 +166,19 @@ def markdown(records: list[dict], memory: list[dict], kitchen_heldout: bool) -> 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="folder with 3dmatch_redkitchen/ and lidar_pair/")
     parser.add_argument("--heldout-dir", default=None, help="folder with only0.pt, only4.pt, only10.pt")
-    parser.add_argument("--budgets", nargs="+", default=["2GB", "4GB"])
+    parser.add_argument("--budgets", nargs="+", default=["2GB", "4GB"], help="--max-memory budgets to run each pair under")
     parser.add_argument("--pairs", nargs="+", default=None, help="only pairs whose name contains one of these")
-    parser.add_argument("--methods", nargs="+", default=["vrnet", "fpfh"], choices=["vrnet", "fpfh", "icp"])
-    parser.add_argument("--synthetic-points", type=int, default=1_000_000)
-    parser.add_argument("--skip-synthetic", action="store_true")
-    parser.add_argument("--memory-sizes", type=int, nargs="+", default=[2000, 4000, 8000, 12000, 50000])
-    parser.add_argument("--json", default="bench_large_scene.json")
-    parser.add_argument("--markdown", default="bench_large_scene.md")
+    parser.add_argument("--methods", nargs="+", default=["vrnet", "fpfh"], choices=["vrnet", "fpfh", "icp"],
+                        help="`vrnet register --method` values to run")
+    parser.add_argument("--synthetic-points", type=int, default=1_000_000, help="points of the synthetic large scene")
+    parser.add_argument("--skip-synthetic", action="store_true", help="leave the synthetic large scene out")
+    parser.add_argument("--memory-sizes", type=int, nargs="+", default=[2000, 4000, 8000, 12000, 50000],
+                        help="cloud sizes of the peak-memory rows")
+    parser.add_argument("--json", default="bench_large_scene.json", help="where the JSON goes")
+    parser.add_argument("--markdown", default="bench_large_scene.md", help="where the Markdown goes")
     args = parser.parse_args(argv)
     data = Path(args.data)
     with tempfile.TemporaryDirectory() as tmp:

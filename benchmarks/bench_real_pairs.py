@@ -159,11 +159,13 @@ def main(argv: list[str] | None = None) -> None:
                                      formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="the shared scenes folder")
     parser.add_argument("--seeds", type=int, default=2, help="runs per pair and method (seeds 0, 1, ...)")
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS,
+                        help="methods to run (the open3d ones only where open3d is installed)")
     parser.add_argument("--pairs", nargs="+", default=None, help="only pairs whose name contains one of these")
     parser.add_argument("--extra-rotation", type=float, default=0.0,
                         help="turn each source by a random rotation of up to this many degrees first")
-    parser.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results" / time.strftime("%Y-%m-%d")))
+    parser.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results" / time.strftime("%Y-%m-%d")),
+                        help="folder of the outputs")
     parser.add_argument("--name", default="real_pairs", help="file stem of the outputs")
     args = parser.parse_args(argv)
     methods = list(args.methods)

@@ -43,6 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_large_scene import DEFAULT_DATA, pairs  # noqa: E402
 
+from vrnet_ext.cli.common import DefaultsHelpFormatter  # noqa: E402
 from vrnet_ext.geometry.io import read_points  # noqa: E402
 from vrnet_ext.geometry.preprocessing import voxel_size_for  # noqa: E402
 
@@ -135,13 +136,14 @@ def run_open3d(pair: dict, estimator: str, out: Path, global_method: str = "rans
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default=str(DEFAULT_DATA))
-    parser.add_argument("--repeats", type=int, default=3)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser.add_argument("--data", default=str(DEFAULT_DATA), help="the shared scenes folder")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per pair and estimator, in turns")
     parser.add_argument("--pairs", nargs="+", default=None, help="only pairs whose name contains one of these")
-    parser.add_argument("--estimators", nargs="+", default=["point_to_point", "point_to_plane", "gicp"])
-    parser.add_argument("--json", default="bench_register.json")
-    parser.add_argument("--markdown", default="bench_register.md")
+    parser.add_argument("--estimators", nargs="+", default=["point_to_point", "point_to_plane", "gicp"],
+                        help="ICP estimators to time")
+    parser.add_argument("--json", default="bench_register.json", help="where the JSON goes")
+    parser.add_argument("--markdown", default="bench_register.md", help="where the Markdown goes")
     parser.add_argument("--beside-busy", action="store_true",
                         help="run beside another process that keeps one core busy (a shared machine)")
     args = parser.parse_args(argv)

@@ -25,6 +25,7 @@ from collections.abc import Callable
 
 import torch
 
+from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.learning.losses import HybridLossWeights, correspondence_loss, hybrid_loss
 from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.runtime import set_flush_denormal
@@ -108,13 +109,13 @@ def inference_seconds(model: VRNet, src: torch.Tensor, tgt: torch.Tensor, backen
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS))
-    parser.add_argument("--steps", type=int, default=2)
-    parser.add_argument("--stage", type=int, nargs="+", default=[1, 2])
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--json", default=None)
-    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS), help="`vrnet train` preset whose step is timed")
+    parser.add_argument("--steps", type=int, default=2, help="timed steps per stage and implementation")
+    parser.add_argument("--stage", type=int, nargs="+", default=[1, 2], help="training stages to time")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads")
+    parser.add_argument("--json", default=None, help="write the records to this JSON file (none: print only)")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where the steps run")
     parser.add_argument("--inference-points", type=int, default=0,
                         help="also time the forward of one pair of this many points (0: skip)")
     parser.add_argument("--impls", nargs="+", choices=sorted(IMPLS), default=["ext", "torch"],

@@ -200,9 +200,9 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--results", default=str(Path(__file__).parent / "results"),
                         help="folder of dated result folders holding modelnet40_tables*.json")
-    parser.add_argument("--json", default=None)
-    parser.add_argument("--markdown", default=None)
-    parser.add_argument("--png", default=None)
+    parser.add_argument("--json", default=None, help="write the record to this JSON file (none: print only)")
+    parser.add_argument("--markdown", default=None, help="write the table to this Markdown file (none: print only)")
+    parser.add_argument("--png", default=None, help="draw the grid to this PNG file (none: no picture)")
     args = parser.parse_args(argv)
     rows = summarise(Path(args.results))
     write_outputs(grid(rows) + "\n\n" + markdown(rows), {"cells": rows}, args.markdown, args.json)

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
+from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.model.pretrained import load_vrnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.geometry.metrics import euler_zyx_deg, rotation_error_deg
@@ -21,10 +22,10 @@ from vrnet_ext.ops import kabsch, robust_kabsch
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("checkpoint")
-    parser.add_argument("--pairs", type=int, default=160)
-    parser.add_argument("--data-dir", default=None)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser.add_argument("checkpoint", help="a VRNet checkpoint (its setting and split choose the pairs)")
+    parser.add_argument("--pairs", type=int, default=160, help="validation pairs to probe")
+    parser.add_argument("--data-dir", default=None, help="folder of the ModelNet40 files (default: ../shared)")
     args = parser.parse_args()
     model, state = load_vrnet(args.checkpoint)
     cfg = state["config"]

@@ -21,7 +21,7 @@ def run(args, tmp_path):
 @pytest.mark.parametrize("script", sorted(p.name for p in (ROOT / "benchmarks").glob("*.py") if p.name != "outputs.py"))
 def test_every_benchmark_answers_help_and_names_each_default_once(script, tmp_path):
     text = " ".join(run([str(ROOT / "benchmarks" / script), "--help"], tmp_path).split())
-    assert text.startswith("usage:") and not re.search(r"default: [^)]*\) \(default:|\(default: (None)?\)", text), text
+    assert text.startswith("usage:") and not re.search(r"default: [^()]*\) \(default:|\(default: (None)?\)", text), text
 
 
 def test_bench_ops_writes_records(tmp_path):

@@ -203,7 +203,7 @@ def test_help_does_not_load_torch(command):
     done = subprocess.run([sys.executable, "-c", probe, *command, "--help"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "usage: vrnet" in done.stdout and done.stdout.split()[-1] == "False", done.stdout[-300:]
-    assert not re.search(r"default: [^)]*\) \(default:|\(default: (None)?\)", " ".join(done.stdout.split())), done.stdout
+    assert not re.search(r"default: [^()]*\) \(default:|\(default: (None)?\)", " ".join(done.stdout.split())), done.stdout
 
 
 def test_short_commands_let_openmp_threads_sleep_unless_told_otherwise(tmp_path):

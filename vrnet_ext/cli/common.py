@@ -9,15 +9,19 @@ import os
 from pathlib import Path
 
 
-class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows each option's default, unless its help already says what the default is (options whose
-    default ``None`` stands for something computed) or there is none to show (``None``, empty)."""
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Shows each option's default after its help, a list as its items (``1 16 64``), unless the help
+    already says what the default is (options whose default ``None`` stands for something computed)
+    or there is none to show (``None``, empty, a flag's ``False``)."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        if "default:" in text or action.default is None or action.default in ("", []):
+        default = action.default
+        if ("default:" in text or default is None or default is argparse.SUPPRESS or action.nargs == 0
+                or default in ("", [])):
             return text
-        return super()._get_help_string(action)
+        shown = " ".join(map(str, default)) if isinstance(default, (list, tuple)) else str(default)
+        return f"{text} (default: {shown.replace('%', '%%')})"
 
 
 def parse_bool(text: str) -> bool:
