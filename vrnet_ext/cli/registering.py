@@ -5,8 +5,8 @@ import argparse
 import resource
 import sys
 
-from vrnet_ext.cli.common import (DefaultsHelpFormatter, device_name, memory_size, nonnegative_int, positive_float, positive_int,
-                                  writable_path, write_json)
+from vrnet_ext.cli.common import (DefaultsHelpFormatter, device_name, memory_size, nonnegative_int, positive_float,
+                                  positive_int, writable_path, write_json)
 
 
 def add_register(sub) -> None:

@@ -7,9 +7,9 @@ import typing
 from dataclasses import fields
 from pathlib import Path
 
-from vrnet_ext.cli.common import (DefaultsHelpFormatter, DATA_DIR_HELP, MAX_VIEW_POINTS, existing_folder, nonnegative_int, output_folder,
-                                  parse_bool, positive_float, positive_int, train_device, unit_interval, view_points,
-                                  writable_path, write_json)
+from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFormatter, existing_folder,
+                                  nonnegative_int, output_folder, parse_bool, positive_float, positive_int,
+                                  train_device, unit_interval, view_points, writable_path, write_json)
 from vrnet_ext.data.protocol import FAR_POINTS, MIXED, SETTINGS
 
 
