@@ -55,7 +55,8 @@ METHODS = {"sc2": fit_sc2, "fpfh": fit_fpfh}
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=DefaultsHelpFormatter)
-    parser.add_argument("--real-pairs", default=str(DEFAULT_PAIRS), help="a real_pairs folder (MANIFEST.tsv, clouds/, gt/)")
+    parser.add_argument("--real-pairs", default=str(DEFAULT_PAIRS),
+                        help="a real_pairs folder (MANIFEST.tsv, clouds/, gt/)")
     parser.add_argument("--seeds", type=int, default=3, help="runs per pair and fit (seeds 0, 1, ...)")
     parser.add_argument("--max-pairs", type=int, default=None, help="first N pairs only")
     parser.add_argument("--json", default=None, help="write the record to this JSON file (none: print only)")

@@ -169,7 +169,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="folder with 3dmatch_redkitchen/ and lidar_pair/")
     parser.add_argument("--heldout-dir", default=None, help="folder with only0.pt, only4.pt, only10.pt")
-    parser.add_argument("--budgets", nargs="+", default=["2GB", "4GB"], help="--max-memory budgets to run each pair under")
+    parser.add_argument("--budgets", nargs="+", default=["2GB", "4GB"],
+                        help="--max-memory budgets to run each pair under")
     parser.add_argument("--pairs", nargs="+", default=None, help="only pairs whose name contains one of these")
     parser.add_argument("--methods", nargs="+", default=["vrnet", "fpfh"], choices=["vrnet", "fpfh", "icp"],
                         help="`vrnet register --method` values to run")

@@ -101,9 +101,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared scenes folder")
     parser.add_argument("--pairs", nargs="+", choices=("kitchen", "LiDAR"), default=["kitchen", "LiDAR"],
                         help="kitchen: 3DMatch fragments 4 -> 0; LiDAR: the LiDAR pair")
-    parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), help="global estimates to plan and run (default: all)")
-    parser.add_argument("--json", type=Path, default=Path("memory_plan.json"), help="where the JSON goes (default: memory_plan.json)")
-    parser.add_argument("--markdown", type=Path, default=Path("memory_plan.md"), help="where the Markdown goes (default: memory_plan.md)")
+    parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS),
+                        help="global estimates to plan and run (default: all)")
+    parser.add_argument("--json", type=Path, default=Path("memory_plan.json"),
+                        help="where the JSON goes (default: memory_plan.json)")
+    parser.add_argument("--markdown", type=Path, default=Path("memory_plan.md"),
+                        help="where the Markdown goes (default: memory_plan.md)")
     args = parser.parse_args(argv)
     counts = {"default": (5000, IcpSettings().points), "smallest": (MIN_GLOBAL_POINTS, MIN_ICP_POINTS),
               "large": (20000, 200_000)}

@@ -194,7 +194,8 @@ def test_the_vrnet_executable_writes_everything_and_keeps_its_exit_status(tmp_pa
     assert subprocess.run(vrnet + ["--help"], capture_output=True, text=True, timeout=300).returncode == 0
 
 
-@pytest.mark.parametrize("command", [[], ["register"], ["eval"], ["train"], ["export"], ["plot"], ["demo"], ["train-scene"]])
+@pytest.mark.parametrize("command", [[], ["register"], ["eval"], ["train"], ["export"], ["plot"], ["demo"],
+                                     ["train-scene"]])
 def test_help_does_not_load_torch(command):
     """`vrnet --help` and a subcommand's help answer without importing torch (seconds on a small CPU),
     and name each option's default once."""
@@ -203,7 +204,8 @@ def test_help_does_not_load_torch(command):
     done = subprocess.run([sys.executable, "-c", probe, *command, "--help"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "usage: vrnet" in done.stdout and done.stdout.split()[-1] == "False", done.stdout[-300:]
-    assert not re.search(r"default: [^()]*\) \(default:|\(default: (None)?\)", " ".join(done.stdout.split())), done.stdout
+    text = " ".join(done.stdout.split())
+    assert not re.search(r"default: [^()]*\) \(default:|\(default: (None)?\)", text), done.stdout
 
 
 def test_short_commands_let_openmp_threads_sleep_unless_told_otherwise(tmp_path):
