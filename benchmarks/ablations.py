@@ -37,7 +37,7 @@ from torch.utils.data import DataLoader
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from modelnet40_tables import classical_estimates  # noqa: E402
 
-from vrnet_ext.cli.common import DefaultsHelpFormatter  # noqa: E402
+from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter  # noqa: E402
 from vrnet_ext import ops  # noqa: E402
 from vrnet_ext.data import ModelNet40Pairs, PairSpec  # noqa: E402
 from vrnet_ext.geometry.features import voxel_fpfh  # noqa: E402
@@ -233,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
                              "matches: correct-match ratios of VCPs and RCPs; ransac: RANSAC on source-RCP, "
                              "source-VCP and source-target pairs against VRNet alone")
     parser.add_argument("--model", default="vrnet-pv-upc-rcp", help="shipped name or checkpoint")
-    parser.add_argument("--data-dir", default=None, help="folder of modelnet40_1024_test.h5 (default: ../shared)")
+    parser.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     parser.add_argument("--max-items", type=int, default=None, help="first N test shapes only (default: all)")
     parser.add_argument("--batch-size", type=int, default=16, help="pairs per network forward")
     parser.add_argument("--out-dir", type=Path, default=Path("."), help="where ablation_NAME.json and .png go")

@@ -31,7 +31,7 @@ import time
 import torch
 from torch.utils.flop_counter import FlopCounterMode, sdpa_flop_count
 
-from vrnet_ext.cli.common import DefaultsHelpFormatter
+from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter
 from vrnet_ext.data.modelnet import ModelNet40Pairs
 from vrnet_ext.geometry.metrics import rotation_error_deg
 from vrnet_ext.model.pretrained import load_pretrained
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--pairs", type=int, default=256, help="test pairs per pass (a multiple of every batch size)")
     parser.add_argument("--repeats", type=int, default=3, help="timed passes per variant and batch size, in turns")
     parser.add_argument("--threads", type=int, default=2, help="torch threads")
-    parser.add_argument("--data-dir", default=None, help="folder of modelnet40_1024_test.h5 (default: ../shared)")
+    parser.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     parser.add_argument("--json", default=None, help="write the record to this JSON file (none: print only)")
     parser.add_argument("--markdown", default=None, help="write the table to this Markdown file (none: print only)")
     parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),

@@ -39,7 +39,7 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from vrnet_ext.cli.common import DefaultsHelpFormatter
+from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.data.modelnet import SPLITS
 from vrnet_ext.data.protocol import MIXED, SETTINGS, VIEW_PROTOCOL
@@ -224,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--models", nargs="+", default=None, help="shipped names or checkpoints (default: every shipped ModelNet40 VRNet)")
-    parser.add_argument("--data-dir", default=None, help="folder of modelnet40_1024_test.h5 (default: ../shared)")
+    parser.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=["vrnet", "vcp", "icp", "fpfh"],
                         help="methods to run: VRNet, its VCPs alone, VRNet in two passes, ICP, FPFH + RANSAC")
     parser.add_argument("--settings", nargs="+", choices=SETTINGS, default=None,

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from vrnet_ext.cli.common import DefaultsHelpFormatter
+from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter
 from vrnet_ext.model.pretrained import load_vrnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.geometry.metrics import euler_zyx_deg, rotation_error_deg
@@ -25,7 +25,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("checkpoint", help="a VRNet checkpoint (its setting and split choose the pairs)")
     parser.add_argument("--pairs", type=int, default=160, help="validation pairs to probe")
-    parser.add_argument("--data-dir", default=None, help="folder of the ModelNet40 files (default: ../shared)")
+    parser.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     args = parser.parse_args()
     model, state = load_vrnet(args.checkpoint)
     cfg = state["config"]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -35,6 +36,12 @@ requires_modelnet = pytest.mark.skipif(
     not (MODELNET_DIR / "modelnet40_1024_train.h5").exists(),
     reason=f"ModelNet40 HDF5 files not found under {MODELNET_DIR} (set VRNET_DATA)",
 )
+
+
+def help_defaults_are_clean(help_text: str) -> bool:
+    """No option's default named twice ("... default: X) (default: Y)") or named empty or None."""
+    text = " ".join(help_text.split())
+    return not re.search(r"default: [^()]*\) \(default:|\(default: (None)?\)", text)
 
 
 def tolerances(dtype: torch.dtype) -> dict:

@@ -1,6 +1,5 @@
 import json
 import os
-import re
 import subprocess
 import sys
 
@@ -9,7 +8,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from conftest import DATA_DIR, MODELNET_DIR, requires_modelnet
+from conftest import DATA_DIR, MODELNET_DIR, help_defaults_are_clean, requires_modelnet
 from vrnet_ext import ops
 from vrnet_ext.cli import main
 from vrnet_ext import load_pretrained
@@ -204,8 +203,7 @@ def test_help_does_not_load_torch(command):
     done = subprocess.run([sys.executable, "-c", probe, *command, "--help"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "usage: vrnet" in done.stdout and done.stdout.split()[-1] == "False", done.stdout[-300:]
-    text = " ".join(done.stdout.split())
-    assert not re.search(r"default: [^()]*\) \(default:|\(default: (None)?\)", text), done.stdout
+    assert help_defaults_are_clean(done.stdout), done.stdout
 
 
 def test_short_commands_let_openmp_threads_sleep_unless_told_otherwise(tmp_path):
