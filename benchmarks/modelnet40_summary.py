@@ -9,8 +9,9 @@ those: information, not the comparison with the paper's one-pass tables.
 
 Reads every ``modelnet40_tables*.json`` under ``--results`` (written by ``modelnet40_tables.py``). A
 measurement that names the digest of other weights than the model's file holds now, or another
-solve of the estimate (``solve``: the IRLS and Procrustes options its file holds; one that names
-none was taken with the Cauchy kernel at 3 medians, the only ones there were), is stale and
+solve of the estimate (``solve``: the IRLS, Procrustes and second-pass options its file holds; one
+that names none was taken with the Cauchy kernel at 3 medians, the only ones there were, and one
+that names no second pass without one; the two-pass rows never take one), is stale and
 skipped, and so is one of a partial-view cell (PV, PV+RS) whose pairs were not cut the way
 ``vrnet_ext.data.protocol`` cuts them now (``views``); one that names the current digest and solve
 beats any that does not name both; otherwise, for a (model, cell) measured more than once, the
@@ -35,8 +36,10 @@ from vrnet_ext.model.pretrained import model_for, training_seconds
 
 COLUMNS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)")
 PARTIAL_VIEWS = ("PV", "PV+RS")  # the settings whose pairs depend on how views are cut
-# A measurement that names no solve was taken when the reweighting's kernel and scale were fixed.
+# A measurement that names no solve was taken when the reweighting's kernel and scale were fixed;
+# one that names no second pass, before there was one.
 UNRECORDED_SOLVE = {"irls_kernel": "cauchy", "irls_scale": 3.0}
+UNRECORDED_SECOND_PASS = {"second_pass_below": 0.0, "consistency_radius": 0.02}
 
 
 def target(setting: str, split: str) -> tuple[tuple[float, ...], str]:
@@ -61,7 +64,9 @@ def measurements(results: Path, method: str = "vrnet") -> dict[tuple[str, str, s
                 except (OSError, ValueError):  # a model that is no longer shipped
                     current[cell["model"]] = (None, None)
             weights, solve = current[cell["model"]]
-            recorded = cell.get("solve", UNRECORDED_SOLVE)
+            recorded = {**UNRECORDED_SECOND_PASS, **cell.get("solve", UNRECORDED_SOLVE)}
+            if method != "vrnet":  # the two-pass row never takes a further pass
+                recorded = {k: v for k, v in recorded.items() if k not in UNRECORDED_SECOND_PASS}
             stale = (("weights" in cell and cell["weights"] != weights)
                      or (solve is not None and any(recorded[k] != solve[k] for k in recorded))
                      or (cell["setting"] in PARTIAL_VIEWS and cell.get("views") != VIEW_PROTOCOL))

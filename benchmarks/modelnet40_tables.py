@@ -9,12 +9,12 @@ those of ``--settings``) define the test pairs: ``ModelNet40Pairs(partition="tes
 1234, the same deterministic pairs for every method. Methods:
 
 * ``vrnet``: the model's own estimate (RCPs, weighted when the model has a confidence head, with the
-  robust solve its file names: ``solve`` in the JSON);
-* ``vcp``: Kabsch on the VCPs of the same forward pass (the network without its walk: DCP-v2's
-  estimator on our features);
+  robust solve and the second pass its file names, or the solve flags given: ``solve`` in the JSON);
+* ``vcp``: Kabsch on the VCPs of one forward pass (the network without its walk: DCP-v2's
+  estimator on our features), never a second pass;
 * ``vrnet2`` (not run by default): the network twice per pair, the second pass registering the
-  source moved by the first estimate (the paper's "VRNet with iteration"; its main tables are one
-  pass, so this row is never the one compared with them);
+  source moved by the first estimate (the paper's "VRNet with iteration", no further pass; its main
+  tables are one pass, so this row is never the one compared with them);
 * ``icp``: point-to-point ICP from the identity (``registration.icp``: 50 iterations, every pair within
   ``--icp-max-distance`` = 1.0 counts, i.e. the shapes' radius);
 * ``fpfh``: FPFH + RANSAC (``registration.ransac.fpfh_ransac``) with a ``--fpfh-voxel`` of 0.05: normals
@@ -40,6 +40,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter
+from vrnet_ext.cli.training import add_solve_options, solve_overrides
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.data.modelnet import SPLITS
 from vrnet_ext.data.protocol import MIXED, SETTINGS, VIEW_PROTOCOL
@@ -95,30 +96,36 @@ PAPER = {(setting, split): {method: (row[k], row[3 + k], row[6 + k] * scale, row
 
 
 def network_estimates(model, data, batch_size: int, methods) -> dict:
-    """{method: (R (S, 3, 3), t (S, 3), seconds)} for the network's methods: "vrnet" and "vcp" share
-    one forward pass; "vrnet2" runs the network twice per pair (the paper's iteration mode)."""
+    """{method: (R (S, 3, 3), t (S, 3), seconds, share of pairs whose estimate came from a second
+    pass)} for the network's methods: "vrnet" as the model is
+    configured; "vcp" from one pass without a second (sharing the forward of "vrnet" when that has
+    none); "vrnet2" runs the network twice per pair (the paper's iteration mode, no further pass)."""
     loader = DataLoader(data, batch_size=batch_size, shuffle=False)
     estimates = {}
-    configured = model.config.iterations
-    for passes, names in ((configured, ("vrnet", "vcp")), (2, ("vrnet2",))):
+    configured, second_pass_below = model.config.iterations, model.config.second_pass_below
+    groups = [(configured, second_pass_below, ("vrnet", "vcp") if second_pass_below == 0 else ("vrnet",)),
+              (configured, 0.0, () if second_pass_below == 0 else ("vcp",)), (2, 0.0, ("vrnet2",))]
+    for passes, below, names in groups:
         names = [m for m in names if m in methods]
         if not names:
             continue
-        rotations, translations, seconds = {m: [] for m in names}, {m: [] for m in names}, 0.0
-        model.config.iterations = passes
+        rotations, translations, seconds, second_passes = {m: [] for m in names}, {m: [] for m in names}, 0.0, 0
+        model.config.iterations, model.config.second_pass_below = passes, below
         try:
             with torch.no_grad():
                 for batch in tqdm(loader, desc=f"network ({passes} pass{'es' if passes > 1 else ''})", leave=False):
                     started = time.perf_counter()
                     out = model(batch["src"], batch["tgt"])
                     seconds += time.perf_counter() - started
+                    second_passes += int(out.second_pass.sum())
                     for name in names:
                         R, t = kabsch(batch["src"], out.vcp) if name == "vcp" else (out.rotation, out.translation)
                         rotations[name].append(R.double().numpy())
                         translations[name].append(t.double().numpy())
         finally:
-            model.config.iterations = configured
-        estimates.update({m: (np.concatenate(rotations[m]), np.concatenate(translations[m]), seconds) for m in names})
+            model.config.iterations, model.config.second_pass_below = configured, second_pass_below
+        estimates.update({m: (np.concatenate(rotations[m]), np.concatenate(translations[m]), seconds,
+                              second_passes / len(data)) for m in names})
     return estimates
 
 
@@ -143,11 +150,15 @@ def classical_estimates(data, method: str, icp_max_distance: float, fpfh_voxel: 
 
 
 def solve_options(name: str) -> dict:
-    """How a model solves its estimate from its network's output (the model config's inference-time
-    fields, :data:`vrnet_ext.learning.export.INFERENCE_FIELDS`): a measurement holds for these and
-    its weights; ``vrnet export`` may change them without touching the weights."""
+    """How a model solves its estimate from its network's output, as its file says (see
+    :func:`solve_of`): a measurement holds for these and its weights; ``vrnet export`` may change
+    them without touching the weights."""
     path = weights_path(name) if name in available("vrnet") else Path(name)
-    config = VRNetConfig.from_dict(read_checkpoint(path)["config"]["model"])
+    return solve_of(VRNetConfig.from_dict(read_checkpoint(path)["config"]["model"]))
+
+
+def solve_of(config: VRNetConfig) -> dict:
+    """The model config's inference-time fields (:data:`vrnet_ext.learning.export.INFERENCE_FIELDS`)."""
     return {field: getattr(config, field) for field in INFERENCE_FIELDS}
 
 
@@ -175,6 +186,8 @@ def cells_of(name: str, config: dict) -> list[tuple[str, str]]:
 
 def evaluate_model(name: str, args) -> list[dict]:
     model, state = load_vrnet(name)
+    for key, value in solve_overrides(args).items():
+        setattr(model.config, key, value)
     return [evaluate_cell(name, model, state["config"], setting, split, args)
             for setting, split in cells_of(name, state["config"]) if not args.settings or setting in args.settings]
 
@@ -191,15 +204,17 @@ def evaluate_cell(name: str, model, config: dict, setting: str, split: str, args
     for method in args.methods:
         failures = 0
         if method in estimates:
-            R, t, seconds = estimates[method]
+            R, t, seconds, second_pass_share = estimates[method]
         else:
             R, t, seconds, failures = classical_estimates(data, method, args.icp_max_distance, args.fpfh_voxel)
         row = summarize(R, gt_R, t, gt_t)
         row.update(seconds_per_pair=seconds / len(data), failures=failures)
+        if method == "vrnet":
+            row["second_pass_share"] = second_pass_share
         rows[method] = row
         print(f"{name} {setting}/{split} {method}: RMSE(R) {row['RMSE(R)']:.3f}, MAE(R) {row['MAE(R)']:.3f}, "
               f"RMSE(t) {row['RMSE(t)']:.4f}, {row['seconds_per_pair'] * 1e3:.1f} ms/pair", flush=True)
-    return {"model": name, "weights": weights_digest(name), "solve": solve_options(name), "setting": setting,
+    return {"model": name, "weights": weights_digest(name), "solve": solve_of(model.config), "setting": setting,
             "split": split, "pairs": len(data),
             "views": VIEW_PROTOCOL, "methods": rows,
             "paper": {k: dict(zip(COLUMNS[:4], v)) for k, v in PAPER.get((setting, split), {}).items()}}
@@ -233,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch-size", type=int, default=16, help="pairs per network forward")
     parser.add_argument("--icp-max-distance", type=float, default=1.0, help="ICP's correspondence reach")
     parser.add_argument("--fpfh-voxel", type=float, default=0.05, help="FPFH + RANSAC's voxel edge")
+    add_solve_options(parser, "the model's")
     parser.add_argument("--json", default="modelnet40_tables.json", help="where the JSON goes")
     parser.add_argument("--markdown", default="modelnet40_tables.md", help="where the Markdown goes")
     args = parser.parse_args(argv)

@@ -204,6 +204,23 @@ def test_modelnet40_tables_two_passes_leave_the_one_pass_row_and_the_model_as_th
     assert "VRNet, 2 passes" in (tmp_path / "both.md").read_text()
 
 
+@requires_modelnet
+def test_modelnet40_tables_take_solve_flags_and_keep_the_vcp_row_to_one_pass(tmp_path):
+    """``--second-pass-below`` changes the ``vrnet`` row and is recorded in ``solve``; the ``vcp`` row
+    is Kabsch on one pass's VCPs either way."""
+    common = [str(ROOT / "benchmarks" / "modelnet40_tables.py"), "--models", "vrnet-rs-upc-rcp", "--max-items", "4",
+              "--batch-size", "2", "--data-dir", str(MODELNET_DIR), "--methods", "vrnet", "vcp"]
+    rows = {}
+    for below in ("0", "1"):
+        run(common + ["--second-pass-below", below, "--json", f"{below}.json", "--markdown", f"{below}.md"], tmp_path)
+        (rows[below],) = json.loads((tmp_path / f"{below}.json").read_text())["results"]
+        assert rows[below]["solve"]["second_pass_below"] == float(below)
+    assert rows["0"]["methods"]["vcp"]["RMSE(R)"] == rows["1"]["methods"]["vcp"]["RMSE(R)"]
+    assert rows["0"]["methods"]["vrnet"]["second_pass_share"] == 0
+    assert 0 < rows["1"]["methods"]["vrnet"]["second_pass_share"] <= 1
+    assert rows["0"]["methods"]["vrnet"]["RMSE(R)"] != rows["1"]["methods"]["vrnet"]["RMSE(R)"]
+
+
 def test_modelnet40_summary_lists_two_pass_rows_apart_from_the_comparison(tmp_path):
     """A cell measured with one and two passes: the one-pass row decides ``reached``; the two-pass row
     is listed in a table of its own."""

@@ -138,7 +138,8 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
                  str(tmp_path / "missing.json")]) == 2
     # shipped weights re-exported with another robust solve: the card kept, the test measured with it
     shipped_path = str(tmp_path / "weights" / "tiny-model.pt")
-    irls = ["--irls-iterations", "7", "--irls-kernel", "geman_mcclure", "--irls-scale", "0.5"]
+    irls = ["--irls-iterations", "7", "--irls-kernel", "geman_mcclure", "--irls-scale", "0.5",
+            "--second-pass-below", "0.4", "--consistency-radius", "0.05"]
     assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *irls]) == 2
     assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *irls,
                  "--test-json", str(test_json)]) == 2  # measured with the model's own solve
@@ -152,8 +153,9 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert retuned["card"]["notes"] == ["Robust solve retuned."]
     assert retuned["card"]["test"]["irls_scale"] == 0.5 and retuned["card"]["test"]["irls_iterations"] == 7
     model_config = retuned["config"]["model"]
-    assert (model_config["irls_iterations"], model_config["irls_kernel"], model_config["irls_scale"]) == (
-        7, "geman_mcclure", 0.5)
+    assert (model_config["irls_iterations"], model_config["irls_kernel"], model_config["irls_scale"],
+            model_config["second_pass_below"], model_config["consistency_radius"]) == (7, "geman_mcclure", 0.5, 0.4, 0.05)
+    assert retuned["card"]["test"]["second_pass_below"] == 0.4
     assert "irls_kernel: `geman_mcclure`" in (tmp_path / "weights" / "tiny-gm.md").read_text()
     torch.testing.assert_close(retuned["model"], shipped["model"], rtol=0, atol=0)
     # a model trained on every setting: eval asks for the setting; the card holds one test per cell

@@ -336,3 +336,69 @@ def test_bf16_transformer_stays_close_to_float32():
     assert not torch.equal(fast.src_embedding, exact.src_embedding)  # bfloat16 did run
     torch.testing.assert_close(fast.src_embedding, exact.src_embedding, rtol=0.05, atol=0.05)
     assert float(rotation_error_deg(fast.rotation, exact.rotation).max()) < 1.0
+
+
+def turned_pairs(B=6, N=60):
+    """Targets that are the sources turned about z by growing angles, plus a little noise."""
+    from vrnet_ext.geometry.transforms import move
+
+    torch.manual_seed(3)
+    src = torch.randn(B, N, 3)
+    angles = torch.linspace(0.2, 2.5, B)
+    rotation = torch.zeros(B, 3, 3)
+    rotation[:, 0, 0], rotation[:, 0, 1], rotation[:, 1, 0], rotation[:, 1, 1] = (angles.cos(), -angles.sin(),
+                                                                                angles.sin(), angles.cos())
+    rotation[:, 2, 2] = 1
+    return src, move(src, rotation, torch.zeros(B, 3)) + 0.01 * torch.randn(B, N, 3)
+
+
+def test_consistency_is_the_share_of_rcps_on_the_estimate():
+    src, tgt = turned_pairs()
+    model = small_model(consistency_radius=1.0).eval()
+    with torch.no_grad():
+        out = model(src, tgt)
+    moved = src.double() @ out.rotation.double().mT + out.translation.double()[:, None]
+    expected = ((moved - out.rcp.double()).norm(dim=-1) < 1.0).double().mean(dim=-1)
+    torch.testing.assert_close(out.consistency.double(), expected)
+    assert 0 < out.consistency.min() and out.consistency.max() < 1  # the radius cuts through every pair
+    assert not out.second_pass.any()  # second_pass_below = 0: never
+
+
+def test_the_second_pass_keeps_the_more_consistent_pass_of_each_pair():
+    from vrnet_ext.geometry.transforms import compose, move
+
+    src, tgt = turned_pairs()
+    single = small_model(consistency_radius=1.0).eval()
+    with torch.no_grad():
+        first = single(src, tgt)
+        again = single(move(src, first.rotation, first.translation), tgt)
+        R2, t2 = compose(again.rotation, again.translation, first.rotation, first.translation)
+        moved = move(src, R2, t2)
+        consistency2 = ((moved - again.rcp).norm(dim=-1) < 1.0).float().mean(dim=-1)
+    below = float(first.consistency.sort().values[-2])  # every pair is retried but the most consistent one
+    retried = first.consistency < below
+    expected_second = retried & (consistency2 > first.consistency)
+    assert expected_second.any() and not expected_second.all(), "the pairs must exercise both outcomes"
+    model = small_model(consistency_radius=1.0, second_pass_below=below).eval()
+    with torch.no_grad():
+        out = model(src, tgt)
+    assert torch.equal(out.second_pass, expected_second)
+    pick = expected_second[:, None, None]
+    torch.testing.assert_close(out.rotation, torch.where(pick, R2, first.rotation), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out.translation, torch.where(pick[:, 0], t2, first.translation), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out.rcp, torch.where(pick, again.rcp, first.rcp), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out.consistency, torch.where(expected_second, consistency2, first.consistency))
+    with torch.no_grad():  # each pair alone gets what it gets in the batch
+        alone = [model(src[i:i + 1], tgt[i:i + 1]) for i in range(len(src))]
+    torch.testing.assert_close(torch.cat([a.rotation for a in alone]), out.rotation, rtol=1e-4, atol=1e-5)
+    assert torch.equal(torch.cat([a.second_pass for a in alone]), out.second_pass)
+    model.train()  # training sees the configured passes only
+    assert not model(src, tgt).second_pass.any()
+
+
+@pytest.mark.parametrize("field, value", [("second_pass_below", 1.5), ("second_pass_below", -0.1),
+                                          ("second_pass_below", float("nan")), ("consistency_radius", 0.0),
+                                          ("consistency_radius", float("inf"))])
+def test_second_pass_options_are_checked(field, value):
+    with pytest.raises(ValueError, match=field):
+        VRNetConfig(**{field: value})

@@ -13,12 +13,14 @@ from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFo
 from vrnet_ext.data.protocol import FAR_POINTS, MIXED, SETTINGS
 
 
-IRLS_KEYS = ("irls_iterations", "irls_kernel", "irls_scale")  # the robust solve's inference-time options
+# The estimate's inference-time options: the robust solve and the second pass.
+SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "consistency_radius")
 
 
-def add_irls_options(parser, default: str) -> None:
-    """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale`` (VRNetConfig's IRLS fields); ``default``
-    says what applies when a flag is not given."""
+def add_solve_options(parser, default: str) -> None:
+    """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale``, ``--second-pass-below``,
+    ``--consistency-radius`` (VRNetConfig's fields of these names); ``default`` says what applies
+    when a flag is not given."""
     from vrnet_ext.model.config import IRLS_KERNELS
 
     parser.add_argument("--irls-iterations", type=nonnegative_int, default=None,
@@ -27,11 +29,18 @@ def add_irls_options(parser, default: str) -> None:
                         help=f"the reweighting's robust weight of a residual (default: {default})")
     parser.add_argument("--irls-scale", type=positive_float, default=None,
                         help=f"the reweighting's scale in medians of a pair's residuals (default: {default})")
+    parser.add_argument("--second-pass-below", type=unit_interval, default=None,
+                        help="register a pair once more from the moved source when fewer than this share of its "
+                             "RCPs agree with its estimate, and keep the pass whose RCPs agree more; 0: never "
+                             f"(default: {default})")
+    parser.add_argument("--consistency-radius", type=positive_float, default=None,
+                        help=f"how near its estimate an RCP must lie to agree with it, in the clouds' units "
+                             f"(default: {default})")
 
 
-def irls_overrides(args) -> dict:
-    """The IRLS fields given on the command line."""
-    return {k: getattr(args, k) for k in IRLS_KEYS if getattr(args, k) is not None}
+def solve_overrides(args) -> dict:
+    """The solve fields given on the command line."""
+    return {k: getattr(args, k) for k in SOLVE_KEYS if getattr(args, k) is not None}
 
 
 def add_train(sub) -> None:
@@ -94,7 +103,7 @@ def add_train(sub) -> None:
                    help="1: the walk also sees each point's largest matching weight and matching entropy")
     model.add_argument("--walk-confidence-trunk", type=parse_bool, default=None,
                    help="1: the confidence has its own MLP (the offsets' loss L4 does not shape it)")
-    add_irls_options(model, "the preset's: none")
+    add_solve_options(model, "the preset's: none")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -103,7 +112,7 @@ def build_train_config(args):
     from vrnet_ext.learning.config import PRESETS, TrainConfig
 
     model_keys = ("emb_dims", "k", "iterations", "walk_gate", "walk_confidence", "walk_match_stats",
-                  "walk_confidence_trunk") + IRLS_KEYS
+                  "walk_confidence_trunk") + SOLVE_KEYS
     overrides = {k: v for k, v in vars(args).items() if k not in ("command", "preset", "no_progress") + model_keys}
     model = dict(PRESETS[args.preset]["model"])
     for key in model_keys:
@@ -146,7 +155,7 @@ def add_eval(sub) -> None:
     p.add_argument("--max-items", type=positive_int, default=None,
                    help="evaluate the first N test shapes only (default: the whole test split)")
     p.add_argument("--iterations", type=int, default=None, help="ICP-like passes (paper Table 'with iteration')")
-    add_irls_options(p, "the model's")
+    add_solve_options(p, "the model's")
     p.add_argument("--far-points", choices=FAR_POINTS, default="prnet",
                    help="partial views: prnet = the paper's: one far point near the diagonal cuts both clouds; "
                         "sphere = in a random direction for each cloud; mixed = one of the two per pair; "
@@ -179,7 +188,7 @@ def run_eval(args) -> int:
     cfg = state["config"]
     if args.iterations:
         model.config.iterations = args.iterations
-    for key, value in irls_overrides(args).items():
+    for key, value in solve_overrides(args).items():
         setattr(model.config, key, value)
     model.config.transformer_precision = args.transformer_precision
     # the paper's protocol unless the checkpoint says otherwise (shipped weights carry no data path)
@@ -194,7 +203,7 @@ def run_eval(args) -> int:
     result = evaluate(model, data, args.batch_size, args.device, args.backend)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
     result.update(setting=setting, split=split, far_points=args.far_points, checkpoint=str(args.checkpoint),
-                  iterations=model.config.iterations, **{k: getattr(model.config, k) for k in IRLS_KEYS},
+                  iterations=model.config.iterations, **{k: getattr(model.config, k) for k in SOLVE_KEYS},
                   transformer_precision=args.transformer_precision,
                   transformer_bf16=model.eval().transformer_in_bf16(data[0]["src"].to(args.device)))
     print(format_table({k: v for k, v in result.items() if isinstance(v, (int, float))}, f"VRNet {setting} {split}"))
@@ -238,7 +247,7 @@ def add_export(sub) -> None:
     p.add_argument("--note", action="append", default=[], help="a note for the card (repeatable)")
     p.add_argument("--procrustes-points", choices=("rcp", "vcp"), default=None,
                    help="set the exported model's final Procrustes points (an inference-time choice; default: as trained)")
-    add_irls_options(p, "as trained")
+    add_solve_options(p, "as trained")
 
 
 def _cells(values: list[str]) -> list[str]:
@@ -286,7 +295,7 @@ def run_export(args) -> int:
         path = export_scene_model(args.checkpoint, out / f"{args.name}.pt", card)
         print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.md')}")
         return 0
-    overrides = irls_overrides(args)
+    overrides = solve_overrides(args)
     if args.procrustes_points is not None:
         overrides["procrustes_points"] = args.procrustes_points
     card = _base_card(args, state, overrides)
@@ -295,7 +304,7 @@ def run_export(args) -> int:
     tests = [_read_eval_json(path) for path in args.test_json or []]
     served = {**VRNetConfig().to_dict(), **state["config"]["model"], **overrides}  # older files name fewer fields
     for path, test in zip(args.test_json or [], tests):
-        differing = [k for k in IRLS_KEYS if k in test and test[k] != served.get(k)]
+        differing = [k for k in SOLVE_KEYS if k in test and test[k] != served.get(k)]
         if differing:
             raise ValueError(f"--test-json {path}: measured with {', '.join(f'{k} {test[k]}' for k in differing)}, "
                              f"the exported model solves with {', '.join(f'{k} {served.get(k)}' for k in differing)}")

@@ -60,7 +60,8 @@ def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str |
     ``RMSE(R) [name]`` and ``RE mean [name]``, and the mean distance of VCPs and RCPs from the true
     correspondents over the source points that have one in the target (``inliers``, gt_idx >= 0)
     and over those that do not (``outliers``, only where there are any): what the correction walk
-    gains or costs on each kind of point.
+    gains or costs on each kind of point; ``consistency`` (the mean share of RCPs on the estimate) and
+    ``second pass`` (the share of pairs whose estimate came from a second pass).
     """
     device = torch.device(device)
     model.eval()
@@ -69,7 +70,8 @@ def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str |
     preds_R, preds_t, gts_R, gts_t = [], [], [], []
     by_estimator: dict[str, list[torch.Tensor]] = {}
     extra: dict[str, list[float]] = {k: [] for k in ("L0", "CD(src,VCP)", "CD(src,RCP)", "CD(src,tgt)",
-                                                     "match@0.15(VCP)", "match@0.15(RCP)")}
+                                                     "match@0.15(VCP)", "match@0.15(RCP)", "consistency",
+                                                     "second pass")}
     point_errors = {f"{name} error ({kind})": [0.0, 0] for name in ("VCP", "RCP") for kind in ("inliers", "outliers")}
     for batch in tqdm(loader, desc="eval", disable=not progress, leave=False):
         batch = to_device(batch, device)
@@ -94,6 +96,8 @@ def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str |
             extra[key] += chamfer_distance(aligned, pts).tolist()
         extra["match@0.15(VCP)"] += correct_match_ratio(out.vcp, src, R_gt, t_gt).tolist()
         extra["match@0.15(RCP)"] += correct_match_ratio(out.rcp, src, R_gt, t_gt).tolist()
+        extra["consistency"] += out.consistency.tolist()
+        extra["second pass"] += out.second_pass.float().tolist()
     gt_R = torch.cat(gts_R)
     result = summarize(torch.cat(preds_R).numpy(), gt_R.numpy(), torch.cat(preds_t).numpy(), torch.cat(gts_t).numpy())
     result.update({k: float(np.mean(v)) for k, v in extra.items()})

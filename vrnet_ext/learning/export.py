@@ -15,7 +15,8 @@ from vrnet_ext.model.scene import SCENE_FORMAT
 
 
 # Model-config fields an export may change: they choose how the estimate is solved, not the weights.
-INFERENCE_FIELDS = ("procrustes_points", "irls_iterations", "irls_kernel", "irls_scale")
+INFERENCE_FIELDS = ("procrustes_points", "irls_iterations", "irls_kernel", "irls_scale", "second_pass_below",
+                    "consistency_radius")
 
 
 def training_facts(checkpoint: str | os.PathLike, name: str | None = None) -> dict:

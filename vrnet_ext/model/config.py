@@ -45,6 +45,14 @@ class VRNetConfig:
       (:func:`vrnet_ext.ops.kabsch.robust_weights`: ``"cauchy"``, ``"geman_mcclure"``,
       ``"welsch"``). A smaller scale and a steeper kernel trust fewer points: right where most RCPs
       sit on their counterparts and a minority is far off.
+    * ``second_pass_below``: after the last pass, a pair whose estimate agrees with fewer than this
+      share of its RCPs (its ``consistency``: RCPs within ``consistency_radius`` of the moved source
+      point, in the clouds' units) is registered once more from the moved source, as a pass of
+      ``iterations`` would, and the pass whose RCPs agree more with its own estimate is kept (not in
+      the paper; 0: never). Only in eval mode; training losses see the passes of
+      ``iterations`` alone. A pair the passes register well has most RCPs on its estimate; one that
+      failed (a large rotation, a symmetric shape) has almost none, and a second look from closer
+      usually fixes it.
     * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.
 
     Run-time choices (no effect on the weights):
@@ -83,6 +91,8 @@ class VRNetConfig:
     irls_scale: float = 3.0
     irls_min_scale: float = 1e-3
     iterations: int = 1
+    second_pass_below: float = 0.0
+    consistency_radius: float = 0.02
     backend: str = "ext"
     transformer_precision: str = "auto"
 
@@ -101,6 +111,9 @@ class VRNetConfig:
             raise ValueError(f"procrustes_points must be 'rcp' or 'vcp', got {self.procrustes_points!r}")
         if self.irls_iterations < 0 or not self.irls_min_scale > 0 or not self.irls_scale > 0:
             raise ValueError("irls_iterations must be >= 0, irls_scale and irls_min_scale > 0")
+        if not 0 <= self.second_pass_below <= 1 or not 0 < self.consistency_radius < float("inf"):
+            raise ValueError(f"second_pass_below must be in [0, 1] and consistency_radius a positive finite "
+                             f"distance, got {self.second_pass_below} and {self.consistency_radius}")
         if self.irls_kernel not in IRLS_KERNELS:
             raise ValueError(f"irls_kernel must be one of {IRLS_KERNELS}, got {self.irls_kernel!r}")
         if self.backend not in ("ext", "torch"):

@@ -32,6 +32,8 @@ class VRNetOutput:
     tgt_embedding: torch.Tensor  # (B, c, M) Phi_Y
     gate_logits: torch.Tensor | None = None        # (B, N) walk gate (VCP needs correcting), or None
     confidence_logits: torch.Tensor | None = None  # (B, N) RCP confidence, or None (unweighted)
+    consistency: torch.Tensor | None = None  # (B,) share of RCPs within consistency_radius of R src + t
+    second_pass: torch.Tensor | None = None  # (B,) bool: the estimate comes from the extra pass
 
     @property
     def weights(self) -> torch.Tensor | None:
@@ -76,6 +78,15 @@ def match_clouds(phi_x: torch.Tensor, phi_y: torch.Tensor, tgt: torch.Tensor, ba
         peak = torch.exp(scale * (query * peak_key).sum(-1) - lse)
         entropy = lse - scale * (query * out[..., 3:]).sum(-1)
     return CloudMatch(matched[..., :3], matched[..., 3:].transpose(1, 2), peak, entropy, matching)
+
+
+def rcp_consistency(src: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor, rcp: torch.Tensor,
+                    radius: float) -> torch.Tensor:
+    """(B,) share of the source points whose RCP lies within ``radius`` of R src + t: how far a
+    pair's RCPs agree with its estimate (src, rcp (B, N, 3), R (B, 3, 3), t (B, 3)). No gradient."""
+    with torch.no_grad():
+        residuals = (move(src, rotation, translation) - rcp).norm(dim=-1)
+        return (residuals < radius).to(src.dtype).mean(dim=-1)
 
 
 def procrustes_weights(confidence_logits: torch.Tensor) -> torch.Tensor:
@@ -132,7 +143,36 @@ class VRNet(nn.Module):
                 rotation, translation = compose(out.rotation, out.translation, rotation, translation)
                 moved = move(src, rotation, translation)
         out.rotation, out.translation = rotation, translation
+        out.consistency = rcp_consistency(src, rotation, translation, out.rcp, self.config.consistency_radius)
+        out.second_pass = torch.zeros(src.shape[0], dtype=torch.bool, device=src.device)
+        if not self.training and self.config.second_pass_below > 0:
+            self._second_pass(src, tgt, out, backend, return_matching)
         return out
+
+    def _second_pass(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
+                     return_matching: bool) -> None:
+        """Registers the pairs whose consistency is below ``second_pass_below`` once more from the
+        moved source; where the new pass's RCPs agree more with its estimate, its rows replace
+        ``out``'s (in place)."""
+        retry = (out.consistency < self.config.second_pass_below).nonzero().squeeze(1)
+        if retry.numel() == 0:
+            return
+        with torch.autocast(src.device.type, enabled=False):
+            moved = move(src[retry], out.rotation[retry], out.translation[retry])
+        again = self._single_pass(moved, tgt[retry], backend, return_matching)
+        with torch.autocast(src.device.type, enabled=False):
+            again.rotation, again.translation = compose(again.rotation, again.translation, out.rotation[retry],
+                                                        out.translation[retry])
+        again.consistency = rcp_consistency(src[retry], again.rotation, again.translation, again.rcp,
+                                            self.config.consistency_radius)
+        better = again.consistency > out.consistency[retry]
+        kept = retry[better]
+        again.second_pass = torch.ones_like(better)
+        for name in ("rotation", "translation", "matching", "vcp", "rcp", "offset", "src_embedding",
+                     "tgt_embedding", "gate_logits", "confidence_logits", "consistency", "second_pass"):
+            rows = getattr(out, name)
+            if rows is not None:
+                setattr(out, name, rows.index_copy(0, kept, getattr(again, name)[better]))
 
     def _features(self, src: torch.Tensor, tgt: torch.Tensor, backend: str) -> tuple[torch.Tensor, torch.Tensor]:
         """DGCNN features of both clouds: with the DGCNN in eval mode, clouds of one size go through
