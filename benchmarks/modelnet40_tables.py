@@ -220,6 +220,13 @@ def evaluate_cell(name: str, model, config: dict, setting: str, split: str, args
             "paper": {k: dict(zip(COLUMNS[:4], v)) for k, v in PAPER.get((setting, split), {}).items()}}
 
 
+def card_test(cell: dict) -> dict:
+    """A measured cell's ``vrnet`` row as ``vrnet export --test-json`` reads it: the errors, the cell,
+    the pairs, the solve they were measured with and the script that measured them."""
+    return {**cell["methods"]["vrnet"], **cell["solve"], "setting": cell["setting"], "split": cell["split"],
+            "pairs": cell["pairs"], "measured_by": "modelnet40_tables.py"}
+
+
 def markdown(results: list[dict], machine: str) -> str:
     lines = [f"Measured {time.strftime('%Y-%m-%d')} on {machine}.", ""]
     for result in results:
@@ -251,6 +258,9 @@ def main(argv: list[str] | None = None) -> int:
     add_solve_options(parser, "the model's")
     parser.add_argument("--json", default="modelnet40_tables.json", help="where the JSON goes")
     parser.add_argument("--markdown", default="modelnet40_tables.md", help="where the Markdown goes")
+    parser.add_argument("--card-json-dir", type=Path, default=None,
+                        help="also write each cell's VRNet row here as MODEL_SETTING_SPLIT.json, the test results "
+                             "`vrnet export --test-json` puts in a model card (none: not written)")
     args = parser.parse_args(argv)
     models = args.models or available("vrnet")
     if not models:
@@ -260,6 +270,12 @@ def main(argv: list[str] | None = None) -> int:
     machine = f"{cpu_description()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
     Path(args.json).write_text(json.dumps({"machine": machine, "results": results}, indent=1))
     Path(args.markdown).write_text(markdown(results, machine))
+    if args.card_json_dir:
+        args.card_json_dir.mkdir(parents=True, exist_ok=True)
+        for cell in results:
+            if "vrnet" in cell["methods"]:
+                name = f"{Path(cell['model']).stem}_{cell['setting']}_{cell['split']}.json".replace("+", "")
+                (args.card_json_dir / name).write_text(json.dumps(card_test(cell), indent=1))
     print(markdown(results, machine))
     print(f"wrote {args.json} and {args.markdown}")
     return 0

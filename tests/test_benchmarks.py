@@ -219,6 +219,21 @@ def test_modelnet40_tables_take_solve_flags_and_keep_the_vcp_row_to_one_pass(tmp
     assert rows["0"]["methods"]["vrnet"]["second_pass_share"] == 0
     assert 0 < rows["1"]["methods"]["vrnet"]["second_pass_share"] <= 1
     assert rows["0"]["methods"]["vrnet"]["RMSE(R)"] != rows["1"]["methods"]["vrnet"]["RMSE(R)"]
+    # the row goes into a model card: only for weights that solve the way it was measured
+    from vrnet_ext.cli import main
+    from vrnet_ext.model.checkpoints import read_checkpoint
+    from vrnet_ext.model.pretrained import weights_path
+
+    run(common + ["--second-pass-below", "1", "--json", "c.json", "--markdown", "c.md", "--card-json-dir", "cards"],
+        tmp_path)
+    card_json = str(tmp_path / "cards" / "vrnet-rs-upc-rcp_RS_UPC.json")
+    export = ["export", str(weights_path("vrnet-rs-upc-rcp")), "rs", "--out-dir", str(tmp_path / "w"),
+              "--test-json", card_json]
+    assert main(export + ["--second-pass-below", "0.3"]) == 2
+    assert main(export + ["--second-pass-below", "1"]) == 0
+    card = read_checkpoint(tmp_path / "w" / "rs.pt")["card"]
+    assert card["test"]["RMSE(R)"] == rows["1"]["methods"]["vrnet"]["RMSE(R)"] and card["test"]["pairs"] == 4
+    assert card["test_note"].startswith("`modelnet40_tables.py` on 4 ModelNet40 test pairs (RS / UPC")
 
 
 def test_modelnet40_summary_lists_two_pass_rows_apart_from_the_comparison(tmp_path):

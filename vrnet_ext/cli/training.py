@@ -236,7 +236,8 @@ def add_export(sub) -> None:
     p.add_argument("--out-dir", type=output_folder, default=None,
                    help="folder to write to (default: the package's weights folder)")
     p.add_argument("--test-json", action="append", default=None,
-                   help="`vrnet eval --json` output on the test split (a VRNet; repeat it for each cell a "
+                   help="`vrnet eval --json` output on the test split, or a cell's file of `modelnet40_tables.py "
+                        "--card-json-dir` (a VRNet; repeat it for each cell a "
                         "mixed-setting model serves), or a Markdown results table (a scene model), for the card")
     p.add_argument("--summary", default="", help="one paragraph: what the model is for")
     p.add_argument("--cells", nargs="+", default=None, metavar="SETTING/SPLIT",
@@ -315,8 +316,9 @@ def run_export(args) -> int:
     if len(tests) == 1:
         test = tests[0]
         card["test"] = card.pop("tests")[f"{test.get('setting')}/{test.get('split')}"]
-        card["test_note"] = (f"`vrnet eval` on {test.get('pairs')} ModelNet40 test pairs ({test.get('setting')} / "
-                             f"{test.get('split')}, the whole official test split unless fewer are stated).")
+        card["test_note"] = (f"`{test.get('measured_by', 'vrnet eval')}` on {test.get('pairs')} ModelNet40 test pairs "
+                             f"({test.get('setting')} / {test.get('split')}, the whole official test split unless "
+                             f"fewer are stated).")
     elif tests:
         card["tests_note"] = ("`vrnet eval` on the ModelNet40 test pairs of each cell (the whole official test split "
                               "unless fewer are stated).")
