@@ -39,6 +39,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "modelnet40_tables_rs_upc": "ModelNet40 tables, RS / UPC (`modelnet40_tables.py --models vrnet-rs-upc-rcp --methods vrnet vcp vrnet2`)",
     "modelnet40_tables_pvrs_nd": "ModelNet40 tables, PV+RS / ND (`modelnet40_tables.py --models vrnet-pvrs-nd-rcp --methods vrnet vcp vrnet2`)",
     "modelnet40_tables_two_passes": "ModelNet40 tables, two passes (`modelnet40_tables.py --models <the serving models> --methods vrnet2`)",
+    "modelnet40_tables_second_pass": "ModelNet40 tables, every cell with a second pass where the RCPs disagree (`modelnet40_tables.py --methods vrnet --second-pass-below 0.5 --consistency-radius 0.02`)",
     "modelnet40_tables_two_passes_more": "ModelNet40 tables, two passes, CO / ND, PV / ND, RS / ND and PV+RS / UPC (`modelnet40_tables.py --models vrnet-co-nd-rcp vrnet-pv-nd-rcp vrnet-rs-nd-rcp vrnet-mixed-upc-rcp --methods vrnet2`)",
     "modelnet40_tables_rs_nd": "ModelNet40 tables, RS / ND (`modelnet40_tables.py --models vrnet-rs-nd-rcp --methods vrnet vcp`)",
     "modelnet40_tables_nd_cells": "ModelNet40 tables, CO / RS / PV+RS with noise (`modelnet40_tables.py --models vrnet-mixed-nd-rcp --settings CO RS PV+RS`)" + EARLIER_VIEWS,

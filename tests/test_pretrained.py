@@ -33,7 +33,7 @@ def test_the_default_model_ships_as_small_float16_weights_with_a_card():
             assert card["training"]["setting"] and all(t["pairs"] >= whole for t in tests.values()), name
             solve = state["config"]["model"]  # a test that records its robust solve was measured with the model's
             for test in tests.values():
-                for key in ("irls_iterations", "irls_scale"):
+                for key in ("irls_iterations", "irls_scale", "second_pass_below", "consistency_radius"):
                     assert key not in test or test[key] == solve.get(key), (name, key)
 
 

@@ -33,7 +33,7 @@ class VRNetOutput:
     gate_logits: torch.Tensor | None = None        # (B, N) walk gate (VCP needs correcting), or None
     confidence_logits: torch.Tensor | None = None  # (B, N) RCP confidence, or None (unweighted)
     consistency: torch.Tensor | None = None  # (B,) share of RCPs within consistency_radius of R src + t
-    second_pass: torch.Tensor | None = None  # (B,) bool: the estimate comes from the extra pass
+    second_pass: torch.Tensor | None = None  # (B,) bool: the estimate comes from the second pass
 
     @property
     def weights(self) -> torch.Tensor | None:
