@@ -15,9 +15,10 @@ with everything in float32 (the plain-PyTorch model); "x same precision": agains
 backend with the same Transformer precision. Peak memory: the process's peak resident set after
 the run (all variants).
 
-Arithmetic: the floating-point operations of one pair as the reference backend computes it in
+Arithmetic: the floating-point operations per pair as the reference backend computes them in
 float32 (matrix products, convolutions and attention, 2 per multiply-add; torch's
-``FlopCounterMode``), and this machine's float32 matrix-product rate in the same run (a 2048^3
+``FlopCounterMode``; the mean over the pairs, since a pair whose RCPs disagree with its first
+estimate takes a second pass where the model's ``second_pass_below`` says so), and this machine's float32 matrix-product rate in the same run (a 2048^3
 product on ``--threads`` threads). Their ratio bounds the pairs per second of any float32 run that
 does the reference's products; the "GFLOP/s" column is pairs/s times the reference's count.
 """
@@ -60,8 +61,9 @@ def run_pass(model, pairs: dict[str, torch.Tensor], batch: int, backend: str, tr
     return torch.cat(rotations), torch.cat(translations)
 
 
-def reference_flops_per_pair(model, pairs: dict[str, torch.Tensor]) -> float:
-    """Floating-point operations of one pair on the reference backend in float32 (its first pair)."""
+def reference_flops_per_pair(model, pairs: dict[str, torch.Tensor], batch: int = 16) -> float:
+    """Floating-point operations per pair on the reference backend in float32, the mean over
+    ``pairs`` (the pairs whose RCPs disagree with their first estimate take a second pass)."""
     model.config.transformer_precision = "fp32"
 
     def attention(query, key, value, *args, out_shape=None, **kwargs) -> int:  # torch counts no CPU flash attention
@@ -69,9 +71,11 @@ def reference_flops_per_pair(model, pairs: dict[str, torch.Tensor]) -> float:
 
     counter = FlopCounterMode(display=False, custom_mapping={
         torch.ops.aten._scaled_dot_product_flash_attention_for_cpu: attention})
+    count = len(pairs["src"])
     with torch.no_grad(), counter:
-        model(pairs["src"][:1], pairs["tgt"][:1], backend="torch")
-    return float(counter.get_total_flops())
+        for start in range(0, count, batch):
+            model(pairs["src"][start:start + batch], pairs["tgt"][start:start + batch], backend="torch")
+    return float(counter.get_total_flops()) / count
 
 
 def matmul_rate(seconds: float = 1.0, size: int = 2048) -> float:

@@ -53,6 +53,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "register_busy": "Registration beside a busy process (`bench_register.py --beside-busy`)",
     "inference": "ModelNet40 inference speed (`bench_inference.py`)",
     "inference_avx2": "ModelNet40 inference speed on a CPU without bfloat16 products (`bench_inference.py --variants ext`)",
+    "inference_avx2_second_pass": "ModelNet40 inference speed on a CPU without bfloat16 products, the model taking its second pass where its RCPs disagree (`bench_inference.py --variants ext`)",
     "global_fit": "Spatial consistency vs RANSAC, matching + fit on the same descriptors (`bench_global_fit.py`)",
     "scene_validation": "Scene models on the validation pairs (`scene_validation.py`)",
     "ops": "Op timings (`bench_ops.py`)",
