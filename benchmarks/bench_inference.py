@@ -18,8 +18,8 @@ the run (all variants).
 Arithmetic: the floating-point operations per pair as the reference backend computes them in
 float32 (matrix products, convolutions and attention, 2 per multiply-add; torch's
 ``FlopCounterMode``; the mean over the pairs, since a pair whose RCPs disagree with its first
-estimate takes a second pass where the model's ``second_pass_below`` says so), and this machine's float32 matrix-product rate in the same run (a 2048^3
-product on ``--threads`` threads). Their ratio bounds the pairs per second of any float32 run that
+estimate takes a second pass where the model's ``second_pass_below`` says so), and this
+machine's float32 matrix-product rate in the same run (a 2048^3 product on ``--threads`` threads). Their ratio bounds the pairs per second of any float32 run that
 does the reference's products; the "GFLOP/s" column is pairs/s times the reference's count.
 """
 from __future__ import annotations

@@ -160,8 +160,8 @@ def markdown(rows: list[dict]) -> str:
             goal += f" ({row['target_source']})"
         minutes = f"{row['training_minutes']} min" if "training_minutes" in row else "–"
         if "ours" not in row:
-            lines.append(f"| {row['setting']} / {row['split']} | {row['model'] or '–'} | – | – | – | – | – | {goal} | "
-                         f"not measured | {minutes} |")
+            lines.append(f"| {row['setting']} / {row['split']} | {row['model'] or '–'} | – | – | – | – | – | "
+                         f"{goal} | not measured | {minutes} |")
             continue
         status = "4 / 4" if row["reached"] == 4 else f"{row['reached']} / 4, not yet"
         lines.append(f"| {row['setting']} / {row['split']} | `{row['model']}` | {_errors(row, row['ours'])} | "
@@ -170,16 +170,15 @@ def markdown(rows: list[dict]) -> str:
     lines.append(f"\n{reached} of {len(rows)} cells at or below the paper in all four columns (bold: a column "
                  "at or below it). Whole test split of each cell; each model was chosen on validation, then evaluated on it "
                  "once, as it is served: one pass, and a second from the moved source for a pair whose RCPs disagree "
-                 "with its estimate, keeping the pass whose RCPs agree more (`second_pass_below`; \"second pass kept\": "
-                 "the share of pairs whose estimate came from it). The rows below were measured for information and "
-                 "chose nothing. Training in all: wall time of the serving model's runs and of every model it was "
+                 "with its estimate, keeping the pass whose RCPs agree more (`second_pass_below`; "
+                 "\"second pass kept\": the share of pairs whose estimate came from it). The rows below were "
+                 "measured for information and chose nothing. Training in all: wall time of the serving model's runs and of every model it was "
                  "fine-tuned from, on this project's 2-core CPU (`vrnet_ext.model.pretrained.training_seconds`).")
-    for key, reached_key, title in (
-            ("one_pass", "one_pass_reached", "The same models with one pass only (the paper's protocol: no second "
-                                             "pass for any pair)."),
-            ("two_passes", "two_passes_reached", "The same models with two passes (the paper's \"VRNet with iteration\": "
-                                                 "the second pass registers the source moved by the first estimate, for "
-                                                 "every pair; twice the network time).")):
+    one_pass = "The same models with one pass only (the paper's protocol: no second pass for any pair)."
+    two_passes = ("The same models with two passes (the paper's \"VRNet with iteration\": the second pass registers "
+                  "the source moved by the first estimate, for every pair; twice the network time).")
+    for key, reached_key, title in (("one_pass", "one_pass_reached", one_pass),
+                                    ("two_passes", "two_passes_reached", two_passes)):
         listed = [row for row in rows if key in row]
         if listed:
             lines += ["", title, "", "| cell | model | RMSE(R) | MAE(R) | RMSE(t) | MAE(t) | reached |",

@@ -97,9 +97,9 @@ PAPER = {(setting, split): {method: (row[k], row[3 + k], row[6 + k] * scale, row
 
 def network_estimates(model, data, batch_size: int, methods) -> dict:
     """{method: (R (S, 3, 3), t (S, 3), seconds, share of pairs whose estimate came from a second
-    pass)} for the network's methods: "vrnet" as the model is
-    configured; "vcp" from one pass without a second (sharing the forward of "vrnet" when that has
-    none); "vrnet2" runs the network twice per pair (the paper's iteration mode, no further pass)."""
+    pass)} for the network's methods: "vrnet" as the model is configured; "vcp" from one pass
+    without a second (sharing the forward of "vrnet" when that has none); "vrnet2" runs the network
+    twice per pair (the paper's iteration mode, no further pass)."""
     loader = DataLoader(data, batch_size=batch_size, shuffle=False)
     estimates = {}
     configured, second_pass_below = model.config.iterations, model.config.second_pass_below

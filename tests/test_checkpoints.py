@@ -154,7 +154,8 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert retuned["card"]["test"]["irls_scale"] == 0.5 and retuned["card"]["test"]["irls_iterations"] == 7
     model_config = retuned["config"]["model"]
     assert (model_config["irls_iterations"], model_config["irls_kernel"], model_config["irls_scale"],
-            model_config["second_pass_below"], model_config["consistency_radius"]) == (7, "geman_mcclure", 0.5, 0.4, 0.05)
+            model_config["second_pass_below"], model_config["consistency_radius"]) == (
+        7, "geman_mcclure", 0.5, 0.4, 0.05)
     assert retuned["card"]["test"]["second_pass_below"] == 0.4
     assert "irls_kernel: `geman_mcclure`" in (tmp_path / "weights" / "tiny-gm.md").read_text()
     torch.testing.assert_close(retuned["model"], shipped["model"], rtol=0, atol=0)
