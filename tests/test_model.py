@@ -392,6 +392,9 @@ def test_the_second_pass_keeps_the_more_consistent_pass_of_each_pair():
         alone = [model(src[i:i + 1], tgt[i:i + 1]) for i in range(len(src))]
     torch.testing.assert_close(torch.cat([a.rotation for a in alone]), out.rotation, rtol=1e-4, atol=1e-5)
     assert torch.equal(torch.cat([a.second_pass for a in alone]), out.second_pass)
+    src.requires_grad_(True)  # the kept rows stay differentiable in the clouds
+    model(src, tgt).rotation.sum().backward()
+    assert src.grad is not None and torch.isfinite(src.grad).all() and src.grad[expected_second].abs().sum() > 0
     model.train()  # training sees the configured passes only
     assert not model(src, tgt).second_pass.any()
 
