@@ -70,7 +70,8 @@ class _PerfectWalk(torch.nn.Module):
         rcp = src @ self.R.T + self.t
         R, t = kabsch(src, rcp, backend="torch")
         self.last = type("Out", (), dict(rotation=R, translation=t, matching=matching, vcp=vcp, rcp=rcp,
-                                         offset=rcp - vcp))()
+                                         offset=rcp - vcp, consistency=torch.ones(src.shape[0]),
+                                         second_pass=torch.zeros(src.shape[0], dtype=torch.bool)))()
         return self.last
 
 
@@ -97,4 +98,5 @@ def test_evaluate_reports_vcp_and_rcp_errors_on_inliers_and_outliers():
     expected_re = metrics.rotation_error_deg(R_vcp, R.expand(2, 3, 3)).mean().item()
     assert result["RE mean [VCP]"] == pytest.approx(expected_re)
     assert result["RE mean [VCP]"] > 0.1 and result["RE mean (deg)"] < 1e-6 and result["RE mean [RCP]"] < 1e-6
+    assert result["consistency"] == 1.0 and result["second pass"] == 0.0
     assert result["RMSE(R) [RCP]"] < 1e-6 < result["RMSE(R) [VCP]"]
