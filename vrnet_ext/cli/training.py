@@ -103,7 +103,7 @@ def add_train(sub) -> None:
                    help="1: the walk also sees each point's largest matching weight and matching entropy")
     model.add_argument("--walk-confidence-trunk", type=parse_bool, default=None,
                    help="1: the confidence has its own MLP (the offsets' loss L4 does not shape it)")
-    add_solve_options(model, "the preset's: none")
+    add_solve_options(model, "the preset's, else VRNetConfig's")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
