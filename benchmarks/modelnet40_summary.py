@@ -72,9 +72,10 @@ def measurements(results: Path, method: str = "vrnet",
             recorded = {**UNRECORDED_SECOND_PASS, **cell.get("solve", UNRECORDED_SOLVE)}
             if solve is not None and second_pass_below is not None:
                 solve = dict(solve, second_pass_below=second_pass_below)
-            if method != "vrnet" or (solve is not None and solve["second_pass_below"] == 0):
-                ignored = set(UNRECORDED_SECOND_PASS) if method != "vrnet" else {"consistency_radius"}
-                recorded = {k: v for k, v in recorded.items() if k not in ignored}
+            if method != "vrnet":  # the two-pass row never takes a further pass
+                recorded = {k: v for k, v in recorded.items() if k not in UNRECORDED_SECOND_PASS}
+            elif solve is not None and solve["second_pass_below"] == 0:  # no second pass: its radius is moot
+                recorded.pop("consistency_radius")
             stale = (("weights" in cell and cell["weights"] != weights)
                      or (solve is not None and any(recorded[k] != solve[k] for k in recorded))
                      or (cell["setting"] in PARTIAL_VIEWS and cell.get("views") != VIEW_PROTOCOL))

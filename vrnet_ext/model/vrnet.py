@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from torch import nn
@@ -13,6 +13,7 @@ from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
 from vrnet_ext.ops import robust_kabsch, soft_match
+from vrnet_ext.geometry.metrics import correct_match_ratio
 from vrnet_ext.geometry.transforms import compose, move
 from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
 from vrnet_ext.runtime import cpu_has_native_bf16
@@ -80,15 +81,6 @@ def match_clouds(phi_x: torch.Tensor, phi_y: torch.Tensor, tgt: torch.Tensor, ba
     return CloudMatch(matched[..., :3], matched[..., 3:].transpose(1, 2), peak, entropy, matching)
 
 
-def rcp_consistency(src: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor, rcp: torch.Tensor,
-                    radius: float) -> torch.Tensor:
-    """(B,) share of the source points whose RCP lies within ``radius`` of R src + t: how far a
-    pair's RCPs agree with its estimate (src, rcp (B, N, 3), R (B, 3, 3), t (B, 3)). No gradient."""
-    with torch.no_grad():
-        residuals = (move(src, rotation, translation) - rcp).norm(dim=-1)
-        return (residuals < radius).to(src.dtype).mean(dim=-1)
-
-
 def procrustes_weights(confidence_logits: torch.Tensor) -> torch.Tensor:
     """(B, N) logits -> positive weights (floored so that no pair's weights all vanish)."""
     return torch.sigmoid(confidence_logits).clamp_min(1e-6)
@@ -143,11 +135,17 @@ class VRNet(nn.Module):
                 rotation, translation = compose(out.rotation, out.translation, rotation, translation)
                 moved = move(src, rotation, translation)
         out.rotation, out.translation = rotation, translation
-        out.consistency = rcp_consistency(src, rotation, translation, out.rcp, self.config.consistency_radius)
+        out.consistency = self._consistency(src, rotation, translation, out.rcp)
         out.second_pass = torch.zeros(src.shape[0], dtype=torch.bool, device=src.device)
         if not self.training and self.config.second_pass_below > 0:
             self._second_pass(src, tgt, out, backend, return_matching)
         return out
+
+    def _consistency(self, src: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor,
+                     rcp: torch.Tensor) -> torch.Tensor:
+        """(B,) share of the source points whose RCP lies within ``consistency_radius`` of R src + t:
+        how far a pair's RCPs agree with its estimate."""
+        return correct_match_ratio(rcp, src, rotation, translation, self.config.consistency_radius).to(src.dtype)
 
     def _second_pass(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
                      return_matching: bool) -> None:
@@ -163,16 +161,14 @@ class VRNet(nn.Module):
         with torch.autocast(src.device.type, enabled=False):
             again.rotation, again.translation = compose(again.rotation, again.translation, out.rotation[retry],
                                                         out.translation[retry])
-        again.consistency = rcp_consistency(src[retry], again.rotation, again.translation, again.rcp,
-                                            self.config.consistency_radius)
+        again.consistency = self._consistency(src[retry], again.rotation, again.translation, again.rcp)
         better = again.consistency > out.consistency[retry]
         kept = retry[better]
         again.second_pass = torch.ones_like(better)
-        for name in ("rotation", "translation", "matching", "vcp", "rcp", "offset", "src_embedding",
-                     "tgt_embedding", "gate_logits", "confidence_logits", "consistency", "second_pass"):
-            rows = getattr(out, name)
+        for field in fields(VRNetOutput):  # every field is batch-first
+            rows = getattr(out, field.name)
             if rows is not None:
-                setattr(out, name, rows.index_copy(0, kept, getattr(again, name)[better]))
+                setattr(out, field.name, rows.index_copy(0, kept, getattr(again, field.name)[better]))
 
     def _features(self, src: torch.Tensor, tgt: torch.Tensor, backend: str) -> tuple[torch.Tensor, torch.Tensor]:
         """DGCNN features of both clouds: with the DGCNN in eval mode, clouds of one size go through
