@@ -113,6 +113,35 @@ def test_scores_that_overflow_to_minus_infinity_weigh_nothing(device):
 
 
 @requires_ext
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_sharp_rows_whose_other_weights_underflow(device, dtype):
+    """Most scores lie hundreds (float32) or thousands (float64) below their row's maximum, where
+    the exponential is subnormal or zero: values, log-normaliser and gradients still match the
+    float64 brute force (the kernel raises such exponents to its floor, a weight of at most ~1e-38
+    of the row's largest)."""
+    spread = 400.0 if dtype == torch.float32 else 3000.0
+    query = torch.randn(2, 70, 8, dtype=dtype, device=device)
+    key = torch.randn(2, 600, 8, dtype=dtype, device=device)
+    values = torch.randn(2, 600, 5, dtype=dtype, device=device)
+    scale = spread / 8
+    inputs = [t.clone().requires_grad_() for t in (query, key, values)]
+    result = ops.soft_match(*inputs, scale=scale, return_stats=True)
+    want_out, want_lse = dense64(query, key, values, scale)
+    scores = (query.double() @ key.double().mT) * scale
+    assert ((scores - scores.amax(-1, keepdim=True)) < -100).double().mean() > 0.5
+    tol = tolerances(dtype)
+    torch.testing.assert_close(result.out, want_out.to(dtype), **tol)
+    torch.testing.assert_close(result.lse, want_lse.to(dtype), rtol=tol["rtol"], atol=tol["atol"] * spread)
+    grad_out = torch.randn(2, 70, 5, dtype=dtype, device=device)
+    got = torch.autograd.grad((result.out * grad_out).sum(), inputs)
+    dense_inputs = [t.double().requires_grad_() for t in (query, key, values)]
+    dense_out = dense64(*dense_inputs, scale)[0]
+    want = torch.autograd.grad((dense_out * grad_out.double()).sum(), dense_inputs)
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w.to(dtype), rtol=tol["rtol"], atol=tol["atol"] * spread)
+
+
+@requires_ext
 def test_unused_outputs_get_no_gradient_work(device):
     query = torch.randn(1, 20, 8, requires_grad=True)
     key, values = torch.randn(1, 30, 8), torch.randn(1, 30, 3)

@@ -24,6 +24,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <type_traits>
 #include <vector>
 
 #include "common/cpu_dispatch.h"
@@ -40,11 +41,26 @@ at::Tensor tile_view(const at::Tensor& buffer, int64_t rows, int64_t width) {
   return buffer.narrow(0, 0, rows * width).view({rows, width});
 }
 
+// The smallest exponent handed to torch's vectorised exp: from it up the exponential is a normal
+// number (e^-87 = 1.6e-38 in float32, e^-708 = 3.3e-308 in float64); below it torch's kernel leaves
+// its vector path for one 10-50x slower (subnormal or zero results), which a sharp matching hits on
+// almost every score. A finite exponent under the floor is raised to it: that weight, at most
+// 1.7e-38 (float32) of the row's largest (which is 1), stands for one at least as small. Exponents
+// of -inf (overflowed scores) stay: they weigh exactly 0.
+template <typename scalar_t>
+constexpr scalar_t kExpFloor = std::is_same_v<scalar_t, float> ? scalar_t(-87) : scalar_t(-708);
+
+template <typename scalar_t>
+scalar_t floor_exponent(scalar_t x) {
+  return x >= kExpFloor<scalar_t> || x == -std::numeric_limits<scalar_t>::infinity() ? x : kExpFloor<scalar_t>;
+}
+
 // The forward's row operations on one tile row, portable and (where the CPU has AVX-512, chosen at
 // run time) kLanes values per instruction with the same results: each value scaled by one multiply,
 // the first position of the largest value (NaN never wins; -inf or NaN only: position 0), one
-// subtraction per value, and a sum in 16 interleaved partial sums (value j into sum j % 16) added
-// pairwise at the end, an order both paths share.
+// subtraction per value (the difference raised to kExpFloor, as floor_exponent), and a sum in 16
+// interleaved partial sums (value j into sum j % 16) added pairwise at the end, an order both paths
+// share.
 constexpr int64_t kSumLanes = 16;
 
 template <typename scalar_t>
@@ -100,10 +116,13 @@ __attribute__((target("avx512f"))) std::pair<scalar_t, int64_t> scale_and_max_av
 template <typename scalar_t>
 __attribute__((target("avx512f"))) void subtract_avx512(scalar_t* row, int64_t width, scalar_t shift) {
   using V = Avx512<scalar_t>;
-  const typename V::Vec by = V::set1(shift);
+  const typename V::Vec by = V::set1(shift), floor = V::set1(kExpFloor<scalar_t>);
+  const typename V::Vec minus_inf = V::set1(-std::numeric_limits<scalar_t>::infinity());
   for (int64_t j0 = 0; j0 < width; j0 += V::kLanes) {
     const typename V::Mask valid = lanes_below<scalar_t>(width - j0);
-    V::store(valid, row + j0, V::sub(V::load(valid, row + j0), by));
+    const typename V::Vec x = V::sub(V::load(valid, row + j0), by);
+    const typename V::Mask raise = static_cast<typename V::Mask>(~(V::less_equal(floor, x) | V::equal(x, minus_inf)));
+    V::store(valid, row + j0, V::blend(raise, x, floor));
   }
 }
 
@@ -139,7 +158,7 @@ void subtract(scalar_t* row, int64_t width, scalar_t shift) {
 #ifdef VRNET_X86_DISPATCH
   if (kHasAvx512) return subtract_avx512(row, width, shift);
 #endif
-  for (int64_t j = 0; j < width; ++j) row[j] -= shift;
+  for (int64_t j = 0; j < width; ++j) row[j] = floor_exponent(row[j] - shift);
 }
 
 template <typename scalar_t>
@@ -234,7 +253,8 @@ std::pair<at::Tensor, at::Tensor> score_tile(const at::Tensor& own, const at::Te
   at::mm_out(grads, own_grad, other_grad.t());
   scalar_t* p = probs.mutable_data_ptr<scalar_t>();
   for (int64_t i = 0; i < rows; ++i)
-    for (int64_t j = 0; j < width; ++j) p[i * width + j] = p[i * width + j] * scale - lse[query_by_column ? j : i];
+    for (int64_t j = 0; j < width; ++j)
+      p[i * width + j] = floor_exponent(p[i * width + j] * scale - lse[query_by_column ? j : i]);
   probs.exp_();
   scalar_t* g = grads.mutable_data_ptr<scalar_t>();
   for (int64_t i = 0; i < rows; ++i)
