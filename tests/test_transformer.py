@@ -2,7 +2,7 @@ import pytest
 import torch
 from torch import nn
 
-from vrnet_ext.model.transformer import MultiHeadAttention, Transformer
+from vrnet_ext.model.transformer import PAIRS_PER_PASS, MultiHeadAttention, Transformer
 
 
 def _twin_attention(dims=24, heads=4):
@@ -41,18 +41,29 @@ def test_attention_rejects_dims_not_divisible_by_heads():
 
 
 @pytest.mark.parametrize("points", [(19, 19), (19, 13)])
-def test_transformer_is_eta_in_both_directions(points):
-    """Equal sizes run both directions as one batch; the result is still
+@pytest.mark.parametrize("batch", [2, 2 * PAIRS_PER_PASS + 1])
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_transformer_is_eta_in_both_directions(points, batch, backend):
+    """Equal sizes run both directions as one batch, and the compiled backend takes a large batch
+    in slices of PAIRS_PER_PASS pairs; the result and its gradients are still
     Phi_X = F_X + eta(F_X, F_Y), Phi_Y = F_Y + eta(F_Y, F_X)."""
     torch.manual_seed(0)
     transformer = Transformer(16, 2, 32, 1, 1, dropout=0.0).double()
-    src = torch.randn(2, 16, points[0], dtype=torch.float64)
-    tgt = torch.randn(2, 16, points[1], dtype=torch.float64)
-    phi_x, phi_y = transformer(src, tgt)
+    src = torch.randn(batch, 16, points[0], dtype=torch.float64, requires_grad=True)
+    tgt = torch.randn(batch, 16, points[1], dtype=torch.float64, requires_grad=True)
+    phi_x, phi_y = transformer(src, tgt, backend=backend)
     fx, fy = src.transpose(1, 2), tgt.transpose(1, 2)
-    torch.testing.assert_close(phi_x, (fx + transformer._eta(fx, fy, "ext")).transpose(1, 2))
-    torch.testing.assert_close(phi_y, (fy + transformer._eta(fy, fx, "ext")).transpose(1, 2))
+    want_x = (fx + transformer._eta(fx, fy, "torch")).transpose(1, 2)
+    want_y = (fy + transformer._eta(fy, fx, "torch")).transpose(1, 2)
+    torch.testing.assert_close(phi_x, want_x)
+    torch.testing.assert_close(phi_y, want_y)
     assert phi_x.shape == src.shape and phi_y.shape == tgt.shape
+    upstream = torch.randn_like(phi_x), torch.randn_like(phi_y)
+    parameters = list(transformer.parameters())
+    got = torch.autograd.grad((phi_x, phi_y), [src, tgt] + parameters, upstream)
+    want = torch.autograd.grad((want_x, want_y), [src, tgt] + parameters, upstream)
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w)
 
 
 def _autocast_transformer():
