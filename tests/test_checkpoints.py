@@ -138,15 +138,15 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
                  str(tmp_path / "missing.json")]) == 2
     # shipped weights re-exported with another robust solve: the card kept, the test measured with it
     shipped_path = str(tmp_path / "weights" / "tiny-model.pt")
-    irls = ["--irls-iterations", "7", "--irls-kernel", "geman_mcclure", "--irls-scale", "0.5",
+    solve_flags = ["--irls-iterations", "7", "--irls-kernel", "geman_mcclure", "--irls-scale", "0.5",
             "--second-pass-below", "0.4", "--consistency-radius", "0.05"]
-    assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *irls]) == 2
-    assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *irls,
+    assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *solve_flags]) == 2
+    assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *solve_flags,
                  "--test-json", str(test_json)]) == 2  # measured with the model's own solve
     gm_json = tmp_path / "test_gm.json"
     assert main(["eval", "--checkpoint", shipped_path, "--data-dir", str(MODELNET_DIR), "--max-items", "4",
-                 "--json", str(gm_json), *irls]) == 0
-    assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *irls,
+                 "--json", str(gm_json), *solve_flags]) == 0
+    assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *solve_flags,
                  "--test-json", str(gm_json), "--note", "Robust solve retuned."]) == 0
     retuned = read_checkpoint(tmp_path / "weights" / "tiny-gm.pt")
     assert retuned["card"]["summary"] == "A smoke-test model." and retuned["card"]["training"]["sessions"] == 1
