@@ -92,6 +92,29 @@ def test_dcp_ablation_and_iterations(device):
     assert (out3.rotation - single(src, tgt).rotation).abs().max() > 1e-3, "three passes must differ from one"
 
 
+def test_later_passes_reuse_the_targets_features():
+    """In eval mode only the first pass runs the DGCNN on the target (both clouds as one batch);
+    later iterations and the second pass run it on the moved source alone. In training every pass
+    runs it on both clouds (their batch statistics are the pass's own)."""
+    model = small_model(iterations=3, consistency_radius=1.0)
+    src, tgt = turned_pairs()
+    model.train()
+    model(src, tgt)  # running statistics that are not the initial ones
+    clouds_seen = []
+    model.features.register_forward_hook(lambda module, inputs, output: clouds_seen.append(inputs[0].shape[0]))
+    B = src.shape[0]
+    with torch.no_grad():
+        model(src, tgt)
+    assert clouds_seen == [B] * 6
+    clouds_seen.clear()
+    model.eval()
+    with torch.no_grad():
+        model(src, tgt)
+        model.config.second_pass_below = 1.0  # every pair is retried
+        model(src, tgt)
+    assert clouds_seen == [2 * B, B, B] + [2 * B, B, B, B]
+
+
 @requires_ext
 def test_torch_compile(device):
     model = small_model().eval()

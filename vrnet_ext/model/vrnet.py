@@ -128,9 +128,9 @@ class VRNet(nn.Module):
         backend = backend or self.config.backend
         rotation = torch.eye(3, dtype=src.dtype, device=src.device).expand(src.shape[0], 3, 3)
         translation = src.new_zeros(src.shape[0], 3)
-        moved = src
+        moved, tgt_features = src, None
         for _ in range(self.config.iterations):
-            out = self._single_pass(moved, tgt, backend, return_matching)
+            out, tgt_features = self._single_pass(moved, tgt, backend, return_matching, tgt_features)
             with torch.autocast(src.device.type, enabled=False):  # compose the motions in src's dtype
                 rotation, translation = compose(out.rotation, out.translation, rotation, translation)
                 moved = move(src, rotation, translation)
@@ -138,7 +138,7 @@ class VRNet(nn.Module):
         out.consistency = self._consistency(src, rotation, translation, out.rcp)
         out.second_pass = torch.zeros(src.shape[0], dtype=torch.bool, device=src.device)
         if not self.training and self.config.second_pass_below > 0:
-            self._second_pass(src, tgt, out, backend, return_matching)
+            self._second_pass(src, tgt, out, backend, return_matching, tgt_features)
         return out
 
     def _consistency(self, src: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor,
@@ -148,16 +148,17 @@ class VRNet(nn.Module):
         return correct_match_ratio(rcp, src, rotation, translation, self.config.consistency_radius).to(src.dtype)
 
     def _second_pass(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
-                     return_matching: bool) -> None:
+                     return_matching: bool, tgt_features: torch.Tensor | None) -> None:
         """Registers the pairs whose consistency is below ``second_pass_below`` once more from the
-        moved source; where the new pass's RCPs agree more with its estimate, its rows replace
-        ``out``'s (in place)."""
+        moved source (the target's features reused where the first pass kept them); where the new
+        pass's RCPs agree more with its estimate, its rows replace ``out``'s (in place)."""
         retry = (out.consistency < self.config.second_pass_below).nonzero().squeeze(1)
         if retry.numel() == 0:
             return
         with torch.autocast(src.device.type, enabled=False):
             moved = move(src[retry], out.rotation[retry], out.translation[retry])
-        again = self._single_pass(moved, tgt[retry], backend, return_matching)
+        again, _ = self._single_pass(moved, tgt[retry], backend, return_matching,
+                                     None if tgt_features is None else tgt_features[retry])
         with torch.autocast(src.device.type, enabled=False):
             again.rotation, again.translation = compose(again.rotation, again.translation, out.rotation[retry],
                                                         out.translation[retry])
@@ -170,10 +171,14 @@ class VRNet(nn.Module):
             if rows is not None:
                 setattr(out, field.name, rows.index_copy(0, kept, getattr(again, field.name)[better]))
 
-    def _features(self, src: torch.Tensor, tgt: torch.Tensor, backend: str) -> tuple[torch.Tensor, torch.Tensor]:
-        """DGCNN features of both clouds: with the DGCNN in eval mode, clouds of one size go through
-        as one batch of 2B (BatchNorm then uses its running statistics, so each cloud's features
-        are its own)."""
+    def _features(self, src: torch.Tensor, tgt: torch.Tensor, backend: str,
+                  tgt_features: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """DGCNN features of both clouds, (B, c, N) and (B, c, M): with the DGCNN in eval mode, clouds
+        of one size go through as one batch of 2B (BatchNorm then uses its running statistics, so
+        each cloud's features are its own). ``tgt_features``, the target's from an earlier pass over
+        the same ``tgt``, are taken as they are."""
+        if tgt_features is not None:
+            return self.features(src, backend), tgt_features
         if not self.features.training and src.shape == tgt.shape:
             return self.features(torch.cat([src, tgt]), backend).chunk(2)
         return self.features(src, backend), self.features(tgt, backend)
@@ -198,12 +203,14 @@ class VRNet(nn.Module):
         return (src.requires_grad or tgt.requires_grad
                 or any(p.requires_grad for module in self.feature_modules() for p in module.parameters()))
 
-    def _single_pass(self, src: torch.Tensor, tgt: torch.Tensor, backend: str,
-                     return_matching: bool) -> VRNetOutput:
+    def _single_pass(self, src: torch.Tensor, tgt: torch.Tensor, backend: str, return_matching: bool,
+                     tgt_features: torch.Tensor | None = None) -> tuple[VRNetOutput, torch.Tensor | None]:
+        """One registration of src to tgt, and the target's DGCNN features for a later pass over the
+        same tgt (None while the DGCNN trains: its batch statistics then belong to each pass)."""
         # Where nothing upstream of the walk needs a gradient, no_grad changes no value; it lets the
         # feature modules reuse their inference-time weights (nn.inference_cache).
         with contextlib.nullcontext() if self.features_need_grad(src, tgt) else torch.no_grad():
-            features = self._features(src, tgt, backend)
+            features = self._features(src, tgt, backend, tgt_features)
             bf16 = self.transformer_in_bf16(src)
             with torch.autocast(src.device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
                 phi_x, phi_y = self.transformer(*features, backend=backend)
@@ -231,5 +238,6 @@ class VRNet(nn.Module):
         rotation, translation = robust_kabsch(src, aligned_to, weights, self.config.irls_iterations,
                                               self.config.irls_kernel, self.config.irls_scale,
                                               self.config.irls_min_scale, backend=backend)
-        return VRNetOutput(rotation, translation, matching, vcp, rcp, offset, phi_x, phi_y, gate_logits,
-                           confidence_logits)
+        out = VRNetOutput(rotation, translation, matching, vcp, rcp, offset, phi_x, phi_y, gate_logits,
+                          confidence_logits)
+        return out, None if self.features.training else features[1]
