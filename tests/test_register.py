@@ -454,3 +454,22 @@ def test_a_prepared_icp_problem_runs_from_several_starts_like_icp():
         np.testing.assert_array_equal(prepared.T_target_source, once.T_target_source)
         assert prepared.iterations == once.iterations and prepared.fitness == once.fitness
         assert transform_errors(prepared.T_target_source, truth)["rotation_error_deg"] < 0.01
+
+
+def test_every_option_of_every_command_has_help_naming_its_default():
+    """Each option of each `vrnet` command says what it does, and one with a default to show
+    (not None, empty or a flag's False) names it in its help."""
+    import argparse
+
+    from vrnet_ext.cli import build_parser
+
+    commands = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)][0].choices
+    for name, parser in commands.items():
+        formatter = parser._get_formatter()
+        for action in parser._actions:
+            if not action.option_strings or isinstance(action, argparse._HelpAction):
+                continue
+            assert action.help, f"vrnet {name} {action.option_strings[0]} has no help"
+            shown = action.default not in (None, False, "", [], argparse.SUPPRESS) and action.nargs != 0
+            if shown:
+                assert "default" in formatter._get_help_string(action), f"vrnet {name} {action.option_strings[0]}"

@@ -49,7 +49,8 @@ def add_train(sub) -> None:
 
     p = sub.add_parser("train", help="two-stage training on ModelNet40 (DDP under torchrun)",
                        description="Two-stage VRNet training. Start from a preset; any flag overrides it. "
-                                   "Under `torchrun --nproc_per_node N` the same command trains with DDP.")
+                                   "Under `torchrun --nproc_per_node N` the same command trains with DDP.",
+                       formatter_class=DefaultsHelpFormatter)
     p.add_argument("--preset", choices=sorted(PRESETS), default="small",
                    help="paper: batch 28, 100+100 epochs (GPU); cpu: the small model on the full training split at the paper's 768-point views (the shipped model; hours per session on a CPU); small: minutes on a CPU; tiny: seconds (smoke test)")
     hints = typing.get_type_hints(TrainConfig)
@@ -92,18 +93,24 @@ def add_train(sub) -> None:
             base = int if "int" in str(kind) else float if "float" in str(kind) else str
             add(flag, type=base, default=None, help=description)
     model = p.add_argument_group("model options (stored in the checkpoint)")
-    model.add_argument("--emb-dims", type=int, default=None, help="model embedding size c")
-    model.add_argument("--k", type=int, default=None, help="DGCNN neighbours")
-    model.add_argument("--iterations", type=int, default=None, help="ICP-like passes at evaluation")
+    unset = "the preset's, else VRNetConfig's"
+    preset_default = f" (default: {unset})"
+    model.add_argument("--emb-dims", type=int, default=None, help="model embedding size c" + preset_default)
+    model.add_argument("--k", type=int, default=None, help="DGCNN neighbours" + preset_default)
+    model.add_argument("--iterations", type=int, default=None, help="ICP-like passes at evaluation" + preset_default)
     model.add_argument("--walk-gate", type=parse_bool, default=None,
-                   help="1: the walk's offsets are gated per point (right VCPs stay exact); 0: the paper's walk")
+                       help="1: the walk's offsets are gated per point (right VCPs stay exact); 0: the paper's walk"
+                            + preset_default)
     model.add_argument("--walk-confidence", type=parse_bool, default=None,
-                   help="1: the walk also predicts per-point confidences that weight the Procrustes; 0: unweighted")
+                       help="1: the walk also predicts per-point confidences that weight the Procrustes; "
+                            "0: unweighted" + preset_default)
     model.add_argument("--walk-match-stats", type=parse_bool, default=None,
-                   help="1: the walk also sees each point's largest matching weight and matching entropy")
+                       help="1: the walk also sees each point's largest matching weight and matching entropy"
+                            + preset_default)
     model.add_argument("--walk-confidence-trunk", type=parse_bool, default=None,
-                   help="1: the confidence has its own MLP (the offsets' loss L4 does not shape it)")
-    add_solve_options(model, "the preset's, else VRNetConfig's")
+                       help="1: the confidence has its own MLP (the offsets' loss L4 does not shape it)"
+                            + preset_default)
+    add_solve_options(model, unset)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -144,17 +151,19 @@ def run_train(args) -> int:
 def add_eval(sub) -> None:
     p = sub.add_parser("eval", help="evaluate a checkpoint on the ModelNet40 test pairs",
                        description="Prints the paper's table (RMSE/MAE of Euler angles and translation) "
-                                   "plus isotropic errors, recall, Chamfer distances and match ratios; writes JSON.")
+                                   "plus isotropic errors, recall, Chamfer distances and match ratios; writes JSON.",
+                       formatter_class=DefaultsHelpFormatter)
     p.add_argument("--checkpoint", default=None,
                    help="a shipped model name (e.g. vrnet-pv-upc-rcp) or best.pt / last.pt written by `vrnet train` "
                         "(default: the shipped model trained for --setting / --split)")
     p.add_argument("--setting", choices=SETTINGS, default=None, help="default: the checkpoint's, else PV")
     p.add_argument("--split", choices=("UPC", "UC", "ND"), default=None, help="default: the checkpoint's, else UPC")
     p.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
-    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--batch-size", type=positive_int, default=16, help="pairs per forward")
     p.add_argument("--max-items", type=positive_int, default=None,
                    help="evaluate the first N test shapes only (default: the whole test split)")
-    p.add_argument("--iterations", type=int, default=None, help="ICP-like passes (paper Table 'with iteration')")
+    p.add_argument("--iterations", type=positive_int, default=None,
+                   help="ICP-like passes (paper Table 'with iteration') (default: the model's)")
     add_solve_options(p, "the model's")
     p.add_argument("--far-points", choices=FAR_POINTS, default="prnet",
                    help="partial views: prnet = the paper's: one far point near the diagonal cuts both clouds; "
@@ -213,7 +222,8 @@ def run_eval(args) -> int:
 
 
 def add_plot(sub) -> None:
-    p = sub.add_parser("plot", help="plot a training run's curves to RUN_DIR/curves.png")
+    p = sub.add_parser("plot", help="plot a training run's curves to RUN_DIR/curves.png",
+                       formatter_class=DefaultsHelpFormatter)
     p.add_argument("run_dir", help="the --out-dir of `vrnet train`")
 
 

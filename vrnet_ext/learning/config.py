@@ -47,7 +47,7 @@ FIELD_HELP = {
     "lr_gamma": "learning-rate factor at each milestone",
     "num_points": "points per shape before the crop",
     "num_subsampled": "points per cloud after the PV / RS crop",
-    "classes": "keep only these ModelNet40 labels",
+    "classes": "keep only these ModelNet40 labels (default: all forty)",
     "max_train_items": "use at most this many training shapes (None: all)",
     "max_val_items": "validate on at most this many held-out shapes (None: all)",
     "val_fraction": "share of the training shapes held out for validation",
