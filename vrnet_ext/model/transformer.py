@@ -9,10 +9,11 @@ from vrnet_ext.nn.autocast_weights import AutocastLinear, autocast_parameter
 from vrnet_ext.ops import attention
 
 # Pairs per pass through the Transformer on the compiled backend. On a 2-core AMD EPYC (768-point
-# clouds, float32) a batch of 64 pairs took 27 ms per pair in slices of 4 against 38 in one pass
-# (whose activations, ~150 MB per layer, spill out of the caches), a batch of 16 29 against 31;
+# clouds, float32) slices of 4 pairs took 27 ms per pair at B = 64 against 38 for the batch in one
+# pass (its activations, ~150 MB per layer, spill out of the caches), and 29 against 31 at B = 16;
 # slices of 2 or 8 were within a few per cent of 4.
 PAIRS_PER_PASS = 4
+
 
 class MultiHeadAttention(nn.Module):
     """Batch-first multi-head attention on :func:`vrnet_ext.ops.attention`.
