@@ -8,10 +8,10 @@ from torch import nn
 from vrnet_ext.nn.autocast_weights import AutocastLinear, autocast_parameter
 from vrnet_ext.ops import attention
 
-# Pairs per pass through the Transformer on the compiled backend. On a 2-core AMD EPYC (768-point
-# clouds, float32) slices of 4 pairs took 27 ms per pair at B = 64 against 38 for the batch in one
-# pass (its activations, ~150 MB per layer, spill out of the caches), and 29 against 31 at B = 16;
-# slices of 2 or 8 were within a few per cent of 4.
+# Pairs per pass through the Transformer on the compiled backend on a CPU. On a 2-core AMD EPYC
+# (768-point clouds, float32) slices of 4 pairs took 27 ms per pair at B = 64 against 38 for the
+# batch in one pass (its activations, ~150 MB per layer, spill out of the caches), and 29 against 31
+# at B = 16; slices of 2 or 8 were within a few per cent of 4.
 PAIRS_PER_PASS = 4
 
 
@@ -124,11 +124,12 @@ class Transformer(nn.Module):
         (:func:`vrnet_ext.ops.attention`).
 
         With N == M both directions run as one batch of 2B (larger matrix products, half the
-        kernel calls). With ``backend="ext"`` a batch of more than ``PAIRS_PER_PASS`` pairs goes
-        through in slices of that many pairs, whose activations stay in the CPU's caches; the
-        function is the same either way.
+        kernel calls). With ``backend="ext"`` on a CPU a batch of more than ``PAIRS_PER_PASS`` pairs
+        goes through in slices of that many pairs, whose activations stay in the CPU's caches (a
+        GPU keeps the whole batch); the function is the same either way.
         """
-        if backend == "torch" or src_features.shape[0] <= PAIRS_PER_PASS:
+        if (backend == "torch" or src_features.device.type != "cpu"
+                or src_features.shape[0] <= PAIRS_PER_PASS):
             return self._both_directions(src_features, tgt_features, backend)
         slices = [self._both_directions(src_features[start:start + PAIRS_PER_PASS],
                                         tgt_features[start:start + PAIRS_PER_PASS], backend)
