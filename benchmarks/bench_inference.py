@@ -4,7 +4,7 @@ and in bfloat16 (``VRNetConfig.transformer_precision``; the default "auto" takes
 native bf16), in one run, with the accuracy of each on the same pairs.
 
     python benchmarks/bench_inference.py [--model vrnet-pv-upc-rcp] [--batches 1 16 64]
-                                         [--pairs 256] [--threads 2] [--json inference.json]
+                                         [--pairs 256] [--threads 2] [--device cpu] [--json inference.json]
 
 Pairs: the first ``--pairs`` of the official test split (PV, UPC, 768-point views), the same for
 every variant; no_grad, eval mode. Each (variant, batch) is timed over whole passes through those
@@ -13,7 +13,8 @@ the rotation angle error (degrees; not the paper's Euler-angle RMSE(R)) and RMSE
 so a faster variant can be seen to keep the numbers. "x reference": against the reference backend
 with everything in float32 (the plain-PyTorch model); "x same precision": against the reference
 backend with the same Transformer precision. Peak memory: the process's peak resident set after
-the run (all variants).
+the run (all variants); on a GPU (``--device cuda``, clock reads after a device synchronisation)
+also the peak of torch's CUDA allocator.
 
 Arithmetic: the floating-point operations per pair as the reference backend computes them in
 float32 (matrix products, convolutions and attention, 2 per multiply-add; torch's
@@ -32,7 +33,7 @@ import time
 import torch
 from torch.utils.flop_counter import FlopCounterMode, sdpa_flop_count
 
-from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter
+from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter, device_name
 from vrnet_ext.data.modelnet import ModelNet40Pairs
 from vrnet_ext.geometry.metrics import rotation_error_deg
 from vrnet_ext.model.pretrained import load_pretrained
@@ -44,10 +45,17 @@ VARIANTS = {"torch": ("torch", "fp32"), "torch, bf16 Transformer": ("torch", "bf
 SAME_PRECISION_REFERENCE = {"fp32": "torch", "bf16": "torch, bf16 Transformer"}
 
 
-def load_pairs(count: int, data_dir: str | None) -> dict[str, torch.Tensor]:
+def load_pairs(count: int, data_dir: str | None, device: torch.device) -> dict[str, torch.Tensor]:
     dataset = ModelNet40Pairs(data_dir, partition="test", setting="PV", max_items=count)
     items = [dataset[i] for i in range(len(dataset))]
-    return {key: torch.stack([item[key] for item in items]) for key in ("src", "tgt", "rotation", "translation")}
+    return {key: torch.stack([item[key] for item in items]).to(device)
+            for key in ("src", "tgt", "rotation", "translation")}
+
+
+def synchronize(device: torch.device) -> None:
+    """Waits for the device's queued work (a no-op on the CPU), so that a clock read after it counts it."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def run_pass(model, pairs: dict[str, torch.Tensor], batch: int, backend: str, transformer_precision: str):
@@ -58,6 +66,7 @@ def run_pass(model, pairs: dict[str, torch.Tensor], batch: int, backend: str, tr
             out = model(pairs["src"][start:start + batch], pairs["tgt"][start:start + batch], backend=backend)
             rotations.append(out.rotation.float())
             translations.append(out.translation.float())
+    synchronize(pairs["src"].device)
     return torch.cat(rotations), torch.cat(translations)
 
 
@@ -78,15 +87,24 @@ def reference_flops_per_pair(model, pairs: dict[str, torch.Tensor], batch: int =
     return float(counter.get_total_flops()) / count
 
 
-def matmul_rate(seconds: float = 1.0, size: int = 2048) -> float:
-    """This machine's float32 matrix-product rate (FLOP/s) on the current threads."""
-    a, b = torch.randn(size, size), torch.randn(size, size)
+def matmul_rate(device: torch.device, seconds: float = 1.0, size: int = 2048) -> float:
+    """The float32 matrix-product rate (FLOP/s) of ``device`` (on a CPU: on the current threads)."""
+    a, b = torch.randn(size, size, device=device), torch.randn(size, size, device=device)
     a @ b
+    synchronize(device)
     start, products = time.perf_counter(), 0
     while time.perf_counter() - start < seconds:
         a @ b
+        synchronize(device)
         products += 1
     return 2.0 * size ** 3 * products / (time.perf_counter() - start)
+
+
+def device_description(device: torch.device) -> str:
+    """The machine a result was measured on: the CPU, and the GPU where it ran on one."""
+    if device.type == "cuda":
+        return f"{torch.cuda.get_device_name(device)}, host {cpu_description()}"
+    return cpu_description()
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -97,6 +115,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--pairs", type=int, default=256, help="test pairs per pass (a multiple of every batch size)")
     parser.add_argument("--repeats", type=int, default=3, help="timed passes per variant and batch size, in turns")
     parser.add_argument("--threads", type=int, default=2, help="torch threads")
+    parser.add_argument("--device", type=device_name, default="cpu", help="where the model runs: cpu, cuda or cuda:N")
     parser.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     parser.add_argument("--json", default=None, help="write the record to this JSON file (none: print only)")
     parser.add_argument("--markdown", default=None, help="write the table to this Markdown file (none: print only)")
@@ -105,12 +124,13 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     needed = set(args.variants) | {"torch"} | {SAME_PRECISION_REFERENCE[VARIANTS[v][1]] for v in args.variants}
     variants = {name: settings for name, settings in VARIANTS.items() if name in needed}
+    device = torch.device(args.device)
     torch.set_num_threads(args.threads)
-    model = load_pretrained(args.model).eval()
-    pairs = load_pairs(args.pairs, args.data_dir)
+    model = load_pretrained(args.model).eval().to(device)
+    pairs = load_pairs(args.pairs, args.data_dir, device)
     count = len(pairs["src"])
     flops_per_pair = reference_flops_per_pair(model, pairs)
-    gemm_rate = matmul_rate()
+    gemm_rate = matmul_rate(device)
     seconds: dict[tuple[str, int], list[float]] = {}
     accuracy: dict[str, dict[str, float]] = {}
     for variant, settings in variants.items():  # warm-up and accuracy
@@ -133,9 +153,10 @@ def main(argv: list[str] | None = None) -> None:
                      "vs_reference": reference / median, "vs_same_precision": same_precision / median,
                      "gflop_per_s": flops_per_pair * count / median / 1e9, **accuracy[variant]})
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak_gpu_mb = torch.cuda.max_memory_allocated(device) / 2 ** 20 if device.type == "cuda" else None
     meta = {"model": args.model, "pairs": count, "threads": args.threads, "repeats": args.repeats,
-            "torch": torch.__version__, "machine": cpu_description(),
-            "date": time.strftime("%Y-%m-%d"), "peak_rss_mb": peak_mb,
+            "torch": torch.__version__, "device": str(device), "machine": device_description(device),
+            "date": time.strftime("%Y-%m-%d"), "peak_rss_mb": peak_mb, "peak_gpu_mb": peak_gpu_mb,
             "reference_gflop_per_pair": flops_per_pair / 1e9, "fp32_matmul_gflop_per_s": gemm_rate / 1e9,
             "fp32_bound_pairs_per_s": gemm_rate / flops_per_pair}
     lines = ["| variant | batch | pairs/s | x reference | x same precision | GFLOP/s | RMS angle error (deg) | RMSE(t) |",
@@ -145,9 +166,11 @@ def main(argv: list[str] | None = None) -> None:
               f"{row['rms_angle_deg']:.4f} | {row['rmse_t']:.6f} |"
               for row in sorted(rows, key=lambda r: (r["batch"], r["variant"]))]
     lines.append(f"\n`{args.model}`, {count} test pairs (PV, UPC), {args.threads} threads, {meta['machine']}, torch "
-                 f"{torch.__version__}, median of {args.repeats} passes; peak RSS {peak_mb:.0f} MB (all variants). "
+                 f"{torch.__version__}, median of {args.repeats} passes; peak RSS {peak_mb:.0f} MB"
+                 + (f", peak GPU memory {peak_gpu_mb:.0f} MB" if peak_gpu_mb is not None else "")
+                 + " (all variants). "
                  f"Arithmetic: {flops_per_pair / 1e9:.2f} GFLOP per pair on the reference backend in float32; "
-                 f"this machine's float32 matrix products {gemm_rate / 1e9:.0f} GFLOP/s, so at most "
+                 f"this {device.type.upper()}'s float32 matrix products {gemm_rate / 1e9:.0f} GFLOP/s, so at most "
                  f"{gemm_rate / flops_per_pair:.1f} pairs/s for float32 runs of those products.")
     write_outputs("\n".join(lines), {"meta": meta, "rows": rows}, args.markdown, args.json)
 
