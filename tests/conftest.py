@@ -23,6 +23,12 @@ requires_cuda_kernels = pytest.mark.skipif(
 )
 
 
+# The tests compare float32 results with float32 references at float32 tolerances: on a GPU the
+# products must be full float32, not TensorFloat-32 (cuDNN's convolutions default to it).
+torch.backends.cuda.matmul.allow_tf32 = False
+torch.backends.cudnn.allow_tf32 = False
+
+
 @pytest.fixture(params=["cpu", pytest.param("cuda", marks=requires_cuda_kernels)])
 def device(request):
     """Runs a test once per device; tensors the test creates land there (torch default device)."""

@@ -163,13 +163,15 @@ def outlier_problem(B, N, dtype, seed, far=0.3):
     """src, tgt with 40 % of the targets pushed off by up to ``far`` (some only slightly), the truth."""
     from scipy.spatial.transform import Rotation
 
-    g = torch.Generator().manual_seed(seed)
-    src = torch.rand(B, N, 3, generator=g, dtype=torch.float64) * 2 - 1
-    R = torch.tensor(Rotation.from_euler("zyx", [-40, 25, 5], degrees=True).as_matrix()).expand(B, 3, 3)
-    tgt = src @ R.mT - 0.2 + 1e-4 * torch.randn(B, N, 3, generator=g, dtype=torch.float64)
+    g = torch.Generator().manual_seed(seed)  # drawn on the CPU, the same on every device
+    cpu64 = dict(generator=g, dtype=torch.float64, device="cpu")
+    src = torch.rand(B, N, 3, **cpu64) * 2 - 1
+    R = torch.tensor(Rotation.from_euler("zyx", [-40, 25, 5], degrees=True).as_matrix(), device="cpu").expand(B, 3, 3)
+    tgt = src @ R.mT - 0.2 + 1e-4 * torch.randn(B, N, 3, **cpu64)
     pushed = int(0.4 * N)
-    tgt[:, :pushed] += far * torch.rand(B, pushed, 3, generator=g, dtype=torch.float64)
-    return src.to(dtype), tgt.to(dtype), R.to(dtype)
+    tgt[:, :pushed] += far * torch.rand(B, pushed, 3, **cpu64)
+    device = torch.get_default_device()
+    return src.to(device, dtype), tgt.to(device, dtype), R.to(device, dtype)
 
 
 @pytest.mark.parametrize("backend", ["ext", "torch"])
