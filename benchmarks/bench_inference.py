@@ -12,7 +12,7 @@ pairs (median of ``--repeats``), variants taking turns within each repeat. Accur
 the rotation angle error (degrees; not the paper's Euler-angle RMSE(R)) and RMSE(t) over the pairs,
 so a faster variant can be seen to keep the numbers. "x reference": against the reference backend
 with everything in float32 (the plain-PyTorch model); "x same precision": against the reference
-backend with the same Transformer precision. Peak memory: the process's peak resident set after
+backend with the same Transformer precision, where that variant was timed too ("–" where not). Peak memory: the process's peak resident set after
 the run (all variants); on a GPU (``--device cuda``, clock reads after a device synchronisation)
 also the peak of torch's CUDA allocator.
 
@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import resource
 import statistics
+import sys
 import time
 
 import torch
@@ -107,6 +108,10 @@ def device_description(device: torch.device) -> str:
     return cpu_description()
 
 
+def _ratio(value: float | None) -> str:
+    return "–" if value is None else f"{value:.2f}"
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=DefaultsHelpFormatter)
@@ -120,9 +125,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--json", default=None, help="write the record to this JSON file (none: print only)")
     parser.add_argument("--markdown", default=None, help="write the table to this Markdown file (none: print only)")
     parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
-                        help="variants to time (each with the reference of its Transformer precision)")
+                        help="variants to time, beside the reference (torch)")
     args = parser.parse_args(argv)
-    needed = set(args.variants) | {"torch"} | {SAME_PRECISION_REFERENCE[VARIANTS[v][1]] for v in args.variants}
+    needed = set(args.variants) | {"torch"}
     variants = {name: settings for name, settings in VARIANTS.items() if name in needed}
     device = torch.device(args.device)
     torch.set_num_threads(args.threads)
@@ -144,13 +149,15 @@ def main(argv: list[str] | None = None) -> None:
                 start = time.perf_counter()
                 run_pass(model, pairs, batch, *settings)
                 seconds.setdefault((variant, batch), []).append(time.perf_counter() - start)
+                print(f"batch {batch:>3}, {variant}: {count / seconds[(variant, batch)][-1]:.1f} pairs/s",
+                      file=sys.stderr, flush=True)
     rows = []
     for (variant, batch), times in seconds.items():
         median = statistics.median(times)
         reference = statistics.median(seconds[("torch", batch)])
-        same_precision = statistics.median(seconds[(SAME_PRECISION_REFERENCE[VARIANTS[variant][1]], batch)])
+        same_precision = seconds.get((SAME_PRECISION_REFERENCE[VARIANTS[variant][1]], batch))
         rows.append({"variant": variant, "batch": batch, "pairs_per_s": count / median,
-                     "vs_reference": reference / median, "vs_same_precision": same_precision / median,
+                     "vs_reference": reference / median, "vs_same_precision": statistics.median(same_precision) / median if same_precision else None,
                      "gflop_per_s": flops_per_pair * count / median / 1e9, **accuracy[variant]})
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     peak_gpu_mb = torch.cuda.max_memory_allocated(device) / 2 ** 20 if device.type == "cuda" else None
@@ -162,7 +169,7 @@ def main(argv: list[str] | None = None) -> None:
     lines = ["| variant | batch | pairs/s | x reference | x same precision | GFLOP/s | RMS angle error (deg) | RMSE(t) |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
     lines += [f"| {row['variant']} | {row['batch']} | {row['pairs_per_s']:.1f} | {row['vs_reference']:.2f} | "
-              f"{row['vs_same_precision']:.2f} | {row['gflop_per_s']:.0f} | "
+              f"{_ratio(row['vs_same_precision'])} | {row['gflop_per_s']:.0f} | "
               f"{row['rms_angle_deg']:.4f} | {row['rmse_t']:.6f} |"
               for row in sorted(rows, key=lambda r: (r["batch"], r["variant"]))]
     lines.append(f"\n`{args.model}`, {count} test pairs (PV, UPC), {args.threads} threads, {meta['machine']}, torch "

@@ -192,6 +192,16 @@ def test_bad_input(device, backend):
 
 
 @requires_ext
+def test_streams_on_a_cpu_always_on_a_gpu_past_the_dense_limit():
+    from vrnet_ext.ops.soft_match import GPU_DENSE_MAX_SCORES, streams_on
+
+    cpu, gpu = torch.device("cpu"), torch.device("cuda", 0)
+    assert streams_on(cpu, 1, 2, 3) and streams_on(cpu, 64, 768, 768)
+    assert not streams_on(gpu, 64, 768, 768)  # a batch of ModelNet40 pairs: dense
+    assert not streams_on(gpu, 1, 1, GPU_DENSE_MAX_SCORES)
+    assert streams_on(gpu, 1, 2, GPU_DENSE_MAX_SCORES // 2 + 1) and streams_on(gpu, 1, 50_000, 50_000)
+
+
 def test_reference_is_the_dense_formula():
     query, key, values = torch.randn(1, 4, 2, dtype=torch.float64), torch.randn(1, 5, 2, dtype=torch.float64), \
         torch.randn(1, 5, 3, dtype=torch.float64)
