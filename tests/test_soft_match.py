@@ -152,10 +152,11 @@ def test_unused_outputs_get_no_gradient_work(device):
 
 
 @requires_ext
-def test_torch_compile_fullgraph(device):
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_torch_compile_fullgraph(device, backend):
     query, key, values = torch.randn(2, 40, 8), torch.randn(2, 50, 8), torch.randn(2, 50, 3)
-    fn = compile_fullgraph(lambda q, k, v: ops.soft_match(q, k, v) * 2)
-    torch.testing.assert_close(fn(query, key, values), ops.soft_match(query, key, values) * 2)
+    fn = compile_fullgraph(lambda q, k, v: ops.soft_match(q, k, v, backend=backend) * 2)
+    torch.testing.assert_close(fn(query, key, values), ops.soft_match(query, key, values, backend=backend) * 2)
 
 
 @requires_ext

@@ -68,7 +68,7 @@ def soft_match_reference(query: torch.Tensor, key: torch.Tensor, values: torch.T
     """Dense pure-PyTorch soft matching (builds the (B, N, M) score matrix)."""
     scores = torch.bmm(query, key.transpose(1, 2)) * scale
     lse = torch.logsumexp(scores, dim=-1)
-    if not bool(torch.isfinite(lse).all()) and not torch.compiler.is_compiling():
+    if not torch.compiler.is_compiling() and not bool(torch.isfinite(lse).all()):
         raise ValueError(f"soft_match scores overflow: scale * query . key is not finite (scale {scale})")
     out = torch.bmm(torch.softmax(scores, dim=-1), values)
     return SoftMatch(out, lse, scores.argmax(dim=-1))
