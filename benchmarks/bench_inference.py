@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> None:
                  + (f", peak GPU memory {peak_gpu_mb:.0f} MB" if peak_gpu_mb is not None else "")
                  + " (all variants). "
                  f"Arithmetic: {flops_per_pair / 1e9:.2f} GFLOP per pair on the reference backend in float32; "
-                 f"this {device.type.upper()}'s float32 matrix products {gemm_rate / 1e9:.0f} GFLOP/s, so at most "
+                 f"this {'GPU' if device.type == 'cuda' else 'CPU'}'s float32 matrix products {gemm_rate / 1e9:.0f} GFLOP/s, so at most "
                  f"{gemm_rate / flops_per_pair:.1f} pairs/s for float32 runs of those products.")
     write_outputs("\n".join(lines), {"meta": meta, "rows": rows}, args.markdown, args.json)
 

@@ -69,6 +69,12 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "ops_attention": "Attention timings (`bench_ops.py --only attention`)",
     "ops_soft_match_avx2": "Soft matching timings on a CPU without AVX-512, with a sharp case (`bench_ops.py --only soft_match`)",
     "ops_avx2": "kNN, EdgeConv and L2 loss timings on a CPU without AVX-512 (`bench_ops.py --quick --only knn,pairwise_distance_loss,EdgeConv`)",
+    "inference_amx_h200_host": "ModelNet40 inference speed on an AMX CPU, 2 threads on 2 cores of the GPU machine's host (`bench_inference.py --pairs 64 --variants torch ext \"ext, bf16 Transformer\"`)",
+    "inference_cuda_h200": "ModelNet40 inference speed on an NVIDIA H200 (`bench_inference.py --device cuda --pairs 64 --variants torch ext \"ext, bf16 Transformer\"`)",
+    "ops_cuda_h200": "Op timings on an NVIDIA H200, soft matching dense up to 2^26 scores (`bench_ops.py --device cuda --no-memory --repeats 5`)",
+    "ops_cuda_h200_streamed": "Op timings on an NVIDIA H200, soft matching always streamed: the first GPU run (`bench_ops.py --device cuda --no-memory --repeats 5`)",
+    "train_step_cuda_h200": "Training steps and one-pair inference on an NVIDIA H200 (`bench_train_step.py --device cuda --preset paper --steps 3 --inference-points 768`)",
+    "train_step_cuda_h200_streamed": "Training steps and one-pair inference on an NVIDIA H200, soft matching always streamed: the first GPU run (`bench_train_step.py --device cuda --preset paper --steps 3 --inference-points 768`)",
     "ablation_iterations": "Ablation: VRNet with iterations (`ablations.py iterations`)",
     "ablation_outliers": "Ablation: robustness to outliers (`ablations.py outliers`)",
     "ablation_matches": "Ablation: correct matches vs outlier ratio (`ablations.py matches`)",
@@ -121,6 +127,15 @@ def ablation_table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def train_step_table(records: list[dict]) -> str:
+    """bench_train_step.py records -> one row per (stage, implementation)."""
+    first = records[0]
+    lines = [f"Preset `{first['preset']}`, {first['points']} points, {first['device']}, {first['threads']} threads, "
+             f"torch {first['torch']}.", "", "| stage | impl | batch | seconds |", "|---|---|---:|---:|"]
+    lines += [f"| {r['stage']} | {r['impl']} | {r['batch_size']} | {r['median_s']:.4f} |" for r in records]
+    return "\n".join(lines)
+
+
 def section(json_path: Path) -> str:
     title = TITLES.get(json_path.stem, json_path.stem)
     link = f"[{json_path.name}](../{json_path.relative_to(RESULTS.parents[1]).as_posix()})"
@@ -131,7 +146,9 @@ def section(json_path: Path) -> str:
         body = ablation_table(json.loads(json_path.read_text()))
     else:
         data = json.loads(json_path.read_text())
-        body = op_table(data) if isinstance(data, list) and data and "op" in data[0] else f"(see {link})"
+        records = data if isinstance(data, list) and data else [{}]
+        body = (op_table(data) if "op" in records[0] else train_step_table(data) if "stage" in records[0]
+                else f"(see {link})")
     if picture.exists():
         body += f"\n\n![{json_path.stem}](../{picture.relative_to(RESULTS.parents[1]).as_posix()})"
     return f"### {title}\n\nFrom {link}.\n\n{body}\n"
