@@ -428,3 +428,12 @@ def test_the_second_pass_keeps_the_more_consistent_pass_of_each_pair():
 def test_second_pass_options_are_checked(field, value):
     with pytest.raises(ValueError, match=field):
         VRNetConfig(**{field: value})
+
+
+def test_feature_graphs_on_a_gpu_use_the_reference_knn():
+    from vrnet_ext.model.dgcnn import graph_backend
+
+    gpu, cpu = torch.device("cuda", 0), torch.device("cpu")
+    assert graph_backend(gpu, 64, "ext") == "torch" and graph_backend(gpu, 4, "ext") == "torch"
+    assert graph_backend(gpu, 3, "ext") == "ext"  # the points: the compiled kNN is 6x ahead there
+    assert graph_backend(cpu, 64, "ext") == "ext" and graph_backend(cpu, 64, "torch") == "torch"
