@@ -193,14 +193,32 @@ def test_bad_input(device, backend):
 
 
 @requires_ext
-def test_streams_on_a_cpu_always_on_a_gpu_past_the_dense_limit():
+def test_streams_on_a_cpu_always_on_a_gpu_only_large_matchings_with_gradients():
     from vrnet_ext.ops.soft_match import GPU_DENSE_MAX_SCORES, streams_on
 
     cpu, gpu = torch.device("cpu"), torch.device("cuda", 0)
-    assert streams_on(cpu, 1, 2, 3) and streams_on(cpu, 64, 768, 768)
-    assert not streams_on(gpu, 64, 768, 768)  # a batch of ModelNet40 pairs: dense
-    assert not streams_on(gpu, 1, 1, GPU_DENSE_MAX_SCORES)
-    assert streams_on(gpu, 1, 2, GPU_DENSE_MAX_SCORES // 2 + 1) and streams_on(gpu, 1, 50_000, 50_000)
+    assert streams_on(cpu, 1, 2, 3, False) and streams_on(cpu, 64, 768, 768, True)
+    assert not streams_on(gpu, 64, 768, 768, True)  # a training batch of ModelNet40 pairs: dense
+    assert not streams_on(gpu, 1, 1, GPU_DENSE_MAX_SCORES, True)
+    assert streams_on(gpu, 1, 2, GPU_DENSE_MAX_SCORES // 2 + 1, True) and streams_on(gpu, 1, 50_000, 50_000, True)
+    assert not streams_on(gpu, 1, 50_000, 50_000, False)  # inference: dense on blocks of query rows
+
+
+@pytest.mark.parametrize("max_scores", [1, 2 * 7 * 50, 2 * 7 * 50 + 1, 10 ** 6])
+def test_dense_in_query_blocks_equals_the_reference(max_scores):
+    """Blocks of one row, of 7 rows (the last of 5), and one block: values and gradients."""
+    from vrnet_ext.ops.soft_match import dense_in_query_blocks
+
+    query, key, values = (torch.randn(2, n, c, dtype=torch.float64, requires_grad=True)
+                          for n, c in ((40, 8), (50, 8), (50, 3)))
+    got = dense_in_query_blocks(query, key, values, 0.9, max_scores)
+    want = soft_match_reference(query, key, values, 0.9)
+    for a, b in zip(got, want):  # products over fewer rows may round differently
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    projection = torch.randn(2, 40, 3, dtype=torch.float64)
+    grads = [torch.autograd.grad((r.out * projection).sum() + r.lse.sum(), (query, key, values)) for r in (got, want)]
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
 
 
 def test_reference_is_the_dense_formula():

@@ -6,9 +6,10 @@ online-softmax recurrence (running row maximum and normaliser, rescaled partial 
 stays O((N + M)(c + D)); the backward recomputes the tiles from the saved log-normaliser.
 
 On a CUDA device the streamed kernel (one thread per row) runs far behind torch's batched products
-while the score matrix is small (an H200, forward and backward, B = 28, N = M = 768, c = 512: 0.67 s
-against 3.7 ms), so there the compiled backend takes the dense path up to
-``GPU_DENSE_MAX_SCORES`` scores (B N M) and streams beyond.
+(an H200, forward and backward, B = 28, N = M = 768, c = 512: 0.67 s against 3.7 ms), so there the
+compiled backend runs the dense products on blocks of query rows of at most
+``GPU_DENSE_MAX_SCORES`` scores each (one block for most problems); only a large matching that
+needs gradients streams, since autograd would keep every block's matrix.
 """
 from __future__ import annotations
 
@@ -25,10 +26,11 @@ from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_
 GPU_DENSE_MAX_SCORES = 1 << 26  # 256 MB per float32 copy of the (B, N, M) scores
 
 
-def streams_on(device: torch.device, batch: int, rows: int, cols: int) -> bool:
+def streams_on(device: torch.device, batch: int, rows: int, cols: int, needs_grad: bool) -> bool:
     """Whether the compiled backend streams a (batch, rows, cols) score matrix on ``device``: always
-    on a CPU; on a GPU only past ``GPU_DENSE_MAX_SCORES`` (below it the dense products are faster)."""
-    return device.type != "cuda" or batch * rows * cols > GPU_DENSE_MAX_SCORES
+    on a CPU; on a GPU only past ``GPU_DENSE_MAX_SCORES`` scores with gradients to keep (else the
+    dense products on blocks of query rows are faster)."""
+    return device.type != "cuda" or (needs_grad and batch * rows * cols > GPU_DENSE_MAX_SCORES)
 
 
 class SoftMatch(NamedTuple):
@@ -74,6 +76,19 @@ def soft_match_reference(query: torch.Tensor, key: torch.Tensor, values: torch.T
     return SoftMatch(out, lse, scores.argmax(dim=-1))
 
 
+def dense_in_query_blocks(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, scale: float,
+                          max_scores: int = GPU_DENSE_MAX_SCORES) -> SoftMatch:
+    """:func:`soft_match_reference` on blocks of query rows of at most ``max_scores`` scores each
+    (at least one row): the same values, with at most one block's (B, rows, M) matrix alive when
+    nothing needs a gradient."""
+    batch, rows, cols = query.shape[0], query.shape[1], key.shape[1]
+    block = max(1, max_scores // max(1, batch * cols))
+    if rows <= block:
+        return soft_match_reference(query, key, values, scale)
+    parts = [soft_match_reference(query[:, start:start + block], key, values, scale) for start in range(0, rows, block)]
+    return SoftMatch(*(torch.cat(pieces, dim=1) for pieces in zip(*parts)))
+
+
 def soft_match(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, scale: float | None = None,
                backend: str = "ext", return_stats: bool = False) -> torch.Tensor | SoftMatch:
     """``softmax(query keyᵀ scale, dim=-1) values``, streamed over key tiles.
@@ -83,8 +98,9 @@ def soft_match(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, sca
         key: (B, M, c) features of the candidates (M >= 1).
         values: (B, M, D) what each candidate contributes (VRNet: ``[Y | Φyᵀ]``).
         scale: score multiplier, default ``1 / sqrt(c)``.
-        backend: ``"ext"`` (compiled, streamed; on a GPU dense while the scores are few, see
-            :func:`streams_on`) or ``"torch"`` (dense reference).
+        backend: ``"ext"`` (compiled, streamed; on a GPU dense products on blocks of query rows
+            unless a large matching needs gradients, see :func:`streams_on`) or ``"torch"``
+            (dense reference).
         return_stats: also return the log-normaliser and the row peak (:class:`SoftMatch`).
 
     Returns:
@@ -94,13 +110,15 @@ def soft_match(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, sca
     query, key, values = (promote_low_precision(t) for t in (query, key, values))
     validate_soft_match(query, key, values, scale)
     scale = 1.0 / math.sqrt(query.shape[2]) if scale is None else float(scale)
-    if use_extension(backend, query.device) and streams_on(query.device, *query.shape[:2], key.shape[1]):
+    compiled = use_extension(backend, query.device)
+    needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (query, key, values))
+    if compiled and streams_on(query.device, *query.shape[:2], key.shape[1], needs_grad):
         result = SoftMatch(*torch.ops.vrnet_ext.soft_match(query, key, values, scale))
     else:
         for name, t in (("query", query), ("key", key), ("values", values)):
             check_finite(t, name)
         with float32_region(query):
-            result = soft_match_reference(query, key, values, scale)
+            result = (dense_in_query_blocks if compiled else soft_match_reference)(query, key, values, scale)
     return result if return_stats else result.out
 
 
