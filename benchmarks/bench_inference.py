@@ -12,9 +12,10 @@ pairs (median of ``--repeats``), variants taking turns within each repeat. Accur
 the rotation angle error (degrees; not the paper's Euler-angle RMSE(R)) and RMSE(t) over the pairs,
 so a faster variant can be seen to keep the numbers. "x reference": against the reference backend
 with everything in float32 (the plain-PyTorch model); "x same precision": against the reference
-backend with the same Transformer precision, where that variant was timed too ("–" where not). Peak memory: the process's peak resident set after
-the run (all variants); on a GPU (``--device cuda``, clock reads after a device synchronisation)
-also the peak of torch's CUDA allocator.
+backend with the same Transformer precision, where that variant was timed too ("–" where not).
+Peak memory: the process's peak resident set after the run (all variants); on a GPU
+(``--device cuda``, clock reads after a device synchronisation) also the peak of torch's CUDA
+allocator.
 
 Arithmetic: the floating-point operations per pair as the reference backend computes them in
 float32 (matrix products, convolutions and attention, 2 per multiply-add; torch's
@@ -156,8 +157,9 @@ def main(argv: list[str] | None = None) -> None:
         median = statistics.median(times)
         reference = statistics.median(seconds[("torch", batch)])
         same_precision = seconds.get((SAME_PRECISION_REFERENCE[VARIANTS[variant][1]], batch))
+        vs_same_precision = statistics.median(same_precision) / median if same_precision else None
         rows.append({"variant": variant, "batch": batch, "pairs_per_s": count / median,
-                     "vs_reference": reference / median, "vs_same_precision": statistics.median(same_precision) / median if same_precision else None,
+                     "vs_reference": reference / median, "vs_same_precision": vs_same_precision,
                      "gflop_per_s": flops_per_pair * count / median / 1e9, **accuracy[variant]})
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     peak_gpu_mb = torch.cuda.max_memory_allocated(device) / 2 ** 20 if device.type == "cuda" else None
@@ -177,7 +179,8 @@ def main(argv: list[str] | None = None) -> None:
                  + (f", peak GPU memory {peak_gpu_mb:.0f} MB" if peak_gpu_mb is not None else "")
                  + " (all variants). "
                  f"Arithmetic: {flops_per_pair / 1e9:.2f} GFLOP per pair on the reference backend in float32; "
-                 f"this {'GPU' if device.type == 'cuda' else 'CPU'}'s float32 matrix products {gemm_rate / 1e9:.0f} GFLOP/s, so at most "
+                 f"this {'GPU' if device.type == 'cuda' else 'CPU'}'s float32 matrix products "
+                 f"{gemm_rate / 1e9:.0f} GFLOP/s, so at most "
                  f"{gemm_rate / flops_per_pair:.1f} pairs/s for float32 runs of those products.")
     write_outputs("\n".join(lines), {"meta": meta, "rows": rows}, args.markdown, args.json)
 

@@ -47,7 +47,8 @@ class DGCNN(nn.Module):
         outputs = []
         for layer in self.layers:
             features = x.transpose(1, 2).detach()
-            idx = knn(features, features, self.k, backend=graph_backend(features.device, features.shape[-1], backend))[1]
+            graph = graph_backend(features.device, features.shape[-1], backend)
+            idx = knn(features, features, self.k, backend=graph)[1]
             x = layer(x, idx, backend=backend)
             outputs.append(x)
         if can_fold(self.projection_bn):  # eval: conv + BatchNorm as one product on the points' rows

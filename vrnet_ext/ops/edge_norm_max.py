@@ -92,22 +92,19 @@ def _edge_norm_max_composite(projections: torch.Tensor, idx: torch.Tensor, weigh
 
     With ``deg[m]`` the in-degree of point m and ``s[n] = sum_j a[idx[n, j]]``,
     ``sum z = sum_n (s[n] + k b[n])`` and ``sum z^2 = sum_m deg[m] a[m]^2 + 2 sum_n b[n] s[n] + k sum_n b[n]^2``.
-    Everything is computed about detached per-channel shifts (the batch means of a and b), which
-    leave the variance, the output and their gradients unchanged and keep float32 from cancelling
-    on values far from 0: the max commutes with the shift, and ``z - mean = z_c - mean_c``.
+    With batch statistics everything is computed about detached per-channel shifts (the batch
+    means of a and b), which leave the variance, the output and their gradients unchanged and keep
+    float32 from cancelling on values far from 0: the max commutes with the shift, and
+    ``z - mean = z_c - mean_c``.
     """
     channels = projections.shape[1] // 2
     a, b = projections[:, :channels], projections[:, channels:]
     if running_mean is None:
-        a_shift = a.detach().mean(dim=(0, 2), keepdim=True)
-        b_shift = b.detach().mean(dim=(0, 2), keepdim=True)
-    else:
-        a_shift = b_shift = torch.zeros(1, channels, 1, dtype=a.dtype, device=a.device)
-    a_c, b_c = a - a_shift, b - b_shift
-    shift = (a_shift + b_shift).flatten()
-    if running_mean is None:
         B, N, k = idx.shape
         count = B * N * k
+        a_shift = a.detach().mean(dim=(0, 2), keepdim=True)
+        b_shift = b.detach().mean(dim=(0, 2), keepdim=True)
+        a_c, b_c = a - a_shift, b - b_shift
         neighbour_sum = gather(a_c, idx, "sum")  # first: the op checks idx before torch indexes with it
         degree = torch.zeros(B, 1, N, dtype=a.dtype, device=a.device)
         degree.scatter_add_(2, idx.reshape(B, 1, N * k), torch.ones(B, 1, N * k, dtype=a.dtype, device=a.device))
@@ -116,10 +113,11 @@ def _edge_norm_max_composite(projections: torch.Tensor, idx: torch.Tensor, weigh
                     + k * b_c.square().sum(dim=(0, 2)))
         mean_c = total / count
         var = (total_sq / count - mean_c.square()).clamp_min(0)
-        mean = mean_c + shift
-    else:
-        mean, var = running_mean, running_var
-        mean_c = mean - shift
+        mean = mean_c + (a_shift + b_shift).flatten()
+    else:  # given statistics: nothing to shift by
+        a_c, b_c = a, b
+        mean_c = mean = running_mean
+        var = running_var
     direction = torch.ones(channels, dtype=a.dtype, device=a.device)
     if weight is not None:
         direction = torch.where(weight.detach() >= 0, 1.0, -1.0).to(a.dtype)
