@@ -8,13 +8,13 @@ from dataclasses import dataclass, fields
 import torch
 from torch import nn
 
+from vrnet_ext.geometry.metrics import correct_match_ratio
+from vrnet_ext.geometry.transforms import compose, move
 from vrnet_ext.model.config import VRNetConfig
 from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
 from vrnet_ext.ops import robust_kabsch, soft_match
-from vrnet_ext.geometry.metrics import correct_match_ratio
-from vrnet_ext.geometry.transforms import compose, move
 from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
 from vrnet_ext.runtime import cpu_has_native_bf16
 

@@ -85,7 +85,8 @@ def dense_in_query_blocks(query: torch.Tensor, key: torch.Tensor, values: torch.
     block = max(1, max_scores // max(1, batch * cols))
     if rows <= block:
         return soft_match_reference(query, key, values, scale)
-    parts = [soft_match_reference(query[:, start:start + block], key, values, scale) for start in range(0, rows, block)]
+    parts = [soft_match_reference(query[:, start:start + block], key, values, scale)
+             for start in range(0, rows, block)]
     return SoftMatch(*(torch.cat(pieces, dim=1) for pieces in zip(*parts)))
 
 
