@@ -132,10 +132,14 @@ def test_opcheck(device, C):
 
 
 @requires_ext
-def test_torch_compile_fullgraph(device):
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_torch_compile_fullgraph(device, backend):
     query, ref = torch.randn(2, 50, 3), torch.randn(2, 60, 3)
-    fn = compile_fullgraph(lambda q, r: ops.knn(q, r, 6))
-    torch.testing.assert_close(fn(query, ref), ops.knn(query, ref, 6))
+    ref[1, :9] = ref[1, 0]  # more ties with the k-th distance than fit: the lowest indices win
+    query[1, 0] = ref[1, 0]
+    fn = compile_fullgraph(lambda q, r: ops.knn(q, r, 6, backend=backend))
+    torch.testing.assert_close(fn(query, ref), ops.knn(query, ref, 6, backend=backend))
+    assert fn(query, ref)[1][1, 0].tolist() == list(range(6))
 
 
 @pytest.mark.parametrize("backend", ["ext", "torch"])

@@ -116,12 +116,14 @@ def test_later_passes_reuse_the_targets_features():
 
 
 @requires_ext
-def test_torch_compile(device):
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_torch_compile(device, backend):
     model = small_model().eval()
     src, tgt = clouds()
-    compiled = compile_fullgraph(model)
+    compiled = compile_fullgraph(lambda s, t: model(s, t, backend=backend))
     with torch.no_grad():
-        torch.testing.assert_close(compiled(src, tgt).rotation, model(src, tgt).rotation, rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(compiled(src, tgt).rotation, model(src, tgt, backend=backend).rotation,
+                                   rtol=1e-4, atol=1e-5)
 
 
 def test_bad_input():
