@@ -302,25 +302,6 @@ def test_pairwise_distance_loss(dtype, B, N):
     assert run_both("pairwise_distance_loss", x, y[:, :1]) == (None, None)
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
-@pytest.mark.parametrize("B,N,M,C,D", [(1, 1, 1, 1, 1), (2, 37, 53, 5, 3), (1, 100, 130, 64, 3), (1, 257, 20, 3, 1),
-                                       (1, 5, 7, 1500, 2)])
-def test_soft_match(dtype, B, N, M, C, D):
-    query, key = torch.randn(B, N, C, dtype=dtype), torch.randn(B, M, C, dtype=dtype)
-    values = torch.randn(B, M, D, dtype=dtype)
-    scale = 1.0 / math.sqrt(C)
-    out, lse, argmax = assert_same("soft_match", query, key, values, scale)
-    grad_out, grad_lse = torch.randn(out.shape, dtype=dtype), torch.randn(lse.shape, dtype=dtype)
-    assert_same("soft_match_backward", grad_out, grad_lse, query, key, values, out, lse, scale, scale=10)
-    assert_same("soft_match", non_contiguous(query), key, values, 8.0)  # peaked rows
-
-
-def test_soft_match_bad_input_same_errors():
-    q = torch.randn(1, 4, 3)
-    assert run_both("soft_match", q, q, torch.randn(1, 5, 2), 1.0) == (None, None)
-    assert run_both("soft_match", q, q, q, math.inf) == (None, None)
-
-
 class EmulatedGatherReduce(torch.autograd.Function):
     """gather_reduce with the emulated CUDA kernels forward and backward."""
 

@@ -1,4 +1,4 @@
-// soft_match pieces shared by the CPU and CUDA kernels: argument checks.
+// soft_match: the op's contract and argument checks.
 //
 // soft_match(query (B, N, c), key (B, M, c), values (B, M, D), scale) returns
 //   out    (B, N, D)  softmax_j(scale q_i . k_j) v_j

@@ -49,10 +49,11 @@ def knn_reference(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: 
     idx = idx.sort(dim=-1).values
     idx = idx.gather(-1, dist2.detach().gather(-1, idx).sort(dim=-1, stable=True).indices)
     crowded = (dist2.detach() <= values[..., -1:]).sum(-1) > k
-    # Under torch.compile the branch cannot read the data: every row is sorted there.
-    if torch.compiler.is_compiling() or bool(crowded.any()):
+    if torch.compiler.is_compiling():  # no branch on the data while compiling: every row is sorted
         lowest = dist2.detach().sort(dim=-1, stable=True).indices[..., :k]
         idx = torch.where(crowded.unsqueeze(-1), lowest, idx)
+    elif bool(crowded.any()):
+        idx[crowded] = dist2.detach()[crowded].sort(dim=-1, stable=True).indices[..., :k]
     return dist2.gather(-1, idx), idx
 
 

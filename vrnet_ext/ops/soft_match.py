@@ -1,15 +1,15 @@
 """Streamed soft matching: ``softmax(query keyᵀ scale) values`` without the N x M matrix.
 
 VRNet's virtual corresponding points are ``M Y`` with ``M = softmax(Φx Φyᵀ / √c)``; for two 50k-point
-clouds M alone is 10 GB in float32. The compiled kernel walks over tiles of key points with the
-online-softmax recurrence (running row maximum and normaliser, rescaled partial sums), so memory
+clouds M alone is 10 GB in float32. On a CPU the compiled kernel walks over tiles of key points with
+the online-softmax recurrence (running row maximum and normaliser, rescaled partial sums), so memory
 stays O((N + M)(c + D)); the backward recomputes the tiles from the saved log-normaliser.
 
-On a CUDA device the streamed kernel (one thread per row) runs far behind torch's batched products
-(an H200, forward and backward, B = 28, N = M = 768, c = 512: 0.67 s against 3.7 ms), so there the
-compiled backend runs the dense products on blocks of query rows of at most
-``GPU_DENSE_MAX_SCORES`` scores each (one block for most problems); only a large matching that
-needs gradients streams, since autograd would keep every block's matrix.
+On other devices (a GPU) the compiled backend runs torch's batched products on blocks of query rows
+of at most ``GPU_DENSE_MAX_SCORES`` scores each (one block for most problems), and a backward
+through more than one block recomputes each block's scores from the saved log-normaliser, as flash
+attention does: memory stays that of one block. (A streamed CUDA kernel of one thread per query
+row measured two orders of magnitude behind those products on an H200.)
 """
 from __future__ import annotations
 
@@ -23,14 +23,7 @@ from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_
                                    float32_region, promote_low_precision)
 
 
-GPU_DENSE_MAX_SCORES = 1 << 26  # 256 MB per float32 copy of the (B, N, M) scores
-
-
-def streams_on(device: torch.device, batch: int, rows: int, cols: int, needs_grad: bool) -> bool:
-    """Whether the compiled backend streams a (batch, rows, cols) score matrix on ``device``: always
-    on a CPU; on a GPU only past ``GPU_DENSE_MAX_SCORES`` scores with gradients to keep (else the
-    dense products on blocks of query rows are faster)."""
-    return device.type != "cuda" or (needs_grad and batch * rows * cols > GPU_DENSE_MAX_SCORES)
+GPU_DENSE_MAX_SCORES = 1 << 26  # scores per dense block off the CPU: 256 MB per float32 copy
 
 
 class SoftMatch(NamedTuple):
@@ -76,18 +69,50 @@ def soft_match_reference(query: torch.Tensor, key: torch.Tensor, values: torch.T
     return SoftMatch(out, lse, scores.argmax(dim=-1))
 
 
+class _SoftMatchInBlocks(torch.autograd.Function):
+    """:func:`soft_match_reference` on blocks of ``block`` query rows; the backward recomputes each
+    block's probabilities from the saved log-normaliser, so at most one block's (B, block, M)
+    matrices are alive in either pass. The backward is made of differentiable products, so
+    second-order gradients flow through it."""
+
+    @staticmethod
+    def forward(ctx, query, key, values, scale: float, block: int):
+        parts = [soft_match_reference(query[:, start:start + block], key, values, scale)
+                 for start in range(0, query.shape[1], block)]
+        out, lse, argmax = (torch.cat(pieces, dim=1) for pieces in zip(*parts))
+        ctx.save_for_backward(query, key, values, out, lse)
+        ctx.scale, ctx.block = scale, block
+        ctx.mark_non_differentiable(argmax)
+        return out, lse, argmax
+
+    @staticmethod
+    def backward(ctx, grad_out, grad_lse, _grad_argmax):
+        # With P = exp(scale Q Kᵀ - lse): dScores = P (dO Vᵀ + shift), shift_i = dlse_i - dO_i . O_i.
+        query, key, values, out, lse = ctx.saved_tensors
+        scale, block = ctx.scale, ctx.block
+        with float32_region(query):
+            shift = grad_lse - (grad_out * out).sum(-1)
+            grad_query, grad_key, grad_values = [], torch.zeros_like(key), torch.zeros_like(values)
+            for start in range(0, query.shape[1], block):
+                rows = slice(start, start + block)
+                probs = torch.exp(torch.bmm(query[:, rows], key.mT) * scale - lse[:, rows, None])
+                grad_scores = probs * (torch.bmm(grad_out[:, rows], values.mT) + shift[:, rows, None])
+                grad_query.append(torch.bmm(grad_scores, key) * scale)
+                grad_key = grad_key + torch.bmm(grad_scores.mT, query[:, rows]) * scale
+                grad_values = grad_values + torch.bmm(probs.mT, grad_out[:, rows])
+        return torch.cat(grad_query, dim=1), grad_key, grad_values, None, None
+
+
 def dense_in_query_blocks(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, scale: float,
                           max_scores: int = GPU_DENSE_MAX_SCORES) -> SoftMatch:
     """:func:`soft_match_reference` on blocks of query rows of at most ``max_scores`` scores each
-    (at least one row): the same values, with at most one block's (B, rows, M) matrix alive when
-    nothing needs a gradient."""
+    (at least one row): the same values and gradients, with at most one block's (B, rows, M)
+    matrices alive in the forward and in the backward (which then recomputes each block)."""
     batch, rows, cols = query.shape[0], query.shape[1], key.shape[1]
     block = max(1, max_scores // max(1, batch * cols))
     if rows <= block:
         return soft_match_reference(query, key, values, scale)
-    parts = [soft_match_reference(query[:, start:start + block], key, values, scale)
-             for start in range(0, rows, block)]
-    return SoftMatch(*(torch.cat(pieces, dim=1) for pieces in zip(*parts)))
+    return SoftMatch(*_SoftMatchInBlocks.apply(query, key, values, scale, block))
 
 
 def soft_match(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, scale: float | None = None,
@@ -99,9 +124,8 @@ def soft_match(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, sca
         key: (B, M, c) features of the candidates (M >= 1).
         values: (B, M, D) what each candidate contributes (VRNet: ``[Y | Φyᵀ]``).
         scale: score multiplier, default ``1 / sqrt(c)``.
-        backend: ``"ext"`` (compiled, streamed; on a GPU dense products on blocks of query rows
-            unless a large matching needs gradients, see :func:`streams_on`) or ``"torch"``
-            (dense reference).
+        backend: ``"ext"`` (on a CPU the compiled streamed kernel; elsewhere dense products on
+            blocks of query rows, :func:`dense_in_query_blocks`) or ``"torch"`` (dense reference).
         return_stats: also return the log-normaliser and the row peak (:class:`SoftMatch`).
 
     Returns:
@@ -111,15 +135,13 @@ def soft_match(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, sca
     query, key, values = (promote_low_precision(t) for t in (query, key, values))
     validate_soft_match(query, key, values, scale)
     scale = 1.0 / math.sqrt(query.shape[2]) if scale is None else float(scale)
-    compiled = use_extension(backend, query.device)
-    needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (query, key, values))
-    if compiled and streams_on(query.device, *query.shape[:2], key.shape[1], needs_grad):
+    if use_extension(backend, query.device) and query.device.type == "cpu":
         result = SoftMatch(*torch.ops.vrnet_ext.soft_match(query, key, values, scale))
     else:
         for name, t in (("query", query), ("key", key), ("values", values)):
             check_finite(t, name)
         with float32_region(query):
-            result = (dense_in_query_blocks if compiled else soft_match_reference)(query, key, values, scale)
+            result = (dense_in_query_blocks if backend == "ext" else soft_match_reference)(query, key, values, scale)
     return result if return_stats else result.out
 
 
