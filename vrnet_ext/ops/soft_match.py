@@ -6,7 +6,7 @@ the online-softmax recurrence (running row maximum and normaliser, rescaled part
 stays O((N + M)(c + D)); the backward recomputes the tiles from the saved log-normaliser.
 
 On other devices (a GPU) the compiled backend runs torch's batched products on blocks of query rows
-of at most ``GPU_DENSE_MAX_SCORES`` scores each (one block for most problems), and a backward
+of at most ``DENSE_BLOCK_MAX_SCORES`` scores each (one block for most problems), and a backward
 through more than one block recomputes each block's scores from the saved log-normaliser, as flash
 attention does: memory stays that of one block. (A streamed CUDA kernel of one thread per query
 row measured two orders of magnitude behind those products on an H200.)
@@ -23,7 +23,7 @@ from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_
                                    float32_region, promote_low_precision)
 
 
-GPU_DENSE_MAX_SCORES = 1 << 26  # scores per dense block off the CPU: 256 MB per float32 copy
+DENSE_BLOCK_MAX_SCORES = 1 << 26  # scores per dense block off the CPU: 256 MB per float32 copy
 
 
 class SoftMatch(NamedTuple):
@@ -104,7 +104,7 @@ class _SoftMatchInBlocks(torch.autograd.Function):
 
 
 def dense_in_query_blocks(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, scale: float,
-                          max_scores: int = GPU_DENSE_MAX_SCORES) -> SoftMatch:
+                          max_scores: int = DENSE_BLOCK_MAX_SCORES) -> SoftMatch:
     """:func:`soft_match_reference` on blocks of query rows of at most ``max_scores`` scores each
     (at least one row): the same values and gradients, with at most one block's (B, rows, M)
     matrices alive in the forward and in the backward (which then recomputes each block)."""
