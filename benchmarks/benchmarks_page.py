@@ -72,6 +72,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "inference_amx_h200_host": "ModelNet40 inference speed on an AMX CPU, 2 threads on 2 cores of the GPU machine's host (`bench_inference.py --pairs 64 --variants torch ext \"ext, bf16 Transformer\"`)",
     "inference_amx_vm": "ModelNet40 inference speed on an AMX CPU, a quiet 2-core machine, 2 threads (`bench_inference.py`)",
     "ops_amx_vm": "Op timings on an AMX CPU, a quiet 2-core machine, 2 threads, beside Open3D, pykdtree, small_gicp, roma and SDPA (`bench_ops.py`)",
+    "ops_soft_match_amx_vm": "Soft matching timings on an AMX CPU, denormals flushed inside the op (`bench_ops.py --only soft_match`)",
     "inference_cuda_h200": "ModelNet40 inference speed on an NVIDIA H200 (`bench_inference.py --device cuda --pairs 64 --variants torch ext \"ext, bf16 Transformer\"`)",
     "ops_cuda_h200": "Op timings on an NVIDIA H200, soft matching dense up to 2^26 scores (`bench_ops.py --device cuda --no-memory --repeats 5`)",
     "ops_cuda_h200_streamed": "Op timings on an NVIDIA H200, soft matching always streamed: the first GPU run (`bench_ops.py --device cuda --no-memory --repeats 5`)",

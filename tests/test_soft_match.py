@@ -144,6 +144,22 @@ def test_sharp_rows_whose_other_weights_underflow(device, dtype):
 
 
 @requires_ext
+def test_denormals_flushed_inside_the_op_only():
+    """The CPU kernel flushes denormals while it runs (a sharp row's far terms) and restores every
+    thread's own mode: afterwards denormal arithmetic still gives denormals, on the calling thread
+    and on the intra-op workers."""
+    from vrnet_ext.runtime import set_flush_denormal
+
+    set_flush_denormal(False)
+    query = torch.randn(2, 300, 16, requires_grad=True)
+    key, values = torch.randn(2, 400, 16), torch.randn(2, 400, 3)
+    ops.soft_match(query * 60, key, values).sum().backward()
+    tiny = torch.finfo(torch.float32).tiny / 4
+    assert (torch.tensor([tiny]) * 1.0).item() == tiny
+    assert bool(((torch.full((1 << 20,), tiny) * 1.0) == tiny).all())
+
+
+@requires_ext
 def test_unused_outputs_get_no_gradient_work(device):
     query = torch.randn(1, 20, 8, requires_grad=True)
     key, values = torch.randn(1, 30, 8), torch.randn(1, 30, 3)

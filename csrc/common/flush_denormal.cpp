@@ -3,10 +3,10 @@
 // in VRNet's N x M matching are often denormal and slow x86 GEMMs down by 10x or more.
 #include <torch/library.h>
 
-#if defined(__x86_64__) || defined(_M_X64)
+#include "common/denormals.h"
+
+#ifdef VRNET_HAS_MXCSR
 #include <omp.h>
-#include <xmmintrin.h>
-#define VRNET_HAS_MXCSR 1
 #endif
 
 namespace vrnet {
@@ -14,8 +14,9 @@ namespace {
 
 bool set_flush_denormal(bool enabled) {
 #ifdef VRNET_HAS_MXCSR
-  constexpr unsigned int kFlags = 0x8040;  // FTZ (bit 15) | DAZ (bit 6)
-  auto apply = [enabled] { _mm_setcsr(enabled ? (_mm_getcsr() | kFlags) : (_mm_getcsr() & ~kFlags)); };
+  auto apply = [enabled] {
+    _mm_setcsr(enabled ? (_mm_getcsr() | kFlushDenormalFlags) : (_mm_getcsr() & ~kFlushDenormalFlags));
+  };
   apply();
 #pragma omp parallel
   apply();
