@@ -18,7 +18,7 @@ class ScopedFlushDenormals {
   ScopedFlushDenormals() : saved_(_mm_getcsr()) { _mm_setcsr(saved_ | kFlushDenormalFlags); }
   ~ScopedFlushDenormals() { _mm_setcsr(saved_); }
 #else
-  ScopedFlushDenormals() = default;
+  ScopedFlushDenormals() {}  // user-provided: a const instance needs no initialiser
 #endif
   ScopedFlushDenormals(const ScopedFlushDenormals&) = delete;
   ScopedFlushDenormals& operator=(const ScopedFlushDenormals&) = delete;
