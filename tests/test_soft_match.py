@@ -247,6 +247,19 @@ def test_dense_in_query_blocks_gradients(device, max_scores):
     assert torch.autograd.gradgradcheck(fn, inputs)
 
 
+def test_dense_in_query_blocks_compile_fullgraph(device):
+    """Several blocks (the recomputing backward) under torch.compile(fullgraph=True): values and
+    gradients as the reference's."""
+    from vrnet_ext.ops.soft_match import dense_in_query_blocks
+
+    inputs = [torch.randn(2, n, c, requires_grad=True) for n, c in ((40, 8), (50, 8), (50, 3))]
+    fn = compile_fullgraph(lambda q, k, v: dense_in_query_blocks(q, k, v, 0.9, 300).out)
+    got, want = fn(*inputs), soft_match_reference(*inputs, 0.9).out
+    torch.testing.assert_close(got, want)
+    for a, b in zip(torch.autograd.grad(got.sum(), inputs), torch.autograd.grad(want.sum(), inputs)):
+        torch.testing.assert_close(a, b)
+
+
 def test_reference_is_the_dense_formula():
     query, key, values = torch.randn(1, 4, 2, dtype=torch.float64), torch.randn(1, 5, 2, dtype=torch.float64), \
         torch.randn(1, 5, 3, dtype=torch.float64)
