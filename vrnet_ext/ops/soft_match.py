@@ -117,7 +117,7 @@ def dense_in_query_blocks(query: torch.Tensor, key: torch.Tensor, values: torch.
 
 def soft_match(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, scale: float | None = None,
                backend: str = "ext", return_stats: bool = False) -> torch.Tensor | SoftMatch:
-    """``softmax(query keyᵀ scale, dim=-1) values``, streamed over key tiles.
+    """``softmax(query keyᵀ scale, dim=-1) values`` without the (B, N, M) matrix on the compiled backend.
 
     Args:
         query: (B, N, c) features of the points that look for a match.
