@@ -8,9 +8,15 @@ picks the visible GPUs' architectures.
 """
 import glob
 import os
+import sys
 
 from setuptools import setup
-from torch.utils import cpp_extension
+
+try:
+    from torch.utils import cpp_extension
+except ImportError:  # pip's build isolation hides the torch the user installed
+    sys.exit("vrnet_ext compiles against the PyTorch you have installed: install torch first "
+             "(e.g. pip install torch), then pip install --no-build-isolation vrnet_ext (or '.' in a clone)")
 
 ROOT = os.path.dirname(os.path.abspath(__file__))
 # No --use_fast_math: the CUDA kernels must round like the CPU ones (tests compare them).
