@@ -25,10 +25,9 @@ import torch
 from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext import ops
 from vrnet_ext.data.real_pairs import read_manifest
-from vrnet_ext.geometry.features import mutual_matches, nearest_features, voxel_fpfh
+from vrnet_ext.geometry.features import mutual_matches, nearest_features
 from vrnet_ext.geometry.io import read_points, read_transform
-from vrnet_ext.registration import transform_errors
-from vrnet_ext.registration.global_estimators import SpatialConsistency, downsampled_pair
+from vrnet_ext.registration import PointCounts, ScanPair, SpatialConsistency, transform_errors
 from vrnet_ext.registration.ransac import ransac
 from outputs import write_outputs  # benchmarks/, the script's folder
 
@@ -64,8 +63,10 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     records = []
     for pair in read_manifest(args.real_pairs)[:args.max_pairs]:
-        src, tgt, voxel = downsampled_pair(read_points(pair.source), read_points(pair.target), POINTS)
-        src_features, tgt_features = voxel_fpfh(src, voxel), voxel_fpfh(tgt, voxel)
+        src_view, tgt_view = ScanPair.of(read_points(pair.source), read_points(pair.target),
+                                         PointCounts(global_points=POINTS)).global_views()
+        src, tgt, voxel = src_view.tensor(), tgt_view.tensor(), src_view.voxel
+        src_features, tgt_features = src_view.descriptors, tgt_view.descriptors
         truth = read_transform(pair.gt)
         for seed in range(args.seeds):
             for method, fit in METHODS.items():  # in turns, pair by pair

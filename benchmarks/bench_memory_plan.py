@@ -34,7 +34,7 @@ import torch
 torch.set_num_threads(2)
 from vrnet_ext.geometry.io import read_points
 from vrnet_ext.registration.budget import plan_registration
-from vrnet_ext.registration import IcpSettings, register
+from vrnet_ext.registration import IcpSettings, PointCounts, register
 from vrnet_ext.registration.global_estimators import make_global_estimator
 from vrnet_ext.model.pretrained import DEFAULT_SCENE_MODEL, load_pretrained
 from vrnet_ext.model.scene import SceneConfig, SceneVRNet
@@ -46,8 +46,8 @@ model = load_pretrained(DEFAULT_SCENE_MODEL) if method == "vrnet" else None
 if method == "vrnet-large":  # random weights: the memory, not the result, is measured
     method, model = "vrnet", SceneVRNet(SceneConfig(**json.loads(large))).eval()
 estimator = make_global_estimator(method, model)
-plan = plan_registration(1 << 50, estimator.memory_profile, len(src), len(tgt), global_points, 1024, icp_points,
-                         estimator.memory_scale)
+plan = plan_registration(1 << 50, estimator, len(src), len(tgt),
+                         PointCounts(global_points=global_points, icp_points=icp_points))
 outcome = "registered"
 try:
     register(src, tgt, method=method, model=model, global_points=global_points,

@@ -51,7 +51,7 @@ from vrnet_ext.model import VRNetConfig
 from vrnet_ext.ops import kabsch
 from vrnet_ext.model.checkpoints import read_checkpoint
 from vrnet_ext.model.pretrained import available, cells, load_vrnet, weights_path
-from vrnet_ext.registration import IcpFailure, icp
+from vrnet_ext.registration import IcpFailure, IcpSettings, icp
 from outputs import cpu_description  # benchmarks/, the script's folder
 
 METHODS = ("vrnet", "vcp", "vrnet2", "icp", "fpfh")
@@ -138,7 +138,9 @@ def classical_estimates(data, method: str, icp_max_distance: float, fpfh_voxel: 
         started = time.perf_counter()
         try:
             if method == "icp":
-                T = icp(src, tgt, np.eye(4), icp_max_distance, iterations=50).T_target_source
+                settings = IcpSettings(estimator="point_to_point", max_distance=icp_max_distance,
+                                       transform_tolerance=1e-6)
+                T = icp(src, tgt, np.eye(4), settings).T_target_source
             else:
                 T = fpfh_ransac(torch.from_numpy(src), torch.from_numpy(tgt), fpfh_voxel, seed=i)[0].numpy()
         except (IcpFailure, ValueError):

@@ -25,7 +25,7 @@ from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data.real_pairs import read_manifest, split
 from vrnet_ext.geometry.io import read_points, read_transform
 from vrnet_ext.model.pretrained import load_model
-from vrnet_ext.registration import FpfhRansac, SpatialConsistency, transform_errors
+from vrnet_ext.registration import FpfhRansac, PointCounts, ScanPair, SpatialConsistency, transform_errors
 from vrnet_ext.registration.global_estimators import ROBUST_FITS, SceneNetwork
 from outputs import write_outputs  # benchmarks/, the script's folder
 
@@ -33,11 +33,11 @@ POINTS = 5000
 
 
 def estimators(checkpoints: list[str]) -> dict:
-    found = {"fpfh": FpfhRansac(POINTS), "sc2": SpatialConsistency(POINTS)}
+    found = {"fpfh": FpfhRansac(), "sc2": SpatialConsistency()}
     for checkpoint in checkpoints:
         model, _ = load_model(checkpoint)
         for robust in ROBUST_FITS:
-            found[f"{Path(checkpoint).stem} + {robust}"] = SceneNetwork(model, POINTS, robust=robust)
+            found[f"{Path(checkpoint).stem} + {robust}"] = SceneNetwork(model, robust=robust)
     return found
 
 
@@ -75,7 +75,8 @@ def main(argv: list[str] | None = None) -> None:
             for name, estimator in methods.items():
                 torch.manual_seed(seed)
                 start = time.perf_counter()
-                estimate = estimator.estimate(src, tgt, seed=seed).T_target_source
+                prepared = ScanPair.of(src, tgt, PointCounts(global_points=POINTS))  # each estimate prepares anew
+                estimate = estimator.estimate_pair(prepared, seed=seed).T_target_source
                 seconds = time.perf_counter() - start
                 errors = transform_errors(np.asarray(estimate), truth)
                 records.append({"pair": pair.pair_id, "subset": pair.subset, "seed": seed, "method": name,

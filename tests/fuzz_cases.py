@@ -426,6 +426,9 @@ def run_second_order(examples: int) -> None:
 def run_memory_plan(examples: int) -> None:
     """Scene models of any size a file may hold, any budget and scan size: the plan stays within the
     budget or is refused at once (MemoryBudgetError), never a plan predicted above the budget."""
+    from types import SimpleNamespace
+
+    from vrnet_ext.registration import PointCounts, SceneNetwork
     from vrnet_ext.registration.budget import MB, MemoryBudgetError, plan_registration
     from vrnet_ext.model.scene import SCENE_LIMITS, SceneConfig
 
@@ -436,14 +439,14 @@ def run_memory_plan(examples: int) -> None:
     @given(st.fixed_dictionaries(sizes), st.integers(50, 20_000), st.integers(1_000, 5_000_000),
            st.integers(3, 200_000))
     def plan_fits(config, budget_mb, scan_points, global_points):
-        scale = max(1.0, SceneConfig(**config).values_per_point() / SceneConfig().values_per_point())
+        estimator = SceneNetwork(SimpleNamespace(config=SceneConfig(**config)))  # the planner reads its config
         try:
-            plan = plan_registration(budget_mb * MB, "scene", scan_points, scan_points, global_points, 1024, 50_000,
-                                     scale)
+            plan = plan_registration(budget_mb * MB, estimator, scan_points, scan_points,
+                                     PointCounts(global_points=global_points))
         except MemoryBudgetError as error:
             assert "cannot be met" in str(error)
             return
-        assert plan.predicted_peak_mb <= budget_mb and plan.global_points <= global_points
+        assert plan.predicted_peak_mb <= budget_mb and plan.counts.global_points <= global_points
 
     plan_fits()
 

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from vrnet_ext.data.procedural import room_scan
 from vrnet_ext.ops.normals import neighbourhood
-from vrnet_ext.registration import icp, transform_errors
+from vrnet_ext.registration import IcpSettings, icp, transform_errors
 from vrnet_ext.registration.estimators import (ESTIMATORS, PLANE_FLATNESS, gauss_newton_step, make_estimator,
                                                plane_covariances, se3_exp, symmetric_inverse)
 
@@ -23,7 +23,8 @@ def room_pair():
 @pytest.mark.parametrize("estimator", ["point_to_plane", "gicp"])
 def test_plane_based_refinement_reaches_the_exact_motion(room_pair, estimator):
     src, tgt, truth = room_pair
-    result = icp(src, tgt, np.eye(4), 0.3, 100, estimator=estimator)
+    result = icp(src, tgt, np.eye(4), IcpSettings(estimator=estimator, max_distance=0.3, max_iterations=100,
+                                                     transform_tolerance=1e-6))
     errors = transform_errors(result.T_target_source, truth)
     assert errors["rotation_error_deg"] <= 0.01 and errors["translation_error"] <= 0.0005, errors
     assert result.converged and result.fitness > 0.95 and result.estimator == estimator
@@ -31,7 +32,8 @@ def test_plane_based_refinement_reaches_the_exact_motion(room_pair, estimator):
 
 def test_point_to_point_is_biased_by_the_sampling(room_pair):
     src, tgt, truth = room_pair
-    result = icp(src, tgt, np.eye(4), 0.3, 100, estimator="point_to_point")
+    result = icp(src, tgt, np.eye(4), IcpSettings(estimator="point_to_point", max_distance=0.3, max_iterations=100,
+                                                     transform_tolerance=1e-6))
     errors = transform_errors(result.T_target_source, truth)
     assert errors["rotation_error_deg"] < 0.1 and errors["translation_error"] < 0.01, errors
 

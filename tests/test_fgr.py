@@ -4,7 +4,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from vrnet_ext.data.procedural import room_scan
-from vrnet_ext.registration import Fgr, IcpSettings, register, transform_errors
+from vrnet_ext.registration import Fgr, IcpSettings, PointCounts, ScanPair, register, transform_errors
 from vrnet_ext.registration.fgr import fast_global_registration, feature_correspondences, tuple_test
 
 
@@ -46,7 +46,8 @@ def test_tuple_test_keeps_consistent_triples():
 def test_fgr_registers_a_room_turned_by_60_degrees():
     truth = motion(60.0, [0.4, -0.3, 0.1])
     src, tgt = room_scan(60_000, 1), room_scan(60_000, 2) @ truth[:3, :3].T + truth[:3, 3]
-    errors = transform_errors(Fgr(3000).estimate(src, tgt, seed=0).T_target_source, truth)
+    estimate = Fgr().estimate_pair(ScanPair.of(src, tgt, PointCounts(global_points=3000)), seed=0)
+    errors = transform_errors(estimate.T_target_source, truth)
     assert errors["rotation_error_deg"] < 3.0 and errors["translation_error"] < 0.15, errors
     refined = register(src, tgt, method="fgr", global_points=3000, icp_settings=IcpSettings(points=20_000))
     errors = transform_errors(refined.T_target_source, truth)

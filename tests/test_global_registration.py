@@ -172,16 +172,16 @@ def test_real_3dmatch_pair_from_fpfh(tmp_path):
 
 
 def test_global_estimators_return_registration_results_with_their_consensus():
-    from vrnet_ext.registration import FpfhRansac, RegistrationResult, SpatialConsistency, register
+    from vrnet_ext.registration import FpfhRansac, PointCounts, RegistrationResult, ScanPair, SpatialConsistency
 
     truth = motion(30.0, [0.2, -0.1, 0.05])
     src, tgt = room(8000), apply(truth, room(8000, seed=1))
-    for estimator in (FpfhRansac(3000), SpatialConsistency(3000)):
-        estimate = estimator.estimate(src, tgt, seed=0)
+    for estimator in (FpfhRansac(), SpatialConsistency()):
+        estimate = estimator.estimate_pair(ScanPair.of(src, tgt, PointCounts(global_points=3000)), seed=0)
         assert isinstance(estimate, RegistrationResult) and estimate.method == estimator.name
         assert estimate.consensus >= 3 and estimate.iterations == 0 and estimate.estimator == "none"
         assert estimate.points["source_global"] > 1000 and np.isfinite(estimate.T_target_source).all()
-        result = register(src, tgt, method=estimator)
+        result = register(src, tgt, method=estimator, global_points=3000)
         assert result.consensus == estimate.consensus and "source_global" in result.to_dict()["points"]
 
 
@@ -204,7 +204,7 @@ def test_fpfh_ransac_registers_a_low_overlap_3dlomatch_pair_for_most_seeds():
     truth = np.loadtxt(REAL_PAIRS / row["gt_file"])
     registered = 0
     for seed in range(5):
-        estimate = FpfhRansac(5000).estimate(src, tgt, seed=seed).T_target_source
+        estimate = FpfhRansac().estimate(src, tgt, seed=seed).T_target_source
         errors = transform_errors(estimate, truth)
         registered += errors["rotation_error_deg"] < 15.0 and errors["translation_error"] < 0.30
     assert registered >= 4, f"{registered} of 5 seeds registered {LOW_OVERLAP_PAIR}"

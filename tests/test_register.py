@@ -14,9 +14,15 @@ from vrnet_ext.cli import main
 from vrnet_ext import load_pretrained
 from vrnet_ext.geometry.io import read_points, read_transform, write_ply
 from vrnet_ext.geometry.preprocessing import voxel_downsample
-from vrnet_ext.registration import IcpFailure, IcpSettings, ObjectNetwork, icp, register, transform_errors
+from vrnet_ext.registration import (IcpFailure, IcpSettings, ObjectNetwork, PointCounts, ScanPair, icp, register,
+                                    transform_errors)
 from vrnet_ext.registration.refinement import TargetReach
 from vrnet_ext.geometry.transforms import apply, to_homogeneous
+
+
+def point_to_point(max_distance: float, **settings) -> IcpSettings:
+    """ICP point to point within ``max_distance``, stopping at steps below 1e-6."""
+    return IcpSettings(estimator="point_to_point", max_distance=max_distance, transform_tolerance=1e-6, **settings)
 
 LIDAR = DATA_DIR / "scenes" / "lidar_pair"
 
@@ -67,7 +73,7 @@ def test_voxel_downsample_matches_a_per_voxel_mean_in_row_major_voxel_order():
 def test_icp_recovers_a_small_motion():
     src = room()
     truth = motion(6.0, [0.1, -0.05, 0.08])
-    result = icp(src, apply(truth, src), np.eye(4), max_distance=0.5)
+    result = icp(src, apply(truth, src), np.eye(4), point_to_point(0.5))
     errors = transform_errors(result.T_target_source, truth)
     assert errors["rotation_error_deg"] < 1e-3 and errors["translation_error"] < 1e-4, errors
     assert result.fitness > 0.99 and result.inlier_rmse < 1e-4 and result.iterations < 50 and result.converged
@@ -102,9 +108,9 @@ def test_icp_skipping_out_of_reach_points_changes_nothing(monkeypatch):
     truth = motion(4.0, [0.05, 0.02, -0.03])
     tgt = apply(truth, src)
     tgt = tgt[tgt[:, 0] < 2.0]
-    filtered = icp(src, tgt, np.eye(4), max_distance=0.1)
+    filtered = icp(src, tgt, np.eye(4), point_to_point(0.1))
     monkeypatch.setattr(TargetReach, "__call__", lambda self, points: torch.ones(points.shape[1], dtype=torch.bool))
-    unfiltered = icp(src, tgt, np.eye(4), max_distance=0.1)
+    unfiltered = icp(src, tgt, np.eye(4), point_to_point(0.1))
     np.testing.assert_allclose(filtered.T_target_source, unfiltered.T_target_source, rtol=0, atol=1e-12)
     assert (filtered.iterations, filtered.fitness) == (unfiltered.iterations, unfiltered.fitness)
     assert filtered.inlier_rmse == pytest.approx(unfiltered.inlier_rmse, rel=1e-12)
@@ -121,7 +127,8 @@ class ExactModel(torch.nn.Module):
 def test_network_estimate_undoes_the_normalisation():
     src = room(500) * 30.0 + 200.0  # far from the origin and not unit-sized: a scan in metres
     truth = motion(40.0, [5.0, -3.0, 2.0])
-    T = ObjectNetwork(ExactModel(), points=10_000).estimate(src, apply(truth, src), seed=0).T_target_source
+    pair = ScanPair.of(src, apply(truth, src), PointCounts(network_points=10_000))
+    T = ObjectNetwork(ExactModel()).estimate_pair(pair, seed=0).T_target_source
     errors = transform_errors(T, truth)
     assert errors["rotation_error_deg"] < 1e-3 and errors["translation_error"] < 1e-3, errors
 
@@ -143,7 +150,7 @@ def test_icp_out_of_reach_returns_the_initial_estimate_with_a_warning():
     src = room(1000)
     far = to_homogeneous(np.eye(3), np.array([50.0, 0.0, 0.0]))
     with pytest.raises(IcpFailure, match="fewer than 3 point pairs"):
-        icp(src, src, far, max_distance=0.1)
+        icp(src, src, far, point_to_point(0.1))
     result = register(src, src + np.array([50.0, 0.0, 0.0]), method="icp",
                       icp_settings=IcpSettings(max_distance=0.1))
     assert result.iterations == 0 and np.array_equal(result.T_target_source, np.eye(4))
@@ -336,8 +343,8 @@ def test_icp_with_the_reference_knn_works_in_bounded_chunks(monkeypatch):
     monkeypatch.setattr(refinement_module, "REFERENCE_KNN_ELEMENTS", 5000)  # force many chunks
     src = room(3000)
     tgt = apply(motion(2.0, [0.05, 0.0, 0.02]), room(3000, seed=1))
-    ext = icp(src, tgt, np.eye(4), 0.3, backend="ext")
-    reference = icp(src, tgt, np.eye(4), 0.3, backend="torch")
+    ext = icp(src, tgt, np.eye(4), point_to_point(0.3), backend="ext")
+    reference = icp(src, tgt, np.eye(4), point_to_point(0.3), backend="torch")
     np.testing.assert_allclose(reference.T_target_source, ext.T_target_source, atol=1e-9)
     assert reference.iterations == ext.iterations
 
@@ -447,10 +454,11 @@ def test_a_prepared_icp_problem_runs_from_several_starts_like_icp():
     src = rng.normal(size=(800, 3)) * [2.0, 1.0, 0.5]
     truth = to_homogeneous(Rotation.from_euler("z", 8, degrees=True).as_matrix(), [0.1, 0.0, 0.05])
     tgt = apply(truth, src)
-    problem = IcpProblem(src, tgt, 0.5, "point_to_plane")
+    settings = IcpSettings(max_distance=0.5, transform_tolerance=1e-6)
+    problem = IcpProblem(src, tgt, settings)
     for start in (np.eye(4), to_homogeneous(np.eye(3), [0.05, 0.0, 0.0])):
-        prepared = problem.run(start, 50)
-        once = icp(src, tgt, start, 0.5, 50, estimator="point_to_plane")
+        prepared = problem.run(start)
+        once = icp(src, tgt, start, settings)
         np.testing.assert_array_equal(prepared.T_target_source, once.T_target_source)
         assert prepared.iterations == once.iterations and prepared.fitness == once.fitness
         assert transform_errors(prepared.T_target_source, truth)["rotation_error_deg"] < 0.01

@@ -14,6 +14,7 @@ from vrnet_ext.model.pretrained import load_model
 from vrnet_ext.cli import main
 from vrnet_ext.data.scans import synthetic_pair
 from vrnet_ext.geometry.features import describe
+from vrnet_ext.registration import FpfhRansac, PointCounts, ScanPair
 from vrnet_ext.registration.budget import MemoryBudgetError, parse_memory_size, plan_registration
 from vrnet_ext.model.scene import SceneConfig, SceneVRNet
 from vrnet_ext.geometry.preprocessing import voxel_downsample
@@ -117,14 +118,15 @@ def test_memory_sizes_and_plans():
     for bad in ("", "two GB", "-1GB", "0", "1.5PB"):
         with pytest.raises(ValueError):
             parse_memory_size(bad)
-    roomy = plan_registration(64 * 2 ** 30, "fpfh", 300_000, 300_000, 5000, 1024, 50_000)
-    assert (roomy.global_points, roomy.icp_points, roomy.notes) == (5000, 50_000, [])
-    tight = plan_registration(int((roomy.predicted_peak_mb + 5) * 2 ** 20), "fpfh", 300_000, 300_000, 50_000,
-                              1024, 500_000)
-    assert tight.global_points < 50_000 and tight.icp_points < 500_000 and len(tight.notes) == 2
-    assert tight.predicted_peak_mb <= tight.budget_mb and tight.network_points == 1024
+    fpfh = FpfhRansac()
+    roomy = plan_registration(64 * 2 ** 30, fpfh, 300_000, 300_000, PointCounts())
+    assert (roomy.counts, roomy.notes) == (PointCounts(), [])
+    tight = plan_registration(int((roomy.predicted_peak_mb + 5) * 2 ** 20), fpfh, 300_000, 300_000,
+                              PointCounts(global_points=50_000, icp_points=500_000))
+    assert tight.counts.global_points < 50_000 and tight.counts.icp_points < 500_000 and len(tight.notes) == 2
+    assert tight.predicted_peak_mb <= tight.budget_mb and tight.counts.network_points == 1024
     with pytest.raises(MemoryBudgetError, match="cannot be met"):
-        plan_registration(100 * 2 ** 20, "fpfh", 300_000, 300_000, 5000, 1024, 50_000)
+        plan_registration(100 * 2 ** 20, fpfh, 300_000, 300_000, PointCounts())
 
 
 def test_cli_impossible_budget_fails_at_once_without_a_traceback(tmp_path, capsys):
@@ -182,12 +184,12 @@ def test_a_larger_scene_model_is_planned_for_its_size():
 
     big = SceneNetwork(SceneVRNet(SceneConfig(hidden=1024, emb_dims=1024, neighbours=64, walk_hidden=1024)))
     assert SceneNetwork(SceneVRNet()).memory_scale == 1.0 and big.memory_scale > 50
-    shipped = plan_registration(4 * 2 ** 30, "scene", 300_000, 300_000, 5000, 1024, 50_000)
-    assert shipped.global_points == 5000
-    planned = plan_registration(4 * 2 ** 30, "scene", 300_000, 300_000, 5000, 1024, 50_000, big.memory_scale)
-    assert planned.global_points < 5000 and planned.predicted_peak_mb <= planned.budget_mb
+    shipped = plan_registration(4 * 2 ** 30, SceneNetwork(SceneVRNet()), 300_000, 300_000, PointCounts())
+    assert shipped.counts.global_points == 5000
+    planned = plan_registration(4 * 2 ** 30, big, 300_000, 300_000, PointCounts())
+    assert planned.counts.global_points < 5000 and planned.predicted_peak_mb <= planned.budget_mb
     with pytest.raises(MemoryBudgetError, match="cannot be met"):
-        plan_registration(600 * 2 ** 20, "scene", 300_000, 300_000, 5000, 1024, 50_000, 400.0)
+        plan_registration(600 * 2 ** 20, big, 300_000, 300_000, PointCounts())
 
 
 def test_a_model_trained_on_mirrored_fpfh_reads_open3d_layout_descriptors():
@@ -247,7 +249,8 @@ def test_scene_network_fits_its_rcps_by_each_robust_estimator_and_refuses_others
     src, tgt = box_scan(6000), box_scan(6000, seed=1) @ truth[:3, :3].T
     model = load_model("scene-fpfh-vrnet-kitchen")[0]
     with pytest.raises(ValueError, match="robust must be one of"):
-        SceneNetwork(model, 800, robust="magsac")
+        SceneNetwork(model, robust="magsac")
+    pair = ScanPair.of(src, tgt, PointCounts(global_points=2000))
     for robust in ROBUST_FITS:
-        estimate = SceneNetwork(model, 2000, robust=robust).estimate(src, tgt, seed=0)
+        estimate = SceneNetwork(model, robust=robust).estimate_pair(pair, seed=0)
         assert np.isfinite(estimate.T_target_source).all() and estimate.consensus >= 3, robust

@@ -21,22 +21,28 @@ def voxel_fpfh(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
 
 @dataclass
 class ScanView:
-    """One downsampled scan: ``points`` (V, 3) in the scan's unit, ``voxel`` edge, FPFH (V, 33)."""
+    """One downsampled scan: ``points`` (V, 3) in the scan's unit, ``voxel`` edge, FPFH (V, 33) float32
+    (on the device they were computed on)."""
 
     points: np.ndarray
     voxel: float
     descriptors: torch.Tensor
 
     def network_points(self) -> torch.Tensor:
-        """(V, 3) float32 points in voxel units (the network's coordinates)."""
-        return torch.as_tensor(self.points / self.voxel, dtype=torch.float32)
+        """(V, 3) float32 points in voxel units (the network's coordinates), beside the descriptors."""
+        return torch.as_tensor(self.points / self.voxel, dtype=torch.float32, device=self.descriptors.device)
+
+    def tensor(self) -> torch.Tensor:
+        """(V, 3) float64 points, beside the descriptors."""
+        return torch.as_tensor(self.points, dtype=torch.float64, device=self.descriptors.device)
 
 
-def describe(points: np.ndarray, voxel: float) -> ScanView:
-    """Voxel-downsampled points (V, 3) (sensor at the origin) -> :class:`ScanView` with FPFH."""
+def describe(points: np.ndarray, voxel: float, device: torch.device = torch.device("cpu")) -> ScanView:
+    """Voxel-downsampled points (V, 3) (sensor at the origin) -> :class:`ScanView` with FPFH
+    computed on ``device``."""
     if len(points) < 3:
         raise ValueError(f"points: need at least 3 points after downsampling, got {len(points)}")
-    descriptors = voxel_fpfh(torch.as_tensor(points, dtype=torch.float64), voxel)
+    descriptors = voxel_fpfh(torch.as_tensor(points, dtype=torch.float64, device=device), voxel)
     return ScanView(points, voxel, descriptors.float())
 
 

@@ -12,8 +12,11 @@
   :func:`fitness`, a score of any transform on a pair;
 - :mod:`~vrnet_ext.registration.result`: the one result type, :class:`RegistrationResult`;
 - :mod:`~vrnet_ext.registration.pipeline`: :func:`register`, global estimate + ICP + warnings;
-- :mod:`~vrnet_ext.registration.methods`: the names of the built-in global estimates and the
-  default one (no torch, for the command line).
+- :mod:`~vrnet_ext.registration.prepared`: both scans prepared once per registration
+  (:class:`ScanPair`: voxels and FPFH shared by every estimator and ICP start);
+- :mod:`~vrnet_ext.registration.budget`: the memory plan, from each estimator's own cost;
+- :mod:`~vrnet_ext.registration.methods`: the names and defaults of the wing (built-in global
+  estimates, the default one, ICP's steps, :class:`PointCounts`; no torch, for the command line).
 
 The names below load on first use (``import vrnet_ext.registration`` imports no torch).
 
@@ -23,7 +26,9 @@ from vrnet_ext._lazy import lazy_attributes
 
 _EXPORTS = {
     **dict.fromkeys(("ESTIMATORS", "Estimator", "make_estimator"), "vrnet_ext.registration.estimators"),
-    "GLOBAL_ESTIMATORS": "vrnet_ext.registration.methods",
+    **dict.fromkeys(("DEFAULT_METHOD", "GLOBAL_ESTIMATORS", "ICP_STEPS", "PointCounts"),
+                    "vrnet_ext.registration.methods"),
+    **dict.fromkeys(("PreparedScan", "ScanPair"), "vrnet_ext.registration.prepared"),
     **dict.fromkeys(("Fgr", "FpfhRansac", "GlobalEstimator", "NoMotion", "ObjectNetwork", "SceneNetwork",
                      "SpatialConsistency", "make_global_estimator"), "vrnet_ext.registration.global_estimators"),
     **dict.fromkeys(("IcpFailure", "IcpProblem", "IcpSettings", "fitness", "icp"), "vrnet_ext.registration.refinement"),

@@ -3,7 +3,8 @@
 The budget bounds the peak resident memory of the whole process: what it already holds (Python,
 torch, the scans just read) plus the largest transient of the stages that follow. Those transients
 grow linearly with the point counts (never beyond the larger scan's); the coefficients below were
-fitted on this project's CPU machine to whole-process peaks of each method on the 3DMatch kitchen
+fitted on this project's CPU machine (those of the global estimators beside each estimator,
+:meth:`~vrnet_ext.registration.GlobalEstimator.peak_mb`) to whole-process peaks of each method on the 3DMatch kitchen
 and LiDAR pairs at 1,000-20,000 global and 5,000-200,000 ICP points
 (``benchmarks/bench_memory_plan.py``: the prediction lies within 0-25 % above the measured peak
 there; ``benchmarks/bench_large_scene.py`` checks whole runs under budgets) and carry a 25 % safety
@@ -15,20 +16,21 @@ from __future__ import annotations
 
 import re
 import resource
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Protocol
+
+from vrnet_ext.registration.methods import PointCounts
 
 MB = 2 ** 20
 SAFETY = 1.25
 MARGIN_MB = 20.0     # allocator slack, small tensors, the result
-# Peak growth of each stage, in MB: intercept + bytes per point / MB (benchmarks/bench_memory_plan.py
-# compares the predicted peaks with measured ones).
+# Peak growth of the stages every run has, in MB: intercept + bytes per point / MB
+# (benchmarks/bench_memory_plan.py compares the predicted peaks with measured ones); each global
+# estimator states its own (GlobalEstimator.peak_mb).
 VOXEL_BYTES_PER_INPUT_POINT = 110.0          # voxel_downsample of the larger scan
 ICP_MB, ICP_BYTES_PER_POINT = 14.0, 270.0    # per point of source + target after downsampling
-FPFH_MB, FPFH_BYTES_PER_POINT = 33.0, 5500.0  # normals, FPFH (100 neighbours), matching, RANSAC / SC2
-FGR_MB, FGR_BYTES_PER_POINT = 50.0, 4000.0    # FPFH + Fast Global Registration's correspondence sets
-SCENE_MB, SCENE_BYTES_PER_POINT = 60.0, 21000.0  # FPFH + the scene network's context graph, per point per scan
-NETWORK_MB, NETWORK_BYTES_PER_POINT = 40.0, 20000.0  # the ModelNet40 VRNet (streamed matching), per point per cloud
 MIN_GLOBAL_POINTS, MIN_ICP_POINTS, MIN_NETWORK_POINTS = 1000, 5000, 256
+FLOORS = {"global_points": MIN_GLOBAL_POINTS, "network_points": MIN_NETWORK_POINTS, "icp_points": MIN_ICP_POINTS}
 
 _SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)(i?b?)\s*$", re.IGNORECASE)
 
@@ -68,86 +70,64 @@ def require_headroom(budget_bytes: int) -> None:
                                 f"hold {now_mb:.0f} MB; allow at least {floor_mb:.0f} MB plus room for the scans")
 
 
+class CostedEstimator(Protocol):
+    """What the planner reads of a global estimator (:class:`~vrnet_ext.registration.GlobalEstimator`)."""
+
+    sized_by: tuple[str, ...]
+
+    def peak_mb(self, largest_scan: int, counts: PointCounts) -> float | None: ...
+
+
 @dataclass
 class RegistrationPlan:
     """Point counts for one run and the peak they are expected to reach."""
 
-    global_points: int
-    network_points: int
-    icp_points: int
+    counts: PointCounts
     predicted_peak_mb: float
     budget_mb: float
     notes: list[str] = field(default_factory=list)
 
 
-PROFILES = ("icp", "fpfh", "fgr", "sc2", "scene", "modelnet")  # GlobalEstimator.memory_profile values
-
-
-def _stage_mb(profile: str | None, largest_scan: int, global_points: int, network_points: int,
-              icp_points: int, scale: float = 1.0) -> float:
-    """Largest transient of the run's stages (MB), safety factor included; ``profile``: the global
-    estimator's (:data:`PROFILES`; None: unknown, only the voxel grid and ICP are predicted);
-    ``scale``: its per-point cost against the shipped model's (a larger scene model costs more)."""
-    global_points, icp_points = min(global_points, largest_scan), min(icp_points, largest_scan)  # no scan grows
+def _stage_mb(estimator: CostedEstimator | None, largest_scan: int, counts: PointCounts) -> float:
+    """Largest transient of the run's stages (MB), safety factor included: the voxel grid, ICP and
+    the global estimator's own cost (:meth:`GlobalEstimator.peak_mb`; None or unknown: not counted)."""
+    counts = replace(counts, global_points=min(counts.global_points, largest_scan),  # no scan grows
+                     icp_points=min(counts.icp_points, largest_scan))
     stages = [VOXEL_BYTES_PER_INPUT_POINT * largest_scan / MB,
-              ICP_MB + ICP_BYTES_PER_POINT * 2 * icp_points / MB]
-    if profile in ("fpfh", "sc2"):
-        stages.append(FPFH_MB + FPFH_BYTES_PER_POINT * global_points / MB)
-    if profile == "fgr":
-        stages.append(FGR_MB + FGR_BYTES_PER_POINT * global_points / MB)
-    if profile == "sc2":  # the compatibility graph: one bit per pair of correspondences (one per point)
-        stages.append(FPFH_MB + global_points * global_points / 8 / MB)
-    elif profile == "scene":
-        stages.append(SCENE_MB + scale * SCENE_BYTES_PER_POINT * global_points / MB)
-    elif profile == "modelnet":
-        stages.append(NETWORK_MB + NETWORK_BYTES_PER_POINT * network_points / MB)
+              ICP_MB + ICP_BYTES_PER_POINT * 2 * counts.icp_points / MB]
+    cost = getattr(estimator, "peak_mb", None)  # an estimator object of one's own may not state it
+    own = None if cost is None else cost(largest_scan, counts)
+    if own is not None:
+        stages.append(own)
     return SAFETY * max(stages)
 
 
-def plan_registration(budget_bytes: int, profile: str | None, source_points: int, target_points: int,
-                      global_points: int, network_points: int, icp_points: int,
-                      scale: float = 1.0) -> RegistrationPlan:
-    """Point counts that keep the process's peak within ``budget_bytes``.
-
-    profile: the global estimator's memory profile (:data:`PROFILES`, or None when unknown);
-    scale: its per-point cost relative to the profile's (``GlobalEstimator.memory_scale``).
-    Raises :class:`MemoryBudgetError` when what the process holds now plus even the smallest
-    counts' transients would not fit.
-    """
+def plan_registration(budget_bytes: int, estimator: CostedEstimator | None, source_points: int,
+                      target_points: int, requested: PointCounts) -> RegistrationPlan:
+    """Point counts that keep the process's peak within ``budget_bytes``: ``requested`` where they
+    fit, else lowered (never below the ``MIN_*`` counts), ICP's and those the estimator is
+    ``sized_by``. Raises :class:`MemoryBudgetError` when what the process holds now plus even the
+    smallest counts' transients would not fit."""
     budget_mb = budget_bytes / MB
     now_mb = resident_mb()  # what the process holds now (an earlier peak of a long-lived process is past)
     largest = max(source_points, target_points)
-    counts = {"global_points": global_points, "network_points": network_points, "icp_points": icp_points}
-    floors = {"global_points": MIN_GLOBAL_POINTS, "network_points": MIN_NETWORK_POINTS,
-              "icp_points": MIN_ICP_POINTS}
-    if profile is not None and profile not in PROFILES:
-        raise ValueError(f"memory profile must be one of {PROFILES} or None, got {profile!r}")
-    used = {"icp_points"} | ({"global_points"} if profile in ("fpfh", "fgr", "sc2", "scene") else set()) \
-        | ({"network_points"} if profile == "modelnet" else set())
-    notes = []
+    shrinkable = ("icp_points", *(getattr(estimator, "sized_by", ()) or ()))
+    counts = requested
 
-    def predicted() -> float:
-        return now_mb + MARGIN_MB + _stage_mb(profile, largest, **counts, scale=scale)
+    def predicted(at: PointCounts) -> float:
+        return now_mb + MARGIN_MB + _stage_mb(estimator, largest, at)
 
-    while predicted() > budget_mb:
-        shrinkable = [name for name in sorted(used) if counts[name] > floors[name]]
-        if not shrinkable:
+    while predicted(counts) > budget_mb:
+        lower = {name: max(FLOORS[name], int(getattr(counts, name) * 0.8)) for name in shrinkable
+                 if getattr(counts, name) > FLOORS[name]}
+        if not lower:
             raise MemoryBudgetError(
                 f"max_memory {budget_mb:.0f} MB cannot be met: the smallest run (global estimate on "
                 f"{MIN_GLOBAL_POINTS} points, ICP on {MIN_ICP_POINTS}) needs about "
-                f"{_smallest_mb(now_mb, profile, source_points, target_points, scale):.0f} MB, "
+                f"{predicted(replace(requested, **FLOORS)):.0f} MB, "
                 f"{now_mb:.0f} MB of it held already (Python, torch and the scans)")
-        for name in shrinkable:
-            counts[name] = max(floors[name], int(counts[name] * 0.8))
-    for name, requested in (("global_points", global_points), ("network_points", network_points),
-                            ("icp_points", icp_points)):
-        if counts[name] < requested:
-            notes.append(f"{name} {counts[name]} instead of {requested} to stay within {budget_mb:.0f} MB")
-    return RegistrationPlan(counts["global_points"], counts["network_points"], counts["icp_points"], predicted(),
-                            budget_mb, notes)
-
-
-def _smallest_mb(now_mb: float, profile: str | None, source_points: int, target_points: int,
-                 scale: float = 1.0) -> float:
-    return now_mb + MARGIN_MB + _stage_mb(profile, max(source_points, target_points), MIN_GLOBAL_POINTS,
-                                          MIN_NETWORK_POINTS, MIN_ICP_POINTS, scale)
+        counts = replace(counts, **lower)
+    notes = [f"{name} {getattr(counts, name)} instead of {getattr(requested, name)} to stay within {budget_mb:.0f} MB"
+             for name in ("global_points", "network_points", "icp_points")
+             if getattr(counts, name) < getattr(requested, name)]
+    return RegistrationPlan(counts=counts, predicted_peak_mb=predicted(counts), budget_mb=budget_mb, notes=notes)

@@ -22,8 +22,8 @@ import torch
 
 from vrnet_ext import ops
 from vrnet_ext.geometry.transforms import apply
+from vrnet_ext.registration.methods import ICP_STEPS as ESTIMATORS
 
-ESTIMATORS = ("point_to_point", "point_to_plane", "gicp")
 PLANE_FLATNESS = 1e-3  # GICP: the smallest covariance eigenvalue, relative to the others
 
 

@@ -64,7 +64,7 @@ def tuple_test(src: torch.Tensor, tgt: torch.Tensor, pairs: torch.Tensor, tuple_
 
 
 def fast_global_registration(src: torch.Tensor, tgt: torch.Tensor, src_features: torch.Tensor,
-                             tgt_features: torch.Tensor, max_distance: float = 0.025, iterations: int = 64,
+                             tgt_features: torch.Tensor, *, max_distance: float = 0.025, iterations: int = 64,
                              division_factor: float = 1.4, tuple_scale: float = 0.95, max_tuples: int = 1000,
                              seed: int = 0) -> torch.Tensor:
     """src (N, 3), tgt (M, 3) float64 with descriptors (N | M, F) -> (4, 4) T_target_source."""

@@ -1,8 +1,35 @@
-"""The names of the built-in global estimates and the default one (no torch: ``vrnet --help``
-lists them). The estimators themselves are in :mod:`vrnet_ext.registration.global_estimators`."""
+"""The names and defaults of the registration wing, in one torch-free place (``vrnet --help``
+lists them): the built-in global estimates, the default one, ICP's steps and how many points each
+stage works on. The estimators themselves are in :mod:`vrnet_ext.registration.global_estimators`
+and :mod:`vrnet_ext.registration.estimators`."""
 from __future__ import annotations
+
+from dataclasses import dataclass
+from numbers import Integral
 
 GLOBAL_ESTIMATORS = ("sc2", "fpfh", "vrnet", "fgr", "icp")
 # The best recall on the real pairs (benchmarks/bench_real_pairs.py; docs/user_guide.md), and on those
 # the scene model never saw.
 DEFAULT_METHOD = "sc2"
+ICP_STEPS = ("point_to_point", "point_to_plane", "gicp")
+DEFAULT_ICP_STEP = "point_to_plane"
+
+
+@dataclass(frozen=True)
+class PointCounts:
+    """About how many points each stage of a registration works on, per scan: the global estimate
+    on scans voxel-downsampled to ``global_points`` (FPFH, spatial consistency, RANSAC, FGR, the
+    scene model), a ModelNet40 network on ``network_points`` subsampled ones, ICP on scans
+    voxel-downsampled to ``icp_points``. A memory budget lowers them
+    (:func:`vrnet_ext.registration.budget.plan_registration`)."""
+
+    global_points: int = 5000
+    network_points: int = 1024
+    icp_points: int = 50_000
+
+    def __post_init__(self) -> None:
+        for name, smallest in (("global_points", 3), ("network_points", 1), ("icp_points", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, Integral) or value < smallest:
+                raise ValueError(f"{name} must be an integer >= {smallest}, got {value!r}")
+            object.__setattr__(self, name, int(value))

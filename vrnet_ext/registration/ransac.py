@@ -37,7 +37,7 @@ HYPOTHESES = 1_000_000  # enough for 3 % inliers: log(0.001) / log(1 - 0.03^3) =
 SCORED_AT_ONCE = 1 << 21  # hypothesis x match residuals scored at a time (48 MB of float64 offsets)
 
 
-def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_distance: float,
+def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_distance: float, *,
            iterations: int = HYPOTHESES, confidence: float = 0.999, batch: int = 8192,
            seed: int = 0) -> tuple[torch.Tensor, int]:
     """Rigid transform from putative matches (C, 2) between src (N, 3) and tgt (M, 3).
@@ -90,5 +90,12 @@ def fpfh_ransac(src: torch.Tensor, tgt: torch.Tensor, voxel_size: float, iterati
     """Initial estimate for two voxel-downsampled scans src (N, 3), tgt (M, 3) (same unit) ->
     (4x4 transform taking src onto tgt, RANSAC inlier count): :func:`voxel_fpfh` features,
     mutual matches, inliers within 1.5 voxels (Open3D's global registration tutorial)."""
-    matches = mutual_matches(voxel_fpfh(src, voxel_size), voxel_fpfh(tgt, voxel_size))
-    return ransac(src, tgt, matches, 1.5 * voxel_size, iterations, seed=seed)
+    return feature_ransac(src, tgt, voxel_fpfh(src, voxel_size), voxel_fpfh(tgt, voxel_size), voxel_size,
+                          iterations=iterations, seed=seed)
+
+
+def feature_ransac(src: torch.Tensor, tgt: torch.Tensor, src_features: torch.Tensor, tgt_features: torch.Tensor,
+                   voxel_size: float, *, iterations: int = HYPOTHESES, seed: int = 0) -> tuple[torch.Tensor, int]:
+    """:func:`fpfh_ransac` with the descriptors (N, F), (M, F) already computed."""
+    matches = mutual_matches(src_features, tgt_features)
+    return ransac(src, tgt, matches, 1.5 * voxel_size, iterations=iterations, seed=seed)

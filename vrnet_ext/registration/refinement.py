@@ -12,6 +12,7 @@ import torch
 
 from vrnet_ext import ops
 from vrnet_ext.registration.estimators import make_estimator
+from vrnet_ext.registration.methods import DEFAULT_ICP_STEP, PointCounts
 from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import apply
 
@@ -88,29 +89,31 @@ def _nearest_in_reach(moved: torch.Tensor, tgt: torch.Tensor, reach: TargetReach
 
 class IcpProblem:
     """One ICP problem, prepared once and run from any number of starts (as small_gicp prepares
-    clouds before aligning): both scans as float64 tensors, the estimator's per-cloud data (normals
+    clouds before aligning): both scans as float64 tensors, the step's per-cloud data (normals
     for point-to-plane, covariances for GICP) and the reach grid (:class:`TargetReach`).
 
-    src (N, 3), tgt (M, 3) arrays in one unit; max_distance: pairs farther apart get weight 0;
-    estimator: :mod:`vrnet_ext.registration.estimators` (point_to_point, point_to_plane, gicp).
+    src (N, 3), tgt (M, 3) arrays in one unit; settings: :class:`IcpSettings` (its ``max_distance``
+    must be set: pairs farther apart get weight 0).
     """
 
-    def __init__(self, src: np.ndarray, tgt: np.ndarray, max_distance: float, estimator: str = "point_to_point",
+    def __init__(self, src: np.ndarray, tgt: np.ndarray, settings: IcpSettings,
                  device: torch.device = torch.device("cpu"), backend: str = "ext") -> None:
+        if settings.max_distance is None:
+            raise ValueError("settings.max_distance must be set for ICP (register() derives it from the voxel edge)")
+        self.settings, self.backend = settings, backend
         self.src = torch.as_tensor(src, dtype=torch.float64, device=device).unsqueeze(0)
         self.tgt = torch.as_tensor(tgt, dtype=torch.float64, device=device).unsqueeze(0)
-        self.max_distance, self.estimator, self.backend = max_distance, estimator, backend
-        self.step = make_estimator(estimator)
+        self.step = make_estimator(settings.estimator)
         self.step.prepare(self.src[0], self.tgt[0])
-        self.reach = TargetReach(self.tgt, max_distance)
+        self.reach = TargetReach(self.tgt, settings.max_distance)
 
-    def run(self, initial: np.ndarray, iterations: int = 50, tolerance: float = 1e-6,
-            settled: float = 1e-6) -> RegistrationResult:
+    def run(self, initial: np.ndarray) -> RegistrationResult:
         """ICP from ``initial`` (4, 4); see :func:`icp`."""
-        src_t, tgt_t, max_distance = self.src, self.tgt, self.max_distance
+        src_t, tgt_t, settings = self.src, self.tgt, self.settings
+        max_distance = settings.max_distance
         T = torch.as_tensor(initial, dtype=torch.float64, device=src_t.device)
         done, converged, previous = 0, False, None
-        while done < iterations:
+        while done < settings.max_iterations:
             moved = apply(T, src_t)
             candidates, dist2, idx = _nearest_in_reach(moved, tgt_t, self.reach, self.backend)
             inliers = (dist2 <= max_distance ** 2).to(src_t.dtype)
@@ -119,8 +122,8 @@ class IcpProblem:
                 raise IcpFailure(f"ICP: fewer than 3 point pairs within max_distance={max_distance:g} of the initial "
                                  "estimate (too far off; raise max_distance or check the inputs)")
             current = (count / src_t.shape[1], float((dist2 * inliers).sum() / count) ** 0.5)
-            if previous is not None and abs(current[0] - previous[0]) < settled \
-                    and abs(current[1] - previous[1]) < settled:
+            if previous is not None and abs(current[0] - previous[0]) < settings.settled \
+                    and abs(current[1] - previous[1]) < settings.settled:
                 converged = True
                 break
             previous = current
@@ -129,33 +132,35 @@ class IcpProblem:
             change_rotation = torch.linalg.matrix_norm(new[:3, :3] - T[:3, :3]).item()
             change_translation = torch.linalg.vector_norm(new[:3, 3] - T[:3, 3]).item()
             T = new
-            if change_rotation < tolerance and change_translation < tolerance:
+            if change_rotation < settings.transform_tolerance and change_translation < settings.transform_tolerance:
                 converged = True
                 break
         _, dist2, _ = _nearest_in_reach(apply(T, src_t), tgt_t, self.reach, self.backend)
         close = dist2[dist2 <= max_distance ** 2]
         rmse = float(close.mean().sqrt()) if len(close) else float("nan")
-        return RegistrationResult(T.cpu().numpy(), np.asarray(initial, dtype=np.float64), "icp", self.estimator, done,
-                                  converged, len(close) / src_t.shape[1], rmse, len(close),
+        return RegistrationResult(T_target_source=T.cpu().numpy(), initial=np.asarray(initial, dtype=np.float64),
+                                  method="icp", estimator=settings.estimator, iterations=done, converged=converged,
+                                  fitness=len(close) / src_t.shape[1], inlier_rmse=rmse, correspondences=len(close),
                                   points={"source": src_t.shape[1], "target": tgt_t.shape[1]})
 
 
-def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, max_distance: float, iterations: int = 50,
-        tolerance: float = 1e-6, device: torch.device = torch.device("cpu"), backend: str = "ext",
-        estimator: str = "point_to_point", settled: float = 1e-6) -> RegistrationResult:
-    """ICP: nearest target neighbour of each moved source point, pairs farther than ``max_distance``
-    get weight 0, then one step of ``estimator`` (:mod:`vrnet_ext.registration.estimators`:
-    point_to_point, point_to_plane, gicp). Converged when a step changes the transform by less than
-    ``tolerance`` (rotation in radians, translation in metres), or when the fitness (a share) and the
-    inlier RMSE (in the scans' unit) of the correspondences both change by less than ``settled``
-    from one iteration to the next (Open3D's ICPConvergenceCriteria: the pairs have settled). At most
-    ``iterations`` steps. Points that :class:`TargetReach` rules out are not searched (they would
-    get weight 0 anyway). Several starts on the same scans: prepare an :class:`IcpProblem` once.
+def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, settings: IcpSettings, *,
+        device: torch.device = torch.device("cpu"), backend: str = "ext") -> RegistrationResult:
+    """ICP: nearest target point of each moved source point, pairs farther than
+    ``settings.max_distance`` (required here) get weight 0, then one step of ``settings.estimator``
+    (:mod:`vrnet_ext.registration.estimators`: point_to_point, point_to_plane, gicp). Converged when
+    a step changes the transform by less than ``settings.transform_tolerance`` (rotation in radians,
+    translation in the scans' unit), or when the fitness (a share) and the inlier RMSE (in the
+    scans' unit) of the correspondences both change by less than ``settings.settled`` from one
+    iteration to the next (Open3D's ICPConvergenceCriteria: the pairs have settled). At most
+    ``settings.max_iterations`` steps. Points that :class:`TargetReach` rules out are not searched
+    (they would get weight 0 anyway). Several starts on the same scans: prepare an
+    :class:`IcpProblem` once.
 
     Returns a :class:`RegistrationResult` (method "icp"); raises IcpFailure when fewer than 3 pairs
     are within reach.
     """
-    return IcpProblem(src, tgt, max_distance, estimator, device, backend).run(initial, iterations, tolerance, settled)
+    return IcpProblem(src, tgt, settings, device, backend).run(initial)
 
 
 def fitness(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: float, backend: str = "ext") -> float:
@@ -184,8 +189,8 @@ class IcpSettings:
     voxel with a reach ``COARSE_FACTOR`` times longer, so it pulls in from farther off.
     """
 
-    estimator: str = "point_to_plane"
-    points: int = 50_000
+    estimator: str = DEFAULT_ICP_STEP
+    points: int = PointCounts.icp_points
     voxel_size: float | None = None
     max_distance: float | None = None
     max_iterations: int = 50

@@ -9,12 +9,12 @@ import torch
 from vrnet_ext.geometry.metrics import rotation_error_deg, translation_error
 
 
-@dataclass
+@dataclass(kw_only=True)
 class RegistrationResult:
     """One registration of a source scan onto a target scan (of :func:`register`, or one ICP run).
 
     ``T_target_source`` (4, 4) maps source points into the target frame (:mod:`vrnet_ext.geometry.transforms`);
-    ``initial`` is the transform the refinement started from.
+    ``initial`` is the transform the refinement started from. Built by keyword only.
     """
     T_target_source: np.ndarray
     initial: np.ndarray
@@ -37,8 +37,9 @@ class RegistrationResult:
                         points: dict[str, int] | None = None) -> "RegistrationResult":
         """A global estimate before any refinement: no ICP (estimator "none", 0 iterations), fitness and
         inlier RMSE not measured (NaN), ``initial`` the identity."""
-        return cls(np.asarray(T_target_source, dtype=np.float64), np.eye(4), method, "none", 0, False, float("nan"),
-                   float("nan"), 0, points=dict(points or {}), start=method, consensus=int(consensus))
+        return cls(T_target_source=np.asarray(T_target_source, dtype=np.float64), initial=np.eye(4), method=method,
+                   estimator="none", iterations=0, converged=False, fitness=float("nan"), inlier_rmse=float("nan"),
+                   correspondences=0, points=dict(points or {}), start=method, consensus=int(consensus))
 
     def to_dict(self) -> dict:
         """Every field, the 4x4 matrices as nested lists (for JSON)."""

@@ -1,0 +1,71 @@
+"""Scans prepared once per registration and shared by every global estimator and every ICP start
+(as small_gicp and Open3D prepare clouds before aligning them): a :class:`PreparedScan` keeps the
+voxel-downsampled copies and FPFH views it has made, by voxel edge; a :class:`ScanPair` holds the
+source and target with the point counts of the run (:class:`~vrnet_ext.registration.methods.PointCounts`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+import torch
+
+from vrnet_ext.geometry.features import ScanView, describe
+from vrnet_ext.geometry.preprocessing import voxel_downsample, voxel_size_for
+from vrnet_ext.registration.methods import PointCounts
+
+CPU = torch.device("cpu")
+
+
+@dataclass
+class PreparedScan:
+    """One scan, ``points`` (N, 3) float64 in its unit, with what the stages of a registration made
+    of it on ``device``, each made on first use and then reused."""
+
+    points: np.ndarray
+    device: torch.device = CPU
+    _downsampled: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
+    _views: dict[float, ScanView] = field(default_factory=dict, repr=False)
+
+    def downsampled(self, voxel: float) -> np.ndarray:
+        """(V, 3) float64: the centroid of the points in each ``voxel``-edged cell."""
+        if voxel not in self._downsampled:
+            self._downsampled[voxel] = voxel_downsample(self.points, voxel)
+        return self._downsampled[voxel]
+
+    def view(self, voxel: float) -> ScanView:
+        """The scan downsampled at ``voxel`` with its FPFH descriptors (V, 33) on ``device``."""
+        if voxel not in self._views:
+            self._views[voxel] = describe(self.downsampled(voxel), voxel, self.device)
+        return self._views[voxel]
+
+
+@dataclass
+class ScanPair:
+    """Source and target of one registration, prepared once, and the point counts of the run."""
+
+    src: PreparedScan
+    tgt: PreparedScan
+    counts: PointCounts = PointCounts()
+
+    @classmethod
+    def of(cls, src: np.ndarray, tgt: np.ndarray, counts: PointCounts = PointCounts(),
+           device: torch.device = CPU) -> "ScanPair":
+        """src (N, 3), tgt (M, 3) arrays -> a pair prepared on ``device``."""
+        return cls(PreparedScan(np.asarray(src, dtype=np.float64), device),
+                   PreparedScan(np.asarray(tgt, dtype=np.float64), device), counts)
+
+    @property
+    def device(self) -> torch.device:
+        return self.tgt.device
+
+    @cached_property
+    def global_voxel(self) -> float:
+        """The voxel edge that leaves the target about ``counts.global_points`` points (the global
+        estimators' feature radii are multiples of it)."""
+        return voxel_size_for(self.tgt.points, self.counts.global_points)
+
+    def global_views(self) -> tuple[ScanView, ScanView]:
+        """Both scans at :attr:`global_voxel`, with their FPFH descriptors."""
+        voxel = self.global_voxel
+        return self.src.view(voxel), self.tgt.view(voxel)
