@@ -6,6 +6,9 @@ import argparse
 import json
 import math
 import os
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext, redirect_stdout
 from pathlib import Path
 
 
@@ -151,9 +154,31 @@ DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNE
                  "else ../shared/data/modelnet40 beside the project)")
 
 
+STDOUT = "-"  # --json -: the record on standard output
+
+
+def json_output(text: str) -> str:
+    """A ``--json`` argument: a file as :func:`writable_path` checks it, or ``-`` for standard output."""
+    return text if text == STDOUT else writable_path(text)
+
+
+@contextmanager
+def report_to(json_path: str | Path | None) -> Iterator[None]:
+    """The block's human-readable report goes to standard error when the JSON record takes standard
+    output (``--json -``), so that a pipe receives the record alone."""
+    with redirect_stdout(sys.stderr) if str(json_path) == STDOUT else nullcontext():
+        yield
+
+
 def write_json(path: str | Path, record: dict) -> None:
+    """The record as JSON at ``path`` (atomically; a device or FIFO is written into), or on standard
+    output for ``-``."""
     from vrnet_ext.geometry.atomic import atomic_output
 
+    text = json.dumps(record, indent=1)
+    if str(path) == STDOUT:
+        print(text)
+        return
     with atomic_output(path) as temporary:
-        temporary.write_text(json.dumps(record, indent=1))
+        temporary.write_text(text)
     print(f"wrote {path}")

@@ -5,12 +5,13 @@ import argparse
 import resource
 import sys
 
-from vrnet_ext.cli.common import (DefaultsHelpFormatter, device_name, memory_size, nonnegative_int, positive_float,
-                                  positive_int, writable_path, write_json)
+from vrnet_ext.cli.common import (DefaultsHelpFormatter, device_name, json_output, memory_size, nonnegative_int,
+                                  positive_float, positive_int, report_to, writable_path, write_json)
 
 
 def add_register(sub) -> None:
-    from vrnet_ext.registration.methods import DEFAULT_METHOD, GLOBAL_ESTIMATORS
+    from vrnet_ext.registration.methods import (DEFAULT_ICP_STEP, DEFAULT_METHOD, GLOBAL_ESTIMATORS, ICP_STEPS,
+                                                PointCounts)
 
     p = sub.add_parser(
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
@@ -32,13 +33,15 @@ def add_register(sub) -> None:
                          help="with --method vrnet: shipped model name or checkpoint (a scene model of `vrnet "
                               "train-scene`, or best.pt of `vrnet train`); default: the shipped scene model")
     initial.add_argument("--fpfh", action="store_true", help="the same as --method fpfh")
-    p.add_argument("--global-points", "--fpfh-points", dest="global_points", type=positive_int, default=5000,
+    p.add_argument("--global-points", "--fpfh-points", dest="global_points", type=positive_int,
+                   default=PointCounts.global_points,
                    help="about this many points per scan for the global estimate (scene model, FPFH)")
     p.add_argument("--max-memory", type=memory_size, default=None,
                    help="peak memory budget of the whole run, e.g. 2GB or 512MB: sizes the point counts "
                         "and fails at once if the budget cannot be met")
-    p.add_argument("--network-points", type=positive_int, default=1024, help="points per cloud fed to VRNet")
-    p.add_argument("--icp-points", type=positive_int, default=50_000,
+    p.add_argument("--network-points", type=positive_int, default=PointCounts.network_points,
+                   help="points per cloud fed to VRNet")
+    p.add_argument("--icp-points", type=positive_int, default=PointCounts.icp_points,
                    help="about this many points per cloud for ICP")
     p.add_argument("--voxel-size", type=positive_float, default=None,
                    help="ICP voxel edge, in the scans' unit (default: from --icp-points)")
@@ -49,10 +52,10 @@ def add_register(sub) -> None:
                    help="ICP stops when a step moves the transform by less (radians; the scans' unit)")
     p.add_argument("--coarse-start", action=argparse.BooleanOptionalAction, default=True,
                    help="ICP from no motion first runs on 4x coarser voxels with a 4x longer reach")
-    p.add_argument("--estimator", choices=("point_to_point", "point_to_plane", "gicp"), default="point_to_plane",
+    p.add_argument("--estimator", choices=ICP_STEPS, default=DEFAULT_ICP_STEP,
                    help="ICP step: point-to-point (Kabsch), point-to-plane, or plane-to-plane (GICP)")
     p.add_argument("--gt", default=None, help="ground-truth 4x4 transform file: report the errors")
-    p.add_argument("--json", type=writable_path, default=None, help="write the result here")
+    p.add_argument("--json", type=json_output, default=None, help="write the result here (- for standard output)")
     p.add_argument("--out", type=writable_path, default=None, help="write the moved source as a PLY here")
     p.add_argument("--plot", type=writable_path, default=None, help="write top/side views (PNG) here")
     p.add_argument("--backend", choices=("ext", "torch"), default="ext",
@@ -66,6 +69,15 @@ INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "sc2": "FPFH + spati
 
 
 def run_register(args) -> int:
+    with report_to(args.json):
+        record = _register_and_report(args)
+    if args.json:
+        write_json(args.json, record)
+    return 0
+
+
+def _register_and_report(args) -> dict:
+    """Registers, prints the report and writes --out / --plot -> the JSON record."""
     import numpy as np
 
     from vrnet_ext.geometry.io import read_points, read_transform, write_ply
@@ -130,9 +142,7 @@ def run_register(args) -> int:
 
         views = {"initial": result.initial, "final": result.T_target_source}
         print(f"wrote {plot_registration(src, tgt, views, args.plot)}")
-    if args.json:
-        write_json(args.json, record)
-    return 0
+    return record
 
 
 def add_demo(sub) -> None:
@@ -148,13 +158,21 @@ def add_demo(sub) -> None:
     p.add_argument("--pairs", type=int, default=4, help="pairs to register")
     p.add_argument("--seed", type=int, default=0, help="seed of the shapes and motions")
     p.add_argument("--out", default="demo.png", help="picture of the first pair")
-    p.add_argument("--json", default=None, help="also write the results here")
+    p.add_argument("--json", type=json_output, default=None, help="also write the results here (- for standard output)")
 
 
 def run_demo(args) -> int:
-    from vrnet_ext.model.pretrained import load_vrnet
+    with report_to(args.json):
+        result = _demo_and_report(args)
+    if args.json:
+        write_json(args.json, result)
+    return 0
+
+
+def _demo_and_report(args) -> dict:
+    """Runs the demo and prints its table -> the JSON record."""
     from vrnet_ext.demo import run_demo
-    from vrnet_ext.model.pretrained import DEFAULT_MODEL
+    from vrnet_ext.model.pretrained import DEFAULT_MODEL, load_vrnet
 
     name = args.model or DEFAULT_MODEL
     model, _ = load_vrnet(name)
@@ -168,6 +186,4 @@ def run_demo(args) -> int:
           f"{result['mean_translation_error']:.4f}, median {result['median_seconds_per_pair']:.3f} s per pair")
     if result.get("plot"):
         print(f"wrote {result['plot']}")
-    if args.json:
-        write_json(args.json, result)
-    return 0
+    return result

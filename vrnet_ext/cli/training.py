@@ -8,8 +8,9 @@ from dataclasses import fields
 from pathlib import Path
 
 from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFormatter, existing_folder,
-                                  nonnegative_int, output_folder, parse_bool, positive_float, positive_int,
-                                  train_device, unit_interval, view_points, writable_path, write_json)
+                                  json_output, nonnegative_int, output_folder, parse_bool, positive_float,
+                                  positive_int, report_to, train_device, unit_interval, view_points, writable_path,
+                                  write_json)
 from vrnet_ext.data.protocol import FAR_POINTS, MIXED, SETTINGS
 
 
@@ -175,12 +176,20 @@ def add_eval(sub) -> None:
                    help="the Transformer's products: auto = bfloat16 on a CPU with native bf16 (AVX512-BF16 / AMX), "
                         "else float32 (default: auto)")
     p.add_argument("--device", default="cpu", help="torch device to run on, e.g. cpu or cuda")
-    p.add_argument("--json", default=None,
-                   help="output JSON path (default: eval_SETTING_SPLIT.json beside a checkpoint file, or in the "
-                        "working folder for a shipped model)")
+    p.add_argument("--json", type=json_output, default=None,
+                   help="output JSON path, - for standard output (default: eval_SETTING_SPLIT.json beside a "
+                        "checkpoint file, or in the working folder for a shipped model)")
 
 
 def run_eval(args) -> int:
+    with report_to(args.json):
+        result, out = _evaluate_and_report(args)
+    write_json(out, result)
+    return 0
+
+
+def _evaluate_and_report(args) -> tuple[dict, Path | str]:
+    """Evaluates, prints the table -> (the JSON record, where it goes)."""
     from vrnet_ext.data import ModelNet40Pairs, PairSpec
     from vrnet_ext.learning.evaluate import evaluate, format_table, time_inference
     from vrnet_ext.model.pretrained import load_vrnet
@@ -216,9 +225,8 @@ def run_eval(args) -> int:
                   transformer_precision=args.transformer_precision,
                   transformer_bf16=model.eval().transformer_in_bf16(data[0]["src"].to(args.device)))
     print(format_table({k: v for k, v in result.items() if isinstance(v, (int, float))}, f"VRNet {setting} {split}"))
-    out = Path(args.json) if args.json else Path(args.checkpoint).with_name(f"eval_{setting}_{split}.json".replace("+", ""))
-    write_json(out, result)
-    return 0
+    out = args.json or Path(args.checkpoint).with_name(f"eval_{setting}_{split}.json".replace("+", ""))
+    return result, out
 
 
 def add_plot(sub) -> None:

@@ -21,15 +21,38 @@ def _file_mode(path: Path) -> int:
     return 0o666 & ~umask
 
 
+def _resolved(path: Path) -> Path:
+    """The file ``path`` names once symlinks are followed (a dangling link: the file it would create);
+    OutputError for a symlink loop."""
+    try:
+        return Path(os.path.realpath(path, strict=True))
+    except FileNotFoundError:
+        return Path(os.path.realpath(path))
+    except OSError as error:
+        raise OutputError(f"{path}: cannot write there ({error.strerror or error})") from None
+
+
 @contextmanager
 def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
     """Yields a temporary path beside ``path`` (same folder and suffix) to write to. When the block
     ends without error the file is flushed to disk and renamed over ``path``; otherwise it is
-    removed, so ``path`` holds either the new complete file or what it held before. An ``OSError``
-    (full disk, file size limit, unwritable folder) becomes :class:`OutputError` naming ``path``."""
+    removed, so ``path`` holds either the new complete file or what it held before. A symlink is
+    followed (the file it points to is replaced, the link kept). Where ``path`` is not a regular
+    file (``/dev/null``, ``/dev/stdout``, a FIFO) the block writes into it directly: it is never
+    replaced. An ``OSError`` (full disk, file size limit, unwritable folder) becomes
+    :class:`OutputError` naming ``path``."""
     path = Path(path)
+    target = _resolved(path)
+    if target.is_dir():
+        raise OutputError(f"{path} is a folder; give a file name")
+    if target.exists() and not target.is_file():
+        try:
+            yield target
+        except OSError as error:
+            raise OutputError(f"{path}: could not write it ({error.strerror or error})") from None
+        return
     try:
-        fd, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+        fd, temporary = tempfile.mkstemp(prefix=f".{target.name}.", suffix=target.suffix, dir=target.parent)
         os.close(fd)
     except OSError as error:
         raise OutputError(f"{path}: cannot write there ({error.strerror or error})") from None
@@ -38,8 +61,8 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
         yield temporary
         with open(temporary, "rb+") as f:
             os.fsync(f.fileno())
-        os.chmod(temporary, _file_mode(path))  # mkstemp's files are private (0600); an output is not
-        os.replace(temporary, path)
+        os.chmod(temporary, _file_mode(target))  # mkstemp's files are private (0600); an output is not
+        os.replace(temporary, target)
     except OSError as error:
         temporary.unlink(missing_ok=True)
         raise OutputError(f"{path}: could not write it ({error.strerror or error}); nothing was written") from None
