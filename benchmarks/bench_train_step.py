@@ -69,7 +69,7 @@ def make_step(model: VRNet, batch: dict, stage: int, impl: str) -> Callable[[int
                 loss = correspondence_loss(out.matching, batch["gt_idx"])
             else:
                 loss, _ = hybrid_loss(out, batch["src"], batch["rotation"], batch["translation"], HybridLossWeights(),
-                                      torch.Generator().manual_seed(i), backend)
+                                      generator=torch.Generator().manual_seed(i), backend=backend)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

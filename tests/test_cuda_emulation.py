@@ -1,4 +1,4 @@
-"""Every CUDA kernel of csrc/ executed on the CPU under the CUDA emulator (csrc/cuda_emu), with its
+"""Every CUDA kernel of csrc/ executed on the CPU under the CUDA emulator (tests/cuda_emu, headers in csrc/cuda_emu), with its
 sanitizer on: the emulator's self-tests (broken kernels it must report, good patterns it must pass),
 then the CUDA glue of every op (torch.ops.vrnet_ext_emu) against the CPU op (torch.ops.vrnet_ext) on
 the same inputs, forward and backward, and the same named errors for bad input.

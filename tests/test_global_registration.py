@@ -4,7 +4,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from conftest import DATA_DIR
-from test_register import motion, room
+from synthetic import motion, room
 from vrnet_ext.registration import ransac as ransac_module
 from vrnet_ext.cli import main
 from vrnet_ext.geometry.features import mutual_matches

@@ -7,6 +7,9 @@ functions): no import cycle between modules, and the wings depend on each other 
     data       pair providers (ModelNet40 protocol, procedural scenes, scan views): no registration
     registration   global estimators, ICP, budgets: never learning, never data
     learning   training, losses, evaluation, export: never registration
+
+Below them all, ``names`` (every name and default a user chooses from) imports nothing of the
+package. No function is long or takes many positional parameters.
 """
 import ast
 from pathlib import Path
@@ -15,6 +18,8 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "vrnet_ext"
 WINGS = ("ops", "geometry", "nn", "model", "data", "registration", "learning")
+# Modules below every wing that any wing may import (the names module imports nothing itself).
+BASE = ("vrnet_ext", "vrnet_ext._extension", "vrnet_ext._lazy", "vrnet_ext.runtime", "vrnet_ext.names")
 FORBIDDEN = {  # wing -> wings it must not import
     "ops": {"geometry", "nn", "model", "data", "registration", "learning"},
     "geometry": {"nn", "model", "data", "registration", "learning"},
@@ -104,7 +109,25 @@ def test_wings_import_only_downwards():
         for target in targets:
             if own and wing(target) in FORBIDDEN[own]:
                 violations.append(f"{module} imports {target}")
-            if own and wing(target) is None and target not in ("vrnet_ext", "vrnet_ext._extension", "vrnet_ext._lazy",
-                                                               "vrnet_ext.runtime"):
+            if own and wing(target) is None and target not in BASE:
                 violations.append(f"{module} imports {target}, outside the wings")
     assert not violations, "\n".join(sorted(violations))
+
+
+MAX_LINES, MAX_POSITIONAL = 80, 6
+
+
+def test_no_function_is_long_or_takes_many_positional_parameters():
+    """No function over 80 lines; none outside ``ops/`` (whose signatures mirror the op schemas)
+    with more than 6 positional parameters."""
+    found = set()
+    for path in sorted(PACKAGE.rglob("*.py")):
+        relative = path.relative_to(PACKAGE).as_posix()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            positional = [a for a in node.args.posonlyargs + node.args.args if a.arg not in ("self", "cls")]
+            too_many = len(positional) > MAX_POSITIONAL and not relative.startswith("ops/")
+            if node.end_lineno - node.lineno + 1 > MAX_LINES or too_many:
+                found.add((relative, node.name))
+    assert not found, sorted(found)

@@ -7,7 +7,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from conftest import DATA_DIR
-from test_scene import box_scan
+from synthetic import box_scan
 from vrnet_ext.cli import main
 from vrnet_ext.data.real_pairs import RealPairProvider, read_manifest, split
 from vrnet_ext.geometry.transforms import apply, to_homogeneous

@@ -9,6 +9,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from conftest import DATA_DIR, MODELNET_DIR, help_defaults_are_clean, requires_modelnet
+from synthetic import motion, room
 from vrnet_ext import ops
 from vrnet_ext.cli import main
 from vrnet_ext import load_pretrained
@@ -25,24 +26,6 @@ def point_to_point(max_distance: float, **settings) -> IcpSettings:
     return IcpSettings(estimator="point_to_point", max_distance=max_distance, transform_tolerance=1e-6, **settings)
 
 LIDAR = DATA_DIR / "scenes" / "lidar_pair"
-
-
-def room(count=4000, seed=0):
-    """Points on three orthogonal walls of a 4 m room corner plus a box: enough structure for ICP."""
-    rng = np.random.default_rng(seed)
-    walls = rng.uniform(0, 4, size=(count, 3))
-    walls[: count // 3, 0] = 0
-    walls[count // 3: 2 * count // 3, 1] = 0
-    walls[2 * count // 3:, 2] = 0
-    box = rng.uniform(1, 1.6, size=(count // 4, 3))
-    box[:, rng.integers(0, 3, count // 4)] = 1.0
-    return np.concatenate([walls, box]).astype(np.float64)
-
-
-def motion(degrees, translation, seed=1):
-    R = Rotation.from_rotvec(np.radians(degrees) * Rotation.random(random_state=seed).as_rotvec() /
-                             np.linalg.norm(Rotation.random(random_state=seed).as_rotvec())).as_matrix()
-    return to_homogeneous(R, np.asarray(translation, dtype=float))
 
 
 def test_voxel_downsample_averages_each_voxel():

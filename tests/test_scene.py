@@ -9,6 +9,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from conftest import DATA_DIR
+from synthetic import box_scan
 from vrnet_ext.model.checkpoints import CheckpointError
 from vrnet_ext.model.pretrained import load_model
 from vrnet_ext.cli import main
@@ -21,17 +22,6 @@ from vrnet_ext.geometry.preprocessing import voxel_downsample
 from vrnet_ext.learning.scene_training import SceneTrainConfig, pair_tensors, scene_loss, train_scene_model
 
 KITCHEN = DATA_DIR / "scenes" / "3dmatch_redkitchen"
-
-
-def box_scan(points: int = 4000, seed: int = 0) -> np.ndarray:
-    """Inside of a 4 x 3 x 2.5 box with a table, sampled by area (sensor near the centre)."""
-    rng = np.random.default_rng(seed)
-    faces = rng.integers(0, 6, points)
-    scan = rng.uniform([-2, -1.5, -1.25], [2, 1.5, 1.25], (points, 3))
-    for face in range(6):
-        scan[faces == face, face % 3] = [-2, -1.5, -1.25, 2, 1.5, 1.25][face]
-    table = rng.uniform([-0.5, -0.3, -0.5], [0.5, 0.3, -0.5], (points // 4, 3))
-    return np.concatenate([scan, table]) + rng.normal(0, 0.003, (points + points // 4, 3))
 
 
 def small_model() -> SceneVRNet:
@@ -133,7 +123,7 @@ def test_cli_impossible_budget_fails_at_once_without_a_traceback(tmp_path, capsy
     np.save(tmp_path / "a.npy", box_scan(500).astype(np.float32))
     assert main(["register", str(tmp_path / "a.npy"), str(tmp_path / "a.npy"), "--max-memory", "100MB"]) == 2
     err = capsys.readouterr().err
-    assert "max_memory 100 MB cannot be met" in err and "Traceback" not in err
+    assert "--max-memory 100 MB cannot be met" in err and "Traceback" not in err
     with pytest.raises(SystemExit):
         main(["register", str(tmp_path / "a.npy"), str(tmp_path / "a.npy"), "--max-memory", "lots"])
     assert "not a memory size" in capsys.readouterr().err

@@ -219,7 +219,7 @@ def test_features_fine_tuned_in_stage_2_form_their_own_group():
     src, tgt = torch.randn(2, 40, 3), torch.randn(2, 40, 3)
     model(src, tgt).translation.sum().backward()  # the estimate reaches the features through the matching
     assert all(p.grad is not None for p in features)
-    with pytest.raises(ValueError, match="--lr-features-stage2"):
+    with pytest.raises(ValueError, match="lr_features_stage2"):
         TrainConfig.from_preset("tiny", lr_features_stage2=-1e-5)
 
 
@@ -240,7 +240,7 @@ def test_stage_2_fine_tunes_the_features_only_when_asked(tmp_path):
     before, after = runs["tuned"]
     assert any(not torch.equal(before[k], after[k]) for k in before if k.endswith("weight"))
     assert all(torch.equal(before[k], after[k]) for k in before if k.endswith(("running_mean", "running_var")))
-    with pytest.raises(ValueError, match="--lr-features-stage2 0.001, this run with 0.0"):
+    with pytest.raises(ValueError, match="lr_features_stage2 0.001, this run with 0.0"):
         train(TrainConfig.from_preset("tiny", out_dir=str(tmp_path / "tuned"), progress=False, stage2_epochs=2,
                                       resume=str(tmp_path / "tuned" / "last.pt")),
               datasets=(ChairPairs(8, 0), ChairPairs(4, 1)))
@@ -259,15 +259,22 @@ def test_resuming_or_warm_starting_from_the_wrong_kind_of_file_is_a_named_error(
         train(tiny(tmp_path, "warm", features_from=str(scene)))
 
 
-def test_invalid_options_are_refused_naming_the_flag():
+def test_invalid_options_are_refused_naming_the_argument_and_on_the_command_line_the_flag(capsys):
+    from vrnet_ext.cli import main
+
     for overrides, flag in ((dict(stage1_epochs=-1), "--stage1-epochs"), (dict(seed=-1), "--seed"),
                             (dict(num_points=5000), "--num-points"), (dict(lr_milestones=[-5]), "--lr-milestones"),
                             (dict(loss_l4=float("nan")), "--loss-l4"), (dict(lr_stage2=0.0), "--lr-stage2"),
                             (dict(num_subsampled=2000, num_points=1024), "--num-subsampled"),
                             (dict(train_max_angle=0.0), "--train-max-angle"),
                             (dict(train_max_angle=720.0), "--train-max-angle")):
-        with pytest.raises(ValueError, match=flag):
+        name = next(iter(overrides))
+        with pytest.raises(ValueError, match=f"^{name} "):
             TrainConfig.from_preset("tiny", **overrides)
+        argv = [token for key, value in overrides.items()
+                for token in ["--" + key.replace("_", "-"), *map(str, value if isinstance(value, list) else [value])]]
+        assert main(["train", "--preset", "tiny", *argv]) == 2
+        assert f"error: {flag} " in capsys.readouterr().err
 
 
 def test_cli_refuses_an_output_file_and_a_missing_gpu_naming_the_flag(tmp_path, capsys):
@@ -353,3 +360,61 @@ def test_explicit_bf16_on_a_cpu_without_it_warns(tmp_path, monkeypatch):
     with pytest.warns(UserWarning, match="precision bf16: this CPU has no bfloat16 matrix products"):
         train(cfg, datasets=(ChairPairs(4, 0), ChairPairs(4, 1)))
     assert json.loads((tmp_path / "run" / "config.json").read_text())["precision"] == "bf16"
+
+
+class Killed(BaseException):
+    """Stands in for SIGKILL: raised instead of one file write, nothing after it runs."""
+
+
+def test_a_kill_at_any_write_then_resume_gives_the_files_of_an_uninterrupted_run(tmp_path, monkeypatch):
+    """A run killed before any one of its checkpoint, best-model or metrics writes, then resumed
+    from its ``last.pt`` (or started again when there is none yet), ends with the same models and
+    metrics rows as a run never killed, and no hidden temporary files."""
+    import vrnet_ext.learning.train as train_module
+
+    writes, kill_at = [], [None]
+    save, log = train_module._save, train_module._log
+
+    def write(real, *args):
+        if len(writes) == kill_at[0]:
+            raise Killed
+        writes.append(args[-1].name if isinstance(args[-1], os.PathLike) else "metrics")
+        real(*args)
+
+    monkeypatch.setattr(train_module, "_save", lambda checkpoint, path: write(save, checkpoint, path))
+    monkeypatch.setattr(train_module, "_log", lambda out_dir, record: write(log, out_dir, record))
+
+    def run(out, **overrides):
+        cfg = TrainConfig.from_preset("tiny", out_dir=str(out), progress=False, stage1_epochs=2, stage2_epochs=2,
+                                      **overrides)
+        return train(cfg, datasets=(ChairPairs(8, 0), ChairPairs(4, 1)))
+
+    def outcome(out):
+        models = {name: load_checkpoint(out / name) for name in ("last.pt", "best.pt", "best_stage1.pt",
+                                                                 "best_stage2.pt") if (out / name).exists()}
+        rows = [{k: v for k, v in json.loads(line).items() if not k.endswith("seconds")}
+                for line in (out / "metrics.jsonl").read_text().splitlines()]
+        return models, rows
+
+    run(tmp_path / "straight")
+    straight_models, straight_rows = outcome(tmp_path / "straight")
+    order = list(writes)
+    assert order.count("metrics") == 4 and order[-1] == "last.pt"
+    for k in range(len(order)):
+        out = tmp_path / f"killed_{k}"
+        writes.clear()
+        kill_at[0] = k
+        with pytest.raises(Killed):
+            run(out)
+        kill_at[0] = None
+        (out / ".last.pt.leftover.pt").write_bytes(b"half a checkpoint")
+        run(out, resume=str(out / "last.pt")) if (out / "last.pt").exists() else run(out)
+        models, rows = outcome(out)
+        assert rows == straight_rows, f"kill before write {k} ({order[k]})"
+        assert set(models) == set(straight_models), k
+        for name, model in models.items():
+            assert (model["stage"], model["epoch"], model["step"]) == tuple(straight_models[name][key] for key in
+                                                                           ("stage", "epoch", "step")), (k, name)
+            assert all(torch.equal(model["model"][p], straight_models[name]["model"][p]) for p in model["model"]), \
+                (k, name)
+        assert not [p.name for p in out.iterdir() if p.name.startswith(".")], k

@@ -9,6 +9,8 @@ import warnings
 
 import torch
 
+from vrnet_ext.names import BACKENDS
+
 try:
     from vrnet_ext import _C  # noqa: F401  (importing registers torch.ops.vrnet_ext.*)
 
@@ -22,7 +24,6 @@ except ImportError as exc:  # pragma: no cover - exercised only on broken instal
         stacklevel=2,
     )
 
-BACKENDS = ("ext", "torch")
 
 
 def has_extension() -> bool:

@@ -71,8 +71,9 @@ def run_demo(model: VRNet, pairs: int = 4, seed: int = 0, data_dir: str | Path |
         row = rows[0]
         title = (f"pair 0 ({origin.split(' of ')[0]}): true motion {row['true_angle_deg']:.1f} deg; "
                  f"error {row['rotation_error_deg']:.2f} deg / {row['translation_error']:.3f}")
-        result["plot"] = str(plot_pair(pair["src"], pair["tgt"], move(pair["src"], R_gt, t_gt), out.vcp[0].numpy(),
-                                       out.rcp[0].numpy(), move(pair["src"], R, t), plot_path, title))
+        result["plot"] = str(plot_pair(pair["src"], pair["tgt"], truth=move(pair["src"], R_gt, t_gt),
+                                       vcp=out.vcp[0].numpy(), rcp=out.rcp[0].numpy(), estimate=move(pair["src"], R, t),
+                                       path=plot_path, title=title))
     return result
 
 

@@ -50,7 +50,7 @@ def plot_registration(src, tgt, transforms: dict, path: str | Path, max_points: 
     return _save(fig, path, dpi=110)
 
 
-def plot_pair(src, tgt, truth, vcp, rcp, estimate, path: str | Path, title: str = "") -> Path:
+def plot_pair(src, tgt, *, truth, vcp, rcp, estimate, path: str | Path, title: str = "") -> Path:
     """Three 3-D panels of one registered pair (numpy arrays, all (N, 3) but ``tgt`` (M, 3)).
 
     1. the input: source (red) and target (green);

@@ -1,6 +1,6 @@
 // The operator schemas of the vrnet_ext library, as an X-macro: VRNET_OP_SCHEMAS(X) calls X(schema)
 // once per op. Defined once here for the library itself (csrc/registration.cpp) and for the test
-// library vrnet_ext_emu that runs the CUDA glue under the CPU emulator (csrc/cuda_emu/runtime.cpp).
+// library vrnet_ext_emu that runs the CUDA glue under the CPU emulator (tests/cuda_emu/runtime.cpp).
 #pragma once
 
 #define VRNET_OP_SCHEMAS(X) \

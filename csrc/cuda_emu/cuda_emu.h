@@ -5,9 +5,9 @@
 // warp collectives are rendezvous points between fibers of 32-lane warps. Blocks run one after the
 // other in a seeded random order and, in a second pass over a restored copy of the launch's tensors,
 // concurrently on several OS threads; results that differ between the passes are reported. The
-// sanitizer (cuda_emu/runtime.cpp) sees every load and store of the instrumented translation units
+// sanitizer (tests/cuda_emu/runtime.cpp) sees every load and store of the instrumented translation units
 // and checks it against the launch's tensors, the block's shared memory, the thread's own stack and
-// the module's static data. The runtime lives in runtime.cpp (not instrumented).
+// the module's static data. The runtime lives in tests/cuda_emu/runtime.cpp (not instrumented).
 //
 // Only this file and runtime.cpp know how threads run; kernels are written as plain CUDA.
 #pragma once

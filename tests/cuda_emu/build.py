@@ -1,6 +1,7 @@
 """Builds the emulated CUDA module: every ``csrc/<op>/<op>_cuda.cu`` compiled as C++ for the CPU
-emulator of ``csrc/cuda_emu`` (with GCC's thread-sanitizer *instrumentation*, whose hooks the
-emulator's runtime defines), plus the emulator's self-test kernels, linked into one shared library
+emulator (its headers in ``csrc/cuda_emu``, which the kernels include; its runtime here, in
+``runtime.cpp``, test infrastructure only) with GCC's thread-sanitizer *instrumentation*, whose hooks the
+emulator's runtime defines, plus the emulator's self-test kernels, linked into one shared library
 that registers the ``vrnet_ext_emu`` ops.
 
 ``build()`` writes ``build/cuda_emu/build.ninja`` and runs ninja (incremental: only changed
@@ -42,7 +43,7 @@ def _flags() -> list[str]:
 def _ninja_file() -> str:
     flags = " ".join(_flags())
     libs = " ".join(f"-L{path} -Wl,-rpath,{path}" for path in cpp_extension.library_paths())
-    units = [(CSRC / "cuda_emu" / "runtime.cpp", "cxx")]
+    units = [(HERE / "runtime.cpp", "cxx")]
     units += [(source, "cxx_instrumented") for source in kernel_sources()]
     units += [(HERE / "selftest_kernels.cu", "cxx_instrumented")]
     lines = [

@@ -73,7 +73,9 @@ def _dispatch(args) -> int:
                     "demo": run_demo, "export": run_export, "train-scene": run_train_scene}
         return commands[args.command](args)
     except (FileNotFoundError, ValueError) as exc:
-        print(f"vrnet {args.command}: error: {exc}", file=sys.stderr)
+        from vrnet_ext.cli.common import as_flags
+
+        print(f"vrnet {args.command}: error: {as_flags(str(exc), vars(args))}", file=sys.stderr)
         return 2
     except OSError as exc:  # an output that could not be written (atomic_output names it)
         print(f"vrnet {args.command}: error: {exc}", file=sys.stderr)

@@ -6,8 +6,9 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager, nullcontext, redirect_stdout
 from pathlib import Path
 
@@ -155,6 +156,24 @@ DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNE
 
 
 STDOUT = "-"  # --json -: the record on standard output
+# The library's messages name its arguments; the command line's user knows the flags. Arguments whose
+# flag is not the argument's own name:
+RENAMED = {"IcpSettings.max_iterations": "--icp-iterations"}
+
+
+def as_flags(message: str, options: Iterable[str] = ()) -> str:
+    """A library message with the arguments it names written as command-line flags: those of
+    :data:`RENAMED`, any of the command's ``options`` (argument names, e.g. ``num_points``) with an
+    underscore wherever it stands, and a one-word option where the message opens with it."""
+    flags = dict(RENAMED)
+    flags.update({name: "--" + name.replace("_", "-") for name in options if "_" in name})
+    if flags:
+        pattern = r"(?<![\w.-])(" + "|".join(map(re.escape, sorted(flags, key=len, reverse=True))) + r")(?![\w])"
+        message = re.sub(pattern, lambda match: flags[match.group(1)], message)
+    first = message.split(" ", 1)[0]
+    if first in options and "_" not in first:
+        message = "--" + message
+    return message
 
 
 def json_output(text: str) -> str:

@@ -5,13 +5,14 @@ import argparse
 import resource
 import sys
 
-from vrnet_ext.cli.common import (DefaultsHelpFormatter, device_name, json_output, memory_size, nonnegative_int,
-                                  positive_float, positive_int, report_to, writable_path, write_json)
+from vrnet_ext.cli.common import (DefaultsHelpFormatter, as_flags, device_name, json_output, memory_size,
+                                  nonnegative_int, positive_float, positive_int, report_to, writable_path, write_json)
 
 
 def add_register(sub) -> None:
-    from vrnet_ext.registration.methods import (DEFAULT_ICP_STEP, DEFAULT_METHOD, GLOBAL_ESTIMATORS, ICP_STEPS,
-                                                PointCounts)
+    from vrnet_ext.names import (BACKENDS, DEFAULT_BACKEND, DEFAULT_ICP_STEP, DEFAULT_METHOD, GLOBAL_ESTIMATORS,
+                                 ICP_STEPS)
+    from vrnet_ext.registration.counts import PointCounts
 
     p = sub.add_parser(
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
@@ -58,7 +59,7 @@ def add_register(sub) -> None:
     p.add_argument("--json", type=json_output, default=None, help="write the result here (- for standard output)")
     p.add_argument("--out", type=writable_path, default=None, help="write the moved source as a PLY here")
     p.add_argument("--plot", type=writable_path, default=None, help="write top/side views (PNG) here")
-    p.add_argument("--backend", choices=("ext", "torch"), default="ext",
+    p.add_argument("--backend", choices=BACKENDS, default=DEFAULT_BACKEND,
                    help="ext: the compiled kernels; torch: the pure-PyTorch references")
     p.add_argument("--device", type=device_name, default="cpu", help="torch device to run on, e.g. cpu or cuda")
     p.add_argument("--seed", type=int, default=0, help="seed of the global estimate's sampling")
@@ -81,23 +82,23 @@ def _register_and_report(args) -> dict:
     import numpy as np
 
     from vrnet_ext.geometry.io import read_points, read_transform, write_ply
-    from vrnet_ext.model.pretrained import DEFAULT_SCENE_MODEL
-    from vrnet_ext.registration import IcpSettings, register, transform_errors
-    from vrnet_ext.registration.methods import DEFAULT_METHOD
     from vrnet_ext.geometry.transforms import apply
+    from vrnet_ext.names import DEFAULT_SCENE_MODEL
+    from vrnet_ext.registration import IcpSettings, register, transform_errors
 
     if args.max_memory is not None:
         from vrnet_ext.registration.budget import require_headroom
 
         require_headroom(args.max_memory)
-    method = getattr(args, "method", None) or ("fpfh" if args.fpfh else "vrnet" if args.checkpoint else DEFAULT_METHOD)
+    # None: register() picks its default (the library decides it, once)
+    method = getattr(args, "method", None) or ("fpfh" if args.fpfh else "vrnet" if args.checkpoint else None)
     if args.fpfh and method != "fpfh" or args.checkpoint and method != "vrnet":
         raise ValueError(f"--method {method} does not take {'--fpfh' if args.fpfh else '--checkpoint'}")
     model = None
-    if method == "vrnet":  # before the scans: a bad checkpoint fails at once
+    if args.checkpoint:  # before the scans: a bad checkpoint fails at once
         from vrnet_ext.model.pretrained import load_model
 
-        model = load_model(args.checkpoint or DEFAULT_SCENE_MODEL, args.device)[0]
+        model = load_model(args.checkpoint, args.device)[0]
     src, tgt = read_points(args.source), read_points(args.target)
     truth = read_transform(args.gt) if args.gt else None
     icp_settings = IcpSettings(estimator=args.estimator, points=args.icp_points, voxel_size=args.voxel_size,
@@ -109,17 +110,15 @@ def _register_and_report(args) -> dict:
     record = result.to_dict()
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     record.update(source=str(args.source), target=str(args.target), peak_rss_mb=peak_mb,
-                  checkpoint=args.checkpoint or (DEFAULT_SCENE_MODEL if method == "vrnet" else None))
+                  checkpoint=args.checkpoint or (DEFAULT_SCENE_MODEL if result.method == "vrnet" else None))
     unconverged = " (not converged)" if result.iterations and not result.converged else ""
     print(f"source {len(src)} points, target {len(tgt)} points; "
-          f"initial estimate: {INITIAL_NAMES[result.start or method]}; "
+          f"initial estimate: {INITIAL_NAMES[result.start]}; "
           f"ICP ({result.estimator}) iterations {result.iterations}{unconverged}, "
           f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}; "
           f"{sum(result.seconds.values()):.1f} s, peak memory {peak_mb:.0f} MB")
-    for warning in result.warnings:  # the library names its arguments; the command's user knows the flags
-        for argument, flag in (("IcpSettings.max_iterations", "--icp-iterations"), ("max_distance", "--max-distance")):
-            warning = warning.replace(argument, flag)
-        print(f"vrnet register: warning: {warning}", file=sys.stderr)
+    for warning in result.warnings:
+        print(f"vrnet register: warning: {as_flags(warning, vars(args))}", file=sys.stderr)
     print("transform (source -> target):")
     print(np.array2string(result.T_target_source, precision=6, suppress_small=True))
     if truth is not None:

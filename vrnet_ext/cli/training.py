@@ -11,7 +11,9 @@ from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFo
                                   json_output, nonnegative_int, output_folder, parse_bool, positive_float,
                                   positive_int, report_to, train_device, unit_interval, view_points, writable_path,
                                   write_json)
-from vrnet_ext.data.protocol import FAR_POINTS, MIXED, SETTINGS
+from vrnet_ext.data.protocol import FAR_POINTS
+from vrnet_ext.names import (BACKENDS, DEFAULT_BACKEND, DEFAULT_SETTING, DEFAULT_SPLIT, MIXED, PROCRUSTES_POINTS,
+                             SETTINGS, SPLITS, TRANSFORMER_PRECISIONS)
 
 
 # The estimate's inference-time options: the robust solve and the second pass.
@@ -73,7 +75,7 @@ def add_train(sub) -> None:
         elif f.name == "setting":
             add(flag, choices=SETTINGS + (MIXED,), default=None, help=description)
         elif f.name == "split":
-            add(flag, choices=("UPC", "UC", "ND"), default=None, help=description)
+            add(flag, choices=SPLITS, default=None, help=description)
         elif f.name == "data_dir":
             add(flag, default=None, help=DATA_DIR_HELP)
         elif f.name == "out_dir":
@@ -83,7 +85,7 @@ def add_train(sub) -> None:
         elif f.name == "precision":
             add(flag, choices=PRECISIONS, default=None, help=description)
         elif f.name == "backend":
-            add(flag, choices=("ext", "torch"), default=None, help=description)
+            add(flag, choices=BACKENDS, default=None, help=description)
         elif f.name == "loss_l4_form":
             add(flag, choices=L4_FORMS, default=None, help=description)
         elif f.name == "far_points":
@@ -157,8 +159,9 @@ def add_eval(sub) -> None:
     p.add_argument("--checkpoint", default=None,
                    help="a shipped model name (e.g. vrnet-pv-upc-rcp) or best.pt / last.pt written by `vrnet train` "
                         "(default: the shipped model trained for --setting / --split)")
-    p.add_argument("--setting", choices=SETTINGS, default=None, help="default: the checkpoint's, else PV")
-    p.add_argument("--split", choices=("UPC", "UC", "ND"), default=None, help="default: the checkpoint's, else UPC")
+    p.add_argument("--setting", choices=SETTINGS, default=None,
+                   help=f"default: the checkpoint's, else {DEFAULT_SETTING}")
+    p.add_argument("--split", choices=SPLITS, default=None, help=f"default: the checkpoint's, else {DEFAULT_SPLIT}")
     p.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     p.add_argument("--batch-size", type=positive_int, default=16, help="pairs per forward")
     p.add_argument("--max-items", type=positive_int, default=None,
@@ -170,9 +173,9 @@ def add_eval(sub) -> None:
                    help="partial views: prnet = the paper's: one far point near the diagonal cuts both clouds; "
                         "sphere = in a random direction for each cloud; mixed = one of the two per pair; "
                         "symmetric = the target's far point mirrors the source's (the paper's ablations)")
-    p.add_argument("--backend", choices=("ext", "torch"), default="ext",
+    p.add_argument("--backend", choices=BACKENDS, default=DEFAULT_BACKEND,
                    help="ext: the compiled kernels; torch: the pure-PyTorch references")
-    p.add_argument("--transformer-precision", choices=("auto", "bf16", "fp32"), default="auto",
+    p.add_argument("--transformer-precision", choices=TRANSFORMER_PRECISIONS, default=TRANSFORMER_PRECISIONS[0],
                    help="the Transformer's products: auto = bfloat16 on a CPU with native bf16 (AVX512-BF16 / AMX), "
                         "else float32 (default: auto)")
     p.add_argument("--device", default="cpu", help="torch device to run on, e.g. cpu or cuda")
@@ -197,7 +200,7 @@ def _evaluate_and_report(args) -> tuple[dict, Path | str]:
     if args.checkpoint is None:
         from vrnet_ext.model.pretrained import model_for
 
-        wanted = (args.setting or "PV", args.split or "UPC")
+        wanted = (args.setting or DEFAULT_SETTING, args.split or DEFAULT_SPLIT)
         args.checkpoint = model_for(*wanted)
         if args.checkpoint is None:
             raise ValueError(f"no shipped model is trained for setting {wanted[0]} / split {wanted[1]}; "
@@ -210,7 +213,8 @@ def _evaluate_and_report(args) -> tuple[dict, Path | str]:
         setattr(model.config, key, value)
     model.config.transformer_precision = args.transformer_precision
     # the paper's protocol unless the checkpoint says otherwise (shipped weights carry no data path)
-    setting, split = args.setting or cfg.get("setting", "PV"), args.split or cfg.get("split", "UPC")
+    setting = args.setting or cfg.get("setting", DEFAULT_SETTING)
+    split = args.split or cfg.get("split", DEFAULT_SPLIT)
     if setting == MIXED:
         raise ValueError(f"{args.checkpoint} was trained on every setting: give --setting ({' | '.join(SETTINGS)})")
     spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768),
@@ -218,7 +222,7 @@ def _evaluate_and_report(args) -> tuple[dict, Path | str]:
     data = ModelNet40Pairs(args.data_dir or cfg.get("data_dir"), partition="test", setting=setting, split=split,
                            max_items=args.max_items, spec=spec)
     model.to(args.device)
-    result = evaluate(model, data, args.batch_size, args.device, args.backend)
+    result = evaluate(model, data, batch_size=args.batch_size, device=args.device, backend=args.backend)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
     result.update(setting=setting, split=split, far_points=args.far_points, checkpoint=str(args.checkpoint),
                   iterations=model.config.iterations, **{k: getattr(model.config, k) for k in SOLVE_KEYS},
@@ -264,7 +268,7 @@ def add_export(sub) -> None:
     p.add_argument("--machine", default=None, help="where it was trained (for the card)")
     p.add_argument("--sessions", type=positive_int, default=None, help="how many sessions the training took")
     p.add_argument("--note", action="append", default=[], help="a note for the card (repeatable)")
-    p.add_argument("--procrustes-points", choices=("rcp", "vcp"), default=None,
+    p.add_argument("--procrustes-points", choices=PROCRUSTES_POINTS, default=None,
                    help="set the exported model's final Procrustes points (an inference-time choice; default: as trained)")
     add_solve_options(p, "as trained")
 
@@ -273,9 +277,9 @@ def _cells(values: list[str]) -> list[str]:
     """``--cells`` values checked: SETTING/SPLIT with a paper setting and split."""
     for value in values:
         setting, _, split = value.partition("/")
-        if setting not in SETTINGS or split not in ("UPC", "UC", "ND"):
+        if setting not in SETTINGS or split not in SPLITS:
             raise ValueError(f"--cells {value!r}: give SETTING/SPLIT with SETTING in {SETTINGS} and SPLIT in "
-                             f"UPC, UC, ND")
+                             f"{SPLITS}")
     return values
 
 

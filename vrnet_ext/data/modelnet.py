@@ -10,8 +10,8 @@ import torch
 from torch.utils.data import Dataset
 
 from vrnet_ext.data.protocol import PairSpec, make_pair
+from vrnet_ext.names import DEFAULT_SETTING, DEFAULT_SPLIT, SPLITS
 
-SPLITS = ("UPC", "UC", "ND")
 PARTITIONS = ("train", "val", "test")
 _FILES = {"train": "modelnet40_1024_train.h5", "test": "modelnet40_1024_test.h5"}
 
@@ -28,8 +28,8 @@ def load_h5(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """(points (S, P, 3) float32, labels (S,) int64) from one or more PointNet-layout HDF5 files."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"ModelNet40 file not found: {path} (set --data-dir to the folder holding "
-                                f"it, or VRNET_DATA to the data folder that holds modelnet40/)")
+        raise FileNotFoundError(f"ModelNet40 file not found: {path} (set data_dir to the folder holding it, "
+                                f"or VRNET_DATA to the data folder that holds modelnet40/)")
     try:
         with h5py.File(path, "r") as f:
             missing = {"data", "label"} - set(f.keys())
@@ -70,8 +70,8 @@ class ModelNet40Pairs(Dataset):
     ``label`` int64.
     """
 
-    def __init__(self, root: str | os.PathLike | None = None, partition: str = "train", setting: str = "PV",
-                 split: str = "UPC", val_fraction: float = 0.1, classes: list[int] | None = None,
+    def __init__(self, root: str | os.PathLike | None = None, *, partition: str = "train",
+                 setting: str = DEFAULT_SETTING, split: str = DEFAULT_SPLIT, val_fraction: float = 0.1, classes: list[int] | None = None,
                  max_items: int | None = None, seed: int = 1234, spec: PairSpec | None = None) -> None:
         if partition not in PARTITIONS:
             raise ValueError(f"partition must be one of {PARTITIONS}, got {partition!r}")

@@ -27,9 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from vrnet_ext.geometry.transforms import move
+from vrnet_ext.names import MIXED, SETTINGS
 
-SETTINGS = ("CO", "PV", "RS", "PV+RS")  # the paper's
-MIXED = "mixed"  # one of SETTINGS per pair
 FAR_POINTS = ("prnet", "sphere", "mixed", "symmetric")
 # How the default ("prnet") partial views are cut, recorded with measurements so that a table never
 # mixes numbers of differently cut pairs.

@@ -1,6 +1,7 @@
 """Output files that are either complete or absent: :func:`atomic_output`."""
 from __future__ import annotations
 
+import glob
 import os
 import tempfile
 from collections.abc import Iterator
@@ -69,6 +70,19 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
+
+
+def remove_leftovers(path: str | os.PathLike) -> list[Path]:
+    """Removes the temporary files that :func:`atomic_output` writers of ``path`` killed mid-write
+    left beside it (``.NAME.<random>SUFFIX``) -> the files removed. Call it only where no other
+    process is writing ``path``."""
+    target = _resolved(Path(path))
+    removed = []
+    for leftover in target.parent.glob(f".{glob.escape(target.name)}.*{glob.escape(target.suffix)}"):
+        if leftover.is_file():
+            leftover.unlink(missing_ok=True)
+            removed.append(leftover)
+    return removed
 
 
 def save_atomically(obj: object, path: str | os.PathLike) -> None:

@@ -213,7 +213,7 @@ def _read_text(path: Path) -> np.ndarray:
     if table.shape[1] < 3:
         raise _fail(path, f"rows need at least 3 columns (x y z), got {table.shape[1]}")
     if table.shape == (4, 4) and np.allclose(table[3], [0, 0, 0, 1]):
-        raise _fail(path, "holds a 4x4 transform, not a point cloud (give it to --gt)")
+        raise _fail(path, "holds a 4x4 transform, not a point cloud (a ground truth?)")
     return table[:, :3]
 
 

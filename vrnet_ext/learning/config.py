@@ -8,6 +8,7 @@ import math
 from dataclasses import MISSING, dataclass, field, fields
 
 from vrnet_ext.model.config import VRNetConfig
+from vrnet_ext.names import DEFAULT_BACKEND, DEFAULT_SETTING, DEFAULT_SPLIT
 
 PRESETS = {
     "paper": dict(model=VRNetConfig().to_dict(), batch_size=28, stage1_epochs=100, stage2_epochs=100,
@@ -112,8 +113,8 @@ class TrainConfig:
     preset: str = "paper"
     data_dir: str | None = None
     out_dir: str = "runs/vrnet"
-    setting: str = "PV"
-    split: str = "UPC"
+    setting: str = DEFAULT_SETTING
+    split: str = DEFAULT_SPLIT
     model: dict = field(default_factory=lambda: VRNetConfig().to_dict())
     batch_size: int = 28
     stage1_epochs: int = 100
@@ -133,7 +134,7 @@ class TrainConfig:
     train_max_angle: float = 45.0
     seed: int = 1234
     device: str = "auto"
-    backend: str = "ext"
+    backend: str = DEFAULT_BACKEND
     num_workers: int = 0
     loss_l4: float = 100.0
     loss_l4_form: str = "rmse"
@@ -169,32 +170,29 @@ class TrainConfig:
         return cls(**values)
 
     def __post_init__(self) -> None:
-        def option(name: str) -> str:
-            return "--" + name.replace("_", "-")
-
         for name in ("lr_stage1", "lr_stage2", "lr_gamma"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{option(name)} must be a finite number > 0, got {value!r}")
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         for name in ("weight_decay", "loss_l4", "val_fraction", "lr_features_stage2"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{option(name)} must be a finite number >= 0, got {value!r}")
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         for name, smallest in (("stage1_epochs", 0), ("stage2_epochs", 0), ("batch_size", 1), ("num_points", 1),
                                ("num_subsampled", 1), ("seed", 0), ("num_workers", 0)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < smallest:
-                raise ValueError(f"{option(name)} must be an integer >= {smallest}, got {value!r}")
+                raise ValueError(f"{name} must be an integer >= {smallest}, got {value!r}")
         if not (isinstance(self.train_max_angle, (int, float)) and 0 < self.train_max_angle <= 180):
-            raise ValueError(f"--train-max-angle must be in (0, 180] degrees, got {self.train_max_angle!r}")
+            raise ValueError(f"train_max_angle must be in (0, 180] degrees, got {self.train_max_angle!r}")
         if self.num_points > MODELNET_POINTS:
-            raise ValueError(f"--num-points must be at most {MODELNET_POINTS} (the ModelNet40 files hold "
+            raise ValueError(f"num_points must be at most {MODELNET_POINTS} (the ModelNet40 files hold "
                              f"{MODELNET_POINTS} points per shape), got {self.num_points}")
         if self.num_subsampled > self.num_points:
-            raise ValueError(f"--num-subsampled ({self.num_subsampled}) must be at most --num-points "
+            raise ValueError(f"num_subsampled ({self.num_subsampled}) must be at most num_points "
                              f"({self.num_points})")
         if any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in self.lr_milestones):
-            raise ValueError(f"--lr-milestones must be epochs >= 1, got {self.lr_milestones}")
+            raise ValueError(f"lr_milestones must be epochs >= 1, got {self.lr_milestones}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.loss_l4_form not in L4_FORMS:

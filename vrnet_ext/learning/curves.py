@@ -26,7 +26,7 @@ def plot_metrics(run_dir: str | Path) -> Path:
     run_dir = Path(run_dir)
     path = run_dir / "metrics.jsonl"
     if not path.exists():
-        raise FileNotFoundError(f"no metrics.jsonl in {run_dir}: is it a `vrnet train --out-dir`?")
+        raise FileNotFoundError(f"no metrics.jsonl in {run_dir}: is it the out_dir of a training run (`vrnet train`)?")
     records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     if not records:
         raise ValueError(f"{path} is empty: no epoch has finished yet")

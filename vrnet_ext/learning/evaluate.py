@@ -50,7 +50,7 @@ def estimators(src: torch.Tensor, out, backend: str, config) -> dict[str, tuple[
 
 
 @torch.no_grad()
-def evaluate(model: VRNet, dataset: Dataset, batch_size: int = 16, device: str | torch.device = "cpu",
+def evaluate(model: VRNet, dataset: Dataset, *, batch_size: int = 16, device: str | torch.device = "cpu",
              backend: str | None = None, progress: bool = True, use_rcp: bool = True) -> dict:
     """Runs ``model`` over ``dataset`` and returns the metrics as a flat dict.
 

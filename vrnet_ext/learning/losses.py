@@ -45,7 +45,7 @@ def correspondence_loss(matching: torch.Tensor, gt_idx: torch.Tensor) -> torch.T
 
 
 def local_motion_consensus_loss(src: torch.Tensor, rcp: torch.Tensor, rotation: torch.Tensor,
-                                translation: torch.Tensor, groups: int = 10, subset_size: int = 32,
+                                translation: torch.Tensor, *, groups: int = 10, subset_size: int = 32,
                                 generator: torch.Generator | None = None, backend: str = "ext") -> torch.Tensor:
     """L1 (Eq. 8): mean over G random correspondence subsets of rmse(R_g^T R, I) + rmse(t_g, t).
 
@@ -103,12 +103,12 @@ class HybridLossWeights:
 
 
 def hybrid_loss(out: VRNetOutput, src: torch.Tensor, gt_rotation: torch.Tensor, gt_translation: torch.Tensor,
-                weights: HybridLossWeights | None = None, generator: torch.Generator | None = None,
+                weights: HybridLossWeights | None = None, *, generator: torch.Generator | None = None,
                 backend: str = "ext") -> tuple[torch.Tensor, dict[str, float]]:
     """Stage-2 loss L (Eq. 12) [+ LM + LG + LC]. Returns (L, {"L1": .., "L2": .., "L3": .., "L4": .. [, "LM", "LG", "LC"]})."""
     w = weights or HybridLossWeights()
-    l1 = local_motion_consensus_loss(src, out.rcp, out.rotation, out.translation, w.groups, w.subset_size,
-                                     generator, backend)
+    l1 = local_motion_consensus_loss(src, out.rcp, out.rotation, out.translation, groups=w.groups,
+                                     subset_size=w.subset_size, generator=generator, backend=backend)
     l2 = pairwise_distance_loss(src, out.rcp, backend=backend).mean()
     l3 = rmse(move(src, out.rotation, out.translation), out.rcp).mean()
     truth = move(src, gt_rotation, gt_translation)

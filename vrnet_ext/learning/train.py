@@ -27,6 +27,7 @@ bfloat16 products several times slower than float32 ones.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 import signal
@@ -51,7 +52,7 @@ from vrnet_ext.learning.losses import HybridLossWeights, correspondence_loss, hy
 from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.learning.curves import plot_metrics
 from vrnet_ext.runtime import device_has_native_bf16, set_flush_denormal
-from vrnet_ext.geometry.atomic import save_atomically
+from vrnet_ext.geometry.atomic import remove_leftovers, save_atomically, write_text_atomically
 from vrnet_ext.learning.lineage import Lineage, lineage_before
 from vrnet_ext.learning.warm_start import init_features_from, init_walk_from
 from vrnet_ext.learning.config import TrainConfig
@@ -138,18 +139,20 @@ def stage_train_mode(model: VRNet, stage: int, freeze_confidence: bool = False, 
             module.eval()
 
 
-def _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, step, best, best_rmse, train_seconds, lineage,
-                partial=None) -> dict:
-    """``epoch``: the last completed epoch of ``stage``; ``best``: the stage's selection score so
-    far (val L0 in stage 1, val RMSE(R) in stage 2); ``best_rmse``: the lowest val RMSE(R) of the
-    whole run (selects best.pt across stages); ``train_seconds``: wall time spent in training
-    and validation epochs so far, over all sessions; ``lineage``: the chain of warm starts before
-    this run (:class:`vrnet_ext.learning.lineage.Lineage`); ``partial``: ``{"epoch", "batches",
-    "totals"}`` of an epoch in progress (mid-epoch checkpoints only)."""
-    return {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-            "config": json.loads(json.dumps(asdict(cfg))), "stage": stage, "epoch": epoch, "step": step,
-            "best": best, "best_rmse": best_rmse, "train_seconds": train_seconds, "lineage": lineage.to_dict(),
-            "partial": partial}
+def _checkpoint(setup: "_Setup", stage: "_Stage", epoch: int, progress: "_Progress",
+                partial: dict | None = None) -> dict:
+    """What ``last.pt`` and the best models hold. ``epoch``: the last completed epoch of ``stage``;
+    the stage's ``best``: its selection score so far (val L0 in stage 1, val RMSE(R) in stage 2);
+    the progress's ``best_rmse``: the lowest val RMSE(R) of the whole run (selects best.pt across
+    stages), ``train_seconds``: wall time spent in training and validation epochs so far, over all
+    sessions; the setup's ``lineage``: the chain of warm starts before this run
+    (:class:`vrnet_ext.learning.lineage.Lineage`); ``partial``: ``{"epoch", "batches", "totals"}`` of
+    an epoch in progress (mid-epoch checkpoints only)."""
+    return {"model": setup.model.state_dict(), "optimizer": stage.optimizer.state_dict(),
+            "scheduler": stage.scheduler.state_dict(), "config": json.loads(json.dumps(asdict(setup.cfg))),
+            "stage": stage.number, "epoch": epoch, "step": progress.step, "best": stage.best,
+            "best_rmse": progress.best_rmse, "train_seconds": progress.train_seconds,
+            "lineage": setup.lineage.to_dict(), "partial": partial}
 
 
 def _save(checkpoint: dict, path: Path) -> None:
@@ -162,7 +165,7 @@ def _run_lineage(cfg: TrainConfig, state: dict | None) -> Lineage:
     read from ``--features-from`` (else ``--walk-from``) now."""
     if state is not None and "lineage" in state:
         return Lineage.from_dict(state["lineage"], cfg.resume)
-    return lineage_before(cfg.features_from or cfg.walk_from, "--features-from / --walk-from")
+    return lineage_before(cfg.features_from or cfg.walk_from, "features_from / walk_from")
 
 
 def _resolved_precision(precision: str, device: torch.device, state: dict | None) -> str:
@@ -186,7 +189,7 @@ def _check_resumable(state: dict, model_cfg: VRNetConfig, path: str) -> None:
     from a training checkpoint (not shipped weights or a scene model)."""
     if "step" not in state or "optimizer" not in state or not isinstance(state["config"].get("model"), dict):
         raise ValueError(f"resume: {path} is not a checkpoint of `vrnet train` (shipped weights and scene models "
-                         f"hold no training state; start a run from one with --features-from / --walk-from)")
+                         f"hold no training state; start a run from one with features_from / walk_from)")
     saved = validate_model_config(state["config"]["model"], path).to_dict()
     wanted = model_cfg.to_dict()
     saved["backend"] = wanted["backend"]  # the kernels used do not change the model
@@ -220,17 +223,46 @@ class _StopRequest:
             signal.signal(number, handler)
 
 
-def _log(out_dir: Path, record: dict) -> None:
-    """Appends to metrics.jsonl and rewrites metrics.csv over the union of all records' keys."""
-    jsonl = out_dir / "metrics.jsonl"
-    with open(jsonl, "a") as f:
-        f.write(json.dumps(record) + "\n")
-    records = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+OUTPUTS = ("last.pt", "best.pt", "best_stage1.pt", "best_stage2.pt", "metrics.jsonl", "metrics.csv")
+
+
+def _metrics(out_dir: Path) -> list[dict]:
+    """The rows of metrics.jsonl up to the first one a kill left unfinished."""
+    rows = []
+    path = out_dir / "metrics.jsonl"
+    for line in path.read_text().splitlines() if path.exists() else []:
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            break
+    return rows
+
+
+def _write_metrics(out_dir: Path, records: list[dict]) -> None:
+    """metrics.jsonl and metrics.csv (over the union of the records' keys), each written atomically."""
+    write_text_atomically(out_dir / "metrics.jsonl", "".join(json.dumps(r) + "\n" for r in records))
     columns = list(dict.fromkeys(key for r in records for key in r))
-    with open(out_dir / "metrics.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows(records)
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=columns, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(records)
+    write_text_atomically(out_dir / "metrics.csv", text.getvalue())
+
+
+def _log(out_dir: Path, record: dict) -> None:
+    """Adds the epoch's row to the metrics files."""
+    _write_metrics(out_dir, _metrics(out_dir) + [record])
+
+
+def _tidy(out_dir: Path, state: dict | None) -> None:
+    """Before a run writes: the temporary files a killed run's writers left in ``out_dir`` go, and
+    the metrics keep only the rows up to the epoch it resumes after (rows written before a kill
+    stopped ``last.pt`` are done again; a run that does not resume starts its own metrics)."""
+    for name in OUTPUTS:
+        remove_leftovers(out_dir / name)
+    if (out_dir / "metrics.jsonl").exists():
+        done = (state["stage"], state["epoch"] + 1) if state is not None else (0, 0)
+        _write_metrics(out_dir, [row for row in _metrics(out_dir) if (row.get("stage", 0), row.get("epoch", 0)) <= done])
 
 
 def _replica_spread(model: VRNet, run: _Run) -> float:
@@ -260,6 +292,7 @@ def train(cfg: TrainConfig, datasets: tuple[Dataset, Dataset] | None = None) -> 
     if run.main:
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "config.json").write_text(json.dumps(asdict(cfg), indent=1))
+        _tidy(out_dir, state)
     torch.manual_seed(cfg.seed)
     model_cfg = VRNetConfig.from_dict(dict(cfg.model, backend=cfg.backend))
     model = VRNet(model_cfg).to(run.device)
@@ -321,110 +354,158 @@ class _Progress:
     train_seconds: float = 0.0
 
 
+@dataclass
+class _Stage:
+    """One stage's optimiser, schedule and selection score, and where it starts: ``first_epoch``
+    (0 unless resumed), ``partial`` (a resumed epoch's batches done and loss totals, or None)."""
+
+    number: int
+    epochs: int
+    features_lr: float
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.MultiStepLR
+    first_epoch: int = 0
+    best: float = float("inf")
+    partial: dict | None = None
+
+
 def _train_stages(setup: _Setup, state: dict | None, progress: _Progress) -> dict:
     """The stage and epoch loops of :func:`train` (``state``: the checkpoint resumed from, or None)."""
-    cfg, run, model, train_set, val_set = setup.cfg, setup.run, setup.model, setup.train_set, setup.val_set
-    sampler, loss_weights, autocast, stop, out_dir = (setup.sampler, setup.loss_weights, setup.autocast, setup.stop,
-                                                      setup.out_dir)
+    cfg, run = setup.cfg, setup.run
     record: dict = {}
-    for stage, epochs, lr in ((1, cfg.stage1_epochs, cfg.lr_stage1), (2, cfg.stage2_epochs, cfg.lr_stage2)):
-        if state is not None and (state["stage"] > stage or (state["stage"] == stage and state["epoch"] + 1 >= epochs)):
+    for number in (1, 2):
+        stage = _start_stage(setup, number, state)
+        if stage is None:
             continue  # this stage is already complete in the checkpoint
-        features_lr = cfg.lr_features_stage2 if stage == 2 else 0.0
-        groups = set_stage(model, stage, cfg.freeze_confidence, features_lr)
-        optimizer = torch.optim.Adam(groups, lr=lr, weight_decay=cfg.weight_decay)
-        scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.lr_milestones, cfg.lr_gamma)
-        first_epoch, best, partial = 0, float("inf"), None
-        if state is not None and state["stage"] == stage:
-            if len(state["optimizer"]["param_groups"]) != len(groups):
-                saved = state["config"].get("lr_features_stage2", 0.0)
-                raise ValueError(f"resume: {cfg.resume} was trained with --lr-features-stage2 {saved}, this run "
-                                 f"with {cfg.lr_features_stage2}: pass the same value (zero or not) to continue it")
-            optimizer.load_state_dict(state["optimizer"])
-            scheduler.load_state_dict(state["scheduler"])
-            # This run's schedule, not the saved one: extending a run (a larger --stage2-epochs)
-            # may add a milestone after the epochs already done.
-            scheduler.milestones, scheduler.gamma = Counter(cfg.lr_milestones), cfg.lr_gamma
-            first_epoch, best, partial = state["epoch"] + 1, state["best"], state.get("partial")
-        wrapped = DistributedDataParallel(model) if run.world > 1 else model
-        for epoch in range(first_epoch, epochs):
-            global_epoch = epoch if stage == 1 else cfg.stage1_epochs + epoch
-            if hasattr(train_set, "set_epoch"):
-                train_set.set_epoch(global_epoch)
-            sampler.set_epoch(global_epoch)
-            stage_train_mode(model, stage, cfg.freeze_confidence, features_lr)
-            epoch_started = started = time.time()
-            totals, batches = {}, 0
-            if partial is not None and partial["epoch"] == epoch:
-                totals, batches = dict(partial["totals"]), partial["batches"]
-            partial = None
-            # The epoch's batches after those a mid-epoch checkpoint already did (same order).
-            indices = list(sampler)[batches * cfg.batch_size:]
-            loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=indices, num_workers=cfg.num_workers,
-                                drop_last=True)
-            saved_at = time.time()
-            bar = tqdm(loader, desc=f"stage {stage} epoch {epoch + 1}/{epochs}", initial=batches,
-                       total=batches + len(loader), disable=not (cfg.progress and run.main))
-            for batch in bar:
-                batch = to_device(batch, run.device)
-                with autocast:
-                    out = wrapped(batch["src"], batch["tgt"], return_matching=stage == 1)
-                    if stage == 1:
-                        loss = correspondence_loss(out.matching, batch["gt_idx"])
-                        parts = {"L0": float(loss.detach())}
-                    else:
-                        generator = torch.Generator().manual_seed(cfg.seed * 1_000_003 + progress.step)
-                        loss, parts = hybrid_loss(out, batch["src"], batch["rotation"], batch["translation"],
-                                                  loss_weights, generator, cfg.backend)
-                if not torch.isfinite(loss):
-                    raise FloatingPointError(f"non-finite loss at stage {stage}, step {progress.step}: {parts}")
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-                progress.step += 1
-                batches += 1
-                for k, v in dict(parts, loss=float(loss.detach())).items():
-                    totals[k] = totals.get(k, 0.0) + v
-                bar.set_postfix(loss=f"{float(loss.detach()):.4f}")
-                if run.main and (stop.requested or time.time() - saved_at > 60 * cfg.checkpoint_minutes):
-                    now = time.time()
-                    progress.train_seconds += now - started
-                    started = saved_at = now
-                    partial_epoch = {"epoch": epoch, "batches": batches, "totals": dict(totals)}
-                    _save(_checkpoint(model, optimizer, scheduler, cfg, stage, epoch - 1, progress.step, best,
-                                      progress.best_rmse, progress.train_seconds, setup.lineage, partial_epoch),
-                          out_dir / "last.pt")
-                if stop.requested:
-                    bar.close()
-                    print(f"vrnet train: stopped at stage {stage}, epoch {epoch + 1}, batch {batches}; "
-                          f"continue with --resume {out_dir / 'last.pt'}", flush=True)
-                    return {"stage": stage, "epoch": epoch + 1, "step": progress.step, "stopped": True,
-                            "signal": stop.signal}
-            epoch_lr = optimizer.param_groups[0]["lr"]
-            scheduler.step()
-            record = {"stage": stage, "epoch": epoch + 1, "step": progress.step, "lr": epoch_lr,
-                      "epoch_seconds": round(time.time() - epoch_started, 2), "world_size": run.world}
-            record.update({f"train_{k}": v / max(batches, 1) for k, v in totals.items()})
-            record["replica_max_abs_diff"] = _replica_spread(model, run)
-            if run.main:
-                val = evaluate(model, val_set, batch_size=cfg.batch_size, device=run.device,
-                               progress=cfg.progress, use_rcp=stage == 2)
-                record.update({f"val_{k}": v for k, v in val.items()})
-                score = val["L0"] if stage == 1 else val["RMSE(R)"]
-                improved, improved_rmse = score < best, val["RMSE(R)"] < progress.best_rmse
-                best, progress.best_rmse = min(best, score), min(progress.best_rmse, val["RMSE(R)"])
-                progress.train_seconds += time.time() - started
-                record["train_seconds"] = round(progress.train_seconds, 1)
-                ckpt = _checkpoint(model, optimizer, scheduler, cfg, stage, epoch, progress.step, best,
-                                   progress.best_rmse, progress.train_seconds, setup.lineage)
-                _save(ckpt, out_dir / "last.pt")
-                if improved:
-                    _save(ckpt, out_dir / f"best_stage{stage}.pt")
-                if improved_rmse:
-                    _save(ckpt, out_dir / "best.pt")
-                _log(out_dir, record)
+        state = None  # resumed: later stages start afresh
+        wrapped = DistributedDataParallel(setup.model) if run.world > 1 else setup.model
+        for epoch in range(stage.first_epoch, stage.epochs):
+            done = _train_epoch(setup, stage, epoch, wrapped, progress)
+            if done.get("stopped"):
+                return done
+            record = _end_epoch(setup, stage, epoch, done, progress)
             run.barrier()
-        state = None
     if run.main and record:
-        plot_metrics(out_dir)
+        plot_metrics(setup.out_dir)
+    return record
+
+
+def _start_stage(setup: _Setup, number: int, state: dict | None) -> _Stage | None:
+    """Stage ``number``'s trainable parameters, optimiser and schedule, resumed from ``state`` when it
+    holds this stage; None when ``state`` holds this stage complete or a later one."""
+    cfg = setup.cfg
+    epochs, lr = (cfg.stage1_epochs, cfg.lr_stage1) if number == 1 else (cfg.stage2_epochs, cfg.lr_stage2)
+    if state is not None and (state["stage"] > number or (state["stage"] == number and state["epoch"] + 1 >= epochs)):
+        return None
+    features_lr = cfg.lr_features_stage2 if number == 2 else 0.0
+    groups = set_stage(setup.model, number, cfg.freeze_confidence, features_lr)
+    optimizer = torch.optim.Adam(groups, lr=lr, weight_decay=cfg.weight_decay)
+    stage = _Stage(number, epochs, features_lr, optimizer,
+                   torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.lr_milestones, cfg.lr_gamma))
+    if state is not None and state["stage"] == number:
+        if len(state["optimizer"]["param_groups"]) != len(groups):
+            saved = state["config"].get("lr_features_stage2", 0.0)
+            raise ValueError(f"resume: {cfg.resume} was trained with lr_features_stage2 {saved}, this run "
+                             f"with {cfg.lr_features_stage2}: pass the same value (zero or not) to continue it")
+        optimizer.load_state_dict(state["optimizer"])
+        stage.scheduler.load_state_dict(state["scheduler"])
+        # This run's schedule, not the saved one: extending a run (a larger --stage2-epochs)
+        # may add a milestone after the epochs already done.
+        stage.scheduler.milestones, stage.scheduler.gamma = Counter(cfg.lr_milestones), cfg.lr_gamma
+        stage.first_epoch, stage.best, stage.partial = state["epoch"] + 1, state["best"], state.get("partial")
+    return stage
+
+
+def _train_epoch(setup: _Setup, stage: _Stage, epoch: int, wrapped, progress: _Progress) -> dict:
+    """One epoch's batches (after those a resumed mid-epoch checkpoint did), with a mid-epoch
+    ``last.pt`` every ``checkpoint_minutes`` and on a stop request -> ``{"totals", "batches",
+    "epoch_started", "started"}``, or the record of a stopped run (``"stopped": True``)."""
+    cfg, run, model = setup.cfg, setup.run, setup.model
+    global_epoch = epoch if stage.number == 1 else cfg.stage1_epochs + epoch
+    if hasattr(setup.train_set, "set_epoch"):
+        setup.train_set.set_epoch(global_epoch)
+    setup.sampler.set_epoch(global_epoch)
+    stage_train_mode(model, stage.number, cfg.freeze_confidence, stage.features_lr)
+    epoch_started = started = saved_at = time.time()
+    totals, batches = {}, 0
+    if stage.partial is not None and stage.partial["epoch"] == epoch:
+        totals, batches = dict(stage.partial["totals"]), stage.partial["batches"]
+    stage.partial = None
+    indices = list(setup.sampler)[batches * cfg.batch_size:]  # the same order as before the checkpoint
+    loader = DataLoader(setup.train_set, batch_size=cfg.batch_size, sampler=indices, num_workers=cfg.num_workers,
+                        drop_last=True)
+    bar = tqdm(loader, desc=f"stage {stage.number} epoch {epoch + 1}/{stage.epochs}", initial=batches,
+               total=batches + len(loader), disable=not (cfg.progress and run.main))
+    for batch in bar:
+        parts = _step(setup, stage.number, stage.optimizer, to_device(batch, run.device), wrapped, progress)
+        batches += 1
+        for k, v in parts.items():
+            totals[k] = totals.get(k, 0.0) + v
+        bar.set_postfix(loss=f"{parts['loss']:.4f}")
+        if run.main and (setup.stop.requested or time.time() - saved_at > 60 * cfg.checkpoint_minutes):
+            now = time.time()
+            progress.train_seconds += now - started
+            started = saved_at = now
+            partial = {"epoch": epoch, "batches": batches, "totals": dict(totals)}
+            _save(_checkpoint(setup, stage, epoch - 1, progress, partial), setup.out_dir / "last.pt")
+        if setup.stop.requested:
+            bar.close()
+            print(f"vrnet train: stopped at stage {stage.number}, epoch {epoch + 1}, batch {batches}; "
+                  f"continue with --resume {setup.out_dir / 'last.pt'}", flush=True)
+            return {"stage": stage.number, "epoch": epoch + 1, "step": progress.step, "stopped": True,
+                    "signal": setup.stop.signal}
+    return {"totals": totals, "batches": batches, "epoch_started": epoch_started, "started": started}
+
+
+def _step(setup: _Setup, stage: int, optimizer: torch.optim.Optimizer, batch: dict, wrapped,
+          progress: _Progress) -> dict[str, float]:
+    """One optimiser step of ``stage`` on ``batch`` -> the loss and its parts."""
+    cfg = setup.cfg
+    with setup.autocast:
+        out = wrapped(batch["src"], batch["tgt"], return_matching=stage == 1)
+        if stage == 1:
+            loss = correspondence_loss(out.matching, batch["gt_idx"])
+            parts = {"L0": float(loss.detach())}
+        else:
+            generator = torch.Generator().manual_seed(cfg.seed * 1_000_003 + progress.step)
+            loss, parts = hybrid_loss(out, batch["src"], batch["rotation"], batch["translation"],
+                                      setup.loss_weights, generator=generator, backend=cfg.backend)
+    if not torch.isfinite(loss):
+        raise FloatingPointError(f"non-finite loss at stage {stage}, step {progress.step}: {parts}")
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    progress.step += 1
+    return dict(parts, loss=float(loss.detach()))
+
+
+def _end_epoch(setup: _Setup, stage: _Stage, epoch: int, done: dict, progress: _Progress) -> dict:
+    """The epoch's record: the learning rate, the mean losses and (rank 0) the validation pass; then
+    the files, ``last.pt`` last: the best models and the metrics row come first, so that a run killed
+    between them resumes from the previous ``last.pt``, redoes the epoch and writes them again (a
+    resume drops the rows after its checkpoint: :func:`_trim_metrics`)."""
+    cfg, run, model, out_dir = setup.cfg, setup.run, setup.model, setup.out_dir
+    epoch_lr = stage.optimizer.param_groups[0]["lr"]
+    stage.scheduler.step()
+    record = {"stage": stage.number, "epoch": epoch + 1, "step": progress.step, "lr": epoch_lr,
+              "epoch_seconds": round(time.time() - done["epoch_started"], 2), "world_size": run.world}
+    record.update({f"train_{k}": v / max(done["batches"], 1) for k, v in done["totals"].items()})
+    record["replica_max_abs_diff"] = _replica_spread(model, run)
+    if not run.main:
+        return record
+    val = evaluate(model, setup.val_set, batch_size=cfg.batch_size, device=run.device, progress=cfg.progress,
+                   use_rcp=stage.number == 2)
+    record.update({f"val_{k}": v for k, v in val.items()})
+    score = val["L0"] if stage.number == 1 else val["RMSE(R)"]
+    improved, improved_rmse = score < stage.best, val["RMSE(R)"] < progress.best_rmse
+    stage.best, progress.best_rmse = min(stage.best, score), min(progress.best_rmse, val["RMSE(R)"])
+    progress.train_seconds += time.time() - done["started"]
+    record["train_seconds"] = round(progress.train_seconds, 1)
+    checkpoint = _checkpoint(setup, stage, epoch, progress)
+    if improved:
+        _save(checkpoint, out_dir / f"best_stage{stage.number}.pt")
+    if improved_rmse:
+        _save(checkpoint, out_dir / "best.pt")
+    _log(out_dir, record)
+    _save(checkpoint, out_dir / "last.pt")
     return record

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
+from vrnet_ext.names import BACKENDS, PROCRUSTES_POINTS, TRANSFORMER_PRECISIONS
+
 # The robust weights of the IRLS steps (vrnet_ext.ops.kabsch.ROBUST_KERNELS, named here too so that
 # this module stays free of torch: the CLI builds its parsers from it).
 IRLS_KERNELS = ("cauchy", "geman_mcclure", "welsch")
@@ -107,8 +109,8 @@ class VRNetConfig:
             raise ValueError("k and iterations must be >= 1")
         if self.walk_confidence_trunk and not self.walk_confidence:
             raise ValueError("walk_confidence_trunk needs walk_confidence=True")
-        if self.procrustes_points not in ("rcp", "vcp"):
-            raise ValueError(f"procrustes_points must be 'rcp' or 'vcp', got {self.procrustes_points!r}")
+        if self.procrustes_points not in PROCRUSTES_POINTS:
+            raise ValueError(f"procrustes_points must be one of {PROCRUSTES_POINTS}, got {self.procrustes_points!r}")
         if self.irls_iterations < 0 or not self.irls_min_scale > 0 or not self.irls_scale > 0:
             raise ValueError("irls_iterations must be >= 0, irls_scale and irls_min_scale > 0")
         if not 0 <= self.second_pass_below <= 1 or not 0 < self.consistency_radius < float("inf"):
@@ -116,10 +118,11 @@ class VRNetConfig:
                              f"distance, got {self.second_pass_below} and {self.consistency_radius}")
         if self.irls_kernel not in IRLS_KERNELS:
             raise ValueError(f"irls_kernel must be one of {IRLS_KERNELS}, got {self.irls_kernel!r}")
-        if self.backend not in ("ext", "torch"):
-            raise ValueError(f"backend must be 'ext' or 'torch', got {self.backend!r}")
-        if self.transformer_precision not in ("auto", "bf16", "fp32"):
-            raise ValueError(f"transformer_precision must be 'auto', 'bf16' or 'fp32', got {self.transformer_precision!r}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+        if self.transformer_precision not in TRANSFORMER_PRECISIONS:
+            raise ValueError(f"transformer_precision must be one of {TRANSFORMER_PRECISIONS}, "
+                             f"got {self.transformer_precision!r}")
 
     def to_dict(self) -> dict:
         """Plain-type dict (lists, not tuples): safe for ``torch.load(weights_only=True)`` and JSON."""

@@ -16,16 +16,13 @@ import torch
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.checkpoints import CheckpointError, model_from_state, read_checkpoint
 from vrnet_ext.model.scene import SCENE_FORMAT, SceneVRNet
+from vrnet_ext.names import DEFAULT_MODEL, DEFAULT_SCENE_MODEL, MIXED, SETTINGS
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
-DEFAULT_MODEL = "vrnet-pv-upc-rcp"
-DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-real"  # vrnet register --method vrnet (vrnet_ext.model.scene)
 FORMAT = "vrnet_ext.pretrained/1"
 
 
 KINDS = ("vrnet", "scene")
-MIXED_SETTING = "mixed"  # the training setting of a model for every setting (vrnet_ext.data.protocol.MIXED)
-PAPER_SETTINGS = ("CO", "PV", "RS", "PV+RS")  # vrnet_ext.data.protocol.SETTINGS
 
 
 def available(kind: str | None = None) -> list[str]:
@@ -56,8 +53,8 @@ def _cells_of(state: dict) -> list[str]:
     if "cells" in card:  # chosen on validation; an empty list: a starting point that serves no cell
         return list(card["cells"])
     setting, split = state["config"].get("setting"), state["config"].get("split")
-    if setting == MIXED_SETTING:
-        return [f"{s}/{split}" for s in PAPER_SETTINGS]
+    if setting == MIXED:
+        return [f"{s}/{split}" for s in SETTINGS]
     return [f"{setting}/{split}"]
 
 
@@ -68,7 +65,7 @@ def model_for(setting: str, split: str) -> str | None:
     for name in available("vrnet"):
         state = read_checkpoint(WEIGHTS_DIR / f"{name}.pt")  # each file read once
         if f"{setting}/{split}" in _cells_of(state):
-            serving.append((state["config"].get("setting") == MIXED_SETTING, name))
+            serving.append((state["config"].get("setting") == MIXED, name))
     return min(serving)[1] if serving else None
 
 

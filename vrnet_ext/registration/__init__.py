@@ -15,8 +15,8 @@
 - :mod:`~vrnet_ext.registration.prepared`: both scans prepared once per registration
   (:class:`ScanPair`: voxels and FPFH shared by every estimator and ICP start);
 - :mod:`~vrnet_ext.registration.budget`: the memory plan, from each estimator's own cost;
-- :mod:`~vrnet_ext.registration.methods`: the names and defaults of the wing (built-in global
-  estimates, the default one, ICP's steps, :class:`PointCounts`; no torch, for the command line).
+- :mod:`~vrnet_ext.registration.counts`: :class:`PointCounts`, how many points each stage works on
+  (the names of the methods and ICP steps: :mod:`vrnet_ext.names`).
 
 The names below load on first use (``import vrnet_ext.registration`` imports no torch).
 
@@ -26,8 +26,8 @@ from vrnet_ext._lazy import lazy_attributes
 
 _EXPORTS = {
     **dict.fromkeys(("ESTIMATORS", "Estimator", "make_estimator"), "vrnet_ext.registration.estimators"),
-    **dict.fromkeys(("DEFAULT_METHOD", "GLOBAL_ESTIMATORS", "ICP_STEPS", "PointCounts"),
-                    "vrnet_ext.registration.methods"),
+    "PointCounts": "vrnet_ext.registration.counts",
+    **dict.fromkeys(("DEFAULT_METHOD", "GLOBAL_ESTIMATORS", "ICP_STEPS"), "vrnet_ext.names"),
     **dict.fromkeys(("PreparedScan", "ScanPair"), "vrnet_ext.registration.prepared"),
     **dict.fromkeys(("Fgr", "FpfhRansac", "GlobalEstimator", "NoMotion", "ObjectNetwork", "SceneNetwork",
                      "SpatialConsistency", "make_global_estimator"), "vrnet_ext.registration.global_estimators"),

@@ -19,7 +19,7 @@ import resource
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
-from vrnet_ext.registration.methods import PointCounts
+from vrnet_ext.registration.counts import PointCounts
 
 MB = 2 ** 20
 SAFETY = 1.25

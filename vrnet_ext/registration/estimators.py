@@ -22,7 +22,7 @@ import torch
 
 from vrnet_ext import ops
 from vrnet_ext.geometry.transforms import apply
-from vrnet_ext.registration.methods import ICP_STEPS as ESTIMATORS
+from vrnet_ext.names import ICP_STEPS as ESTIMATORS
 
 PLANE_FLATNESS = 1e-3  # GICP: the smallest covariance eigenvalue, relative to the others
 

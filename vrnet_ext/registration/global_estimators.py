@@ -27,7 +27,8 @@ from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.geometry.preprocessing import subsample
 from vrnet_ext.registration.fgr import fast_global_registration
-from vrnet_ext.registration.methods import GLOBAL_ESTIMATORS, PointCounts
+from vrnet_ext.names import GLOBAL_ESTIMATORS
+from vrnet_ext.registration.counts import PointCounts
 from vrnet_ext.registration.prepared import ScanPair
 from vrnet_ext import ops
 from vrnet_ext.geometry.features import ScanView, nearest_features
@@ -53,7 +54,7 @@ class GlobalEstimator:
     built-in estimators whose estimates ICP also starts from, the refinement with the higher fitness
     winning (for estimators that may not transfer to a pair, such as a network trained on other data:
     the result is then never worse than theirs). For a ``max_memory`` budget, ``sized_by`` names the
-    :class:`~vrnet_ext.registration.methods.PointCounts` fields its work follows and :meth:`peak_mb`
+    :class:`~vrnet_ext.registration.counts.PointCounts` fields its work follows and :meth:`peak_mb`
     states its cost (None: unknown, only ICP is planned).
     """
 

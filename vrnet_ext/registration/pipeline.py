@@ -17,7 +17,8 @@ from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.registration.budget import plan_registration
 from vrnet_ext.registration.global_estimators import GlobalEstimator, make_global_estimator
-from vrnet_ext.registration.methods import DEFAULT_METHOD, PointCounts
+from vrnet_ext.names import DEFAULT_METHOD
+from vrnet_ext.registration.counts import PointCounts
 from vrnet_ext.registration.prepared import ScanPair
 from vrnet_ext.registration.refinement import COARSE_FACTOR, IcpFailure, IcpProblem, IcpSettings, icp
 from vrnet_ext.registration.result import RegistrationResult

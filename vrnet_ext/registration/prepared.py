@@ -1,7 +1,7 @@
 """Scans prepared once per registration and shared by every global estimator and every ICP start
 (as small_gicp and Open3D prepare clouds before aligning them): a :class:`PreparedScan` keeps the
 voxel-downsampled copies and FPFH views it has made, by voxel edge; a :class:`ScanPair` holds the
-source and target with the point counts of the run (:class:`~vrnet_ext.registration.methods.PointCounts`)."""
+source and target with the point counts of the run (:class:`~vrnet_ext.registration.counts.PointCounts`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -12,7 +12,7 @@ import torch
 
 from vrnet_ext.geometry.features import ScanView, describe
 from vrnet_ext.geometry.preprocessing import voxel_downsample, voxel_size_for
-from vrnet_ext.registration.methods import PointCounts
+from vrnet_ext.registration.counts import PointCounts
 
 CPU = torch.device("cpu")
 

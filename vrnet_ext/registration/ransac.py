@@ -78,7 +78,7 @@ def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_d
             break
     if best is None or best_count < 3:
         raise ValueError("RANSAC found no hypothesis with 3 or more inliers: the features do not match "
-                         "(try another point count for --fpfh)")
+                         "(try another global_points)")
     R, t = ops.kabsch(p[best][None], q[best][None])
     transform = torch.eye(4, dtype=src.dtype, device=src.device)
     transform[:3, :3], transform[:3, 3] = R[0], t[0]

@@ -12,7 +12,8 @@ import torch
 
 from vrnet_ext import ops
 from vrnet_ext.registration.estimators import make_estimator
-from vrnet_ext.registration.methods import DEFAULT_ICP_STEP, PointCounts
+from vrnet_ext.names import DEFAULT_ICP_STEP
+from vrnet_ext.registration.counts import PointCounts
 from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import apply
 

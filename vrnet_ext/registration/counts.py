@@ -1,19 +1,9 @@
-"""The names and defaults of the registration wing, in one torch-free place (``vrnet --help``
-lists them): the built-in global estimates, the default one, ICP's steps and how many points each
-stage works on. The estimators themselves are in :mod:`vrnet_ext.registration.global_estimators`
-and :mod:`vrnet_ext.registration.estimators`."""
+"""How many points each stage of a registration works on (torch-free: ``vrnet register --help``
+shows the defaults). The names of the methods and ICP steps are in :mod:`vrnet_ext.names`."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 from numbers import Integral
-
-GLOBAL_ESTIMATORS = ("sc2", "fpfh", "vrnet", "fgr", "icp")
-# The best recall on the real pairs (benchmarks/bench_real_pairs.py; docs/user_guide.md), and on those
-# the scene model never saw.
-DEFAULT_METHOD = "sc2"
-ICP_STEPS = ("point_to_point", "point_to_plane", "gicp")
-DEFAULT_ICP_STEP = "point_to_plane"
-
 
 @dataclass(frozen=True)
 class PointCounts:

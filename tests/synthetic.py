@@ -1,0 +1,36 @@
+"""Synthetic clouds and motions that several test modules share (test modules never import each
+other)."""
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from vrnet_ext.geometry.transforms import to_homogeneous
+
+
+def room(count=4000, seed=0):
+    """Points on three orthogonal walls of a 4 m room corner plus a box: enough structure for ICP."""
+    rng = np.random.default_rng(seed)
+    walls = rng.uniform(0, 4, size=(count, 3))
+    walls[: count // 3, 0] = 0
+    walls[count // 3: 2 * count // 3, 1] = 0
+    walls[2 * count // 3:, 2] = 0
+    box = rng.uniform(1, 1.6, size=(count // 4, 3))
+    box[:, rng.integers(0, 3, count // 4)] = 1.0
+    return np.concatenate([walls, box]).astype(np.float64)
+
+
+def motion(degrees, translation, seed=1):
+    """A 4x4 rigid motion: ``degrees`` about an axis drawn with ``seed``, then ``translation``."""
+    R = Rotation.from_rotvec(np.radians(degrees) * Rotation.random(random_state=seed).as_rotvec() /
+                             np.linalg.norm(Rotation.random(random_state=seed).as_rotvec())).as_matrix()
+    return to_homogeneous(R, np.asarray(translation, dtype=float))
+
+
+def box_scan(points: int = 4000, seed: int = 0) -> np.ndarray:
+    """Inside of a 4 x 3 x 2.5 box with a table, sampled by area (sensor near the centre)."""
+    rng = np.random.default_rng(seed)
+    faces = rng.integers(0, 6, points)
+    scan = rng.uniform([-2, -1.5, -1.25], [2, 1.5, 1.25], (points, 3))
+    for face in range(6):
+        scan[faces == face, face % 3] = [-2, -1.5, -1.25, 2, 1.5, 1.25][face]
+    table = rng.uniform([-0.5, -0.3, -0.5], [0.5, 0.3, -0.5], (points // 4, 3))
+    return np.concatenate([scan, table]) + rng.normal(0, 0.003, (points + points // 4, 3))

@@ -1,0 +1,30 @@
+"""Every name a user chooses from, and every default that is one of them, in one place: the command
+line reads its ``choices=`` and defaults here, the library its checks. Imports nothing (``vrnet
+--help`` answers without torch).
+
+Abbreviations of the ModelNet40 protocol (the paper's Tables): settings CO (complete clouds), PV
+(partial views), RS (randomly sampled source and target), PV+RS (both); splits UPC (unseen point
+clouds: the test shapes of the training categories), UC (unseen categories: trained on the first
+20, tested on the other 20), ND (noisy data: Gaussian noise on the UPC split).
+"""
+
+BACKENDS = ("ext", "torch")  # the compiled kernels, or their pure-PyTorch references
+DEFAULT_BACKEND = "ext"
+TRANSFORMER_PRECISIONS = ("auto", "bf16", "fp32")  # auto: bfloat16 where the CPU multiplies it natively
+PROCRUSTES_POINTS = ("rcp", "vcp")  # what the final Procrustes aligns the source with: RCPs (VRNet) or VCPs
+
+SETTINGS = ("CO", "PV", "RS", "PV+RS")  # the paper's
+MIXED = "mixed"  # training only: one of SETTINGS per pair
+DEFAULT_SETTING = "PV"
+SPLITS = ("UPC", "UC", "ND")
+DEFAULT_SPLIT = "UPC"
+
+DEFAULT_MODEL = "vrnet-pv-upc-rcp"  # the shipped ModelNet40 model of the paper's main cell
+DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-real"  # the shipped scene model (vrnet register --method vrnet)
+
+GLOBAL_ESTIMATORS = ("sc2", "fpfh", "vrnet", "fgr", "icp")  # vrnet_ext.registration.global_estimators
+# The best recall on the real pairs (benchmarks/bench_real_pairs.py; docs/user_guide.md), and on those
+# the scene model never saw.
+DEFAULT_METHOD = "sc2"
+ICP_STEPS = ("point_to_point", "point_to_plane", "gicp")  # vrnet_ext.registration.estimators
+DEFAULT_ICP_STEP = "point_to_plane"
