@@ -185,3 +185,46 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert done.returncode == 1 and len(errors) == 1, done.stderr
     assert str(full / "big.pt") in errors[0] and "File too large" in errors[0]
     assert not list(full.iterdir())
+
+
+CRAFTED_LOAD = r"""
+import resource, sys, torch
+from vrnet_ext.model.checkpoints import CheckpointError
+from vrnet_ext.model.pretrained import load_model, weights_path
+load_model(weights_path("vrnet-pv-upc-rcp"))  # the model's own size is in the baseline
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+try:
+    load_model(sys.argv[1])
+    print("loaded")
+except CheckpointError as error:
+    print("refused:", error)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - before)
+"""
+
+
+@pytest.mark.parametrize("crafted", ["zero_stride", "broadcast_rows", "wrong_dtype", "extra_weight"])
+def test_a_crafted_checkpoint_is_refused_before_it_is_expanded(tmp_path, crafted):
+    """A shipped model's file with one weight replaced by a float16 tensor of 2^28 elements that
+    stores one (zero stride) or one row (a broadcast), or by an integer tensor, or with a weight
+    added: loading it is refused naming the file and the weight, and the process's peak grows by at
+    most 4x the file's size (widening the crafted tensor to float32 would take 1 GiB)."""
+    from vrnet_ext.model.pretrained import weights_path
+
+    state = torch.load(weights_path("vrnet-pv-upc-rcp"), weights_only=True)
+    name = next(iter(state["model"]))
+    huge = {"zero_stride": torch.zeros(1, dtype=torch.float16).expand(2 ** 28),
+            "broadcast_rows": torch.zeros(1, 64, dtype=torch.float16).expand(2 ** 22, 64),
+            "wrong_dtype": torch.zeros(state["model"][name].shape, dtype=torch.int64),
+            "extra_weight": None}[crafted]
+    if huge is None:
+        state["model"]["extra.weight"] = torch.zeros(1, dtype=torch.float16).expand(2 ** 28)
+    else:
+        state["model"][name] = huge
+    path = tmp_path / "crafted.pt"
+    torch.save(state, path)
+    done = subprocess.run([sys.executable, "-c", CRAFTED_LOAD, str(path)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    verdict, grown = done.stdout.strip().splitlines()[-2:]
+    assert verdict.startswith("refused:") and "crafted.pt" in verdict, verdict
+    assert ("extra.weight" if crafted == "extra_weight" else name) in verdict, verdict
+    assert int(grown) <= 4 * path.stat().st_size, (crafted, int(grown), path.stat().st_size)

@@ -97,8 +97,8 @@ def model_from_state(state: dict, source: str) -> VRNet | SceneVRNet:
             raise CheckpointError(f"{source}: invalid scene-model configuration: {exc}") from None
     else:
         model = VRNet(validate_model_config(state["config"]["model"], source))
-    weights = {k: v.float() if isinstance(v, torch.Tensor) and v.dtype == torch.float16 else v
-               for k, v in state["model"].items()}
+    weights = {k: v.float() if v.dtype == torch.float16 else v
+               for k, v in checked_weights(state["model"], model.state_dict(), source).items()}
     try:
         model.load_state_dict(weights)
     except (RuntimeError, TypeError, ValueError) as exc:
@@ -107,4 +107,31 @@ def model_from_state(state: dict, source: str) -> VRNet | SceneVRNet:
     return model
 
 
-__all__ = ["CheckpointError", "MODEL_LIMITS", "model_from_state", "read_checkpoint", "validate_model_config"]
+FLOATS = (torch.float16, torch.float32)  # what a file's floating-point weights may be stored as
+
+
+def checked_weights(weights: dict, expected: dict[str, torch.Tensor], source: str) -> dict[str, torch.Tensor]:
+    """``weights`` of an untrusted file, each checked against ``expected`` (the model's own state
+    dict) before anything is computed from it: the same names, every value a dense tensor of the
+    expected shape (so widening float16 to float32 allocates no more than the model itself, however
+    the file's shapes and strides were crafted), a floating-point weight stored as float16 or
+    float32, any other one in its own dtype. CheckpointError names the file and the weight."""
+    missing, unexpected = sorted(expected.keys() - weights.keys()), sorted(weights.keys() - expected.keys())
+    if missing or unexpected:
+        raise CheckpointError(f"{source}: its weights do not match its model configuration (missing: "
+                              f"{missing[:3] or 'none'}, unexpected: {unexpected[:3] or 'none'})")
+    for name, value in weights.items():
+        want = expected[name]
+        if not isinstance(value, torch.Tensor) or value.layout != torch.strided or value.is_meta:
+            raise CheckpointError(f"{source}: weight {name} is not a dense tensor")
+        if value.shape != want.shape:
+            raise CheckpointError(f"{source}: its weights do not match its model configuration (weight {name} "
+                                  f"has shape {tuple(value.shape)}, the configuration needs {tuple(want.shape)})")
+        allowed = FLOATS if want.is_floating_point() else (want.dtype,)
+        if value.dtype not in allowed:
+            raise CheckpointError(f"{source}: weight {name} is stored as {value.dtype}, not as one of "
+                                  f"{[str(d) for d in allowed]}")
+    return weights
+
+
+__all__ = ["CheckpointError", "checked_weights", "MODEL_LIMITS", "model_from_state", "read_checkpoint", "validate_model_config"]
