@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -266,3 +268,44 @@ def test_outputs_get_ordinary_file_permissions(tmp_path):
     os.chmod(tmp_path / "new.ply", 0o640)
     write_ply(tmp_path / "new.ply", np.ones((4, 3)))  # replacing keeps the file's mode
     assert stat.S_IMODE((tmp_path / "new.ply").stat().st_mode) == 0o640
+
+
+def test_a_ply_header_line_the_reader_does_not_know_is_refused_naming_it(tmp_path, points):
+    write_ply(tmp_path / "good.ply", points)
+    text = (tmp_path / "good.ply").read_bytes()
+    for bad in (b"Property float x", b"proprety float x"):
+        (tmp_path / "bad.ply").write_bytes(text.replace(b"property float x", bad, 1))
+        with pytest.raises(PointCloudError, match=r"bad.ply: header line \d+ is not a PLY header line"):
+            read_points(tmp_path / "bad.ply")
+
+
+def test_text_rows_with_upper_case_exponents_keep_their_first_point(tmp_path, points):
+    np.savetxt(tmp_path / "e.xyz", points, fmt="%.9E")
+    np.testing.assert_allclose(read_points(tmp_path / "e.xyz"), points, rtol=1e-8)
+    np.savetxt(tmp_path / "e.csv", points, fmt="%.9E", delimiter=",")
+    assert read_points(tmp_path / "e.csv").shape == points.shape
+    (tmp_path / "mixed.txt").write_text("1.0 2.0 x3\n" + "1 2 3\n" * 5)
+    with pytest.raises(PointCloudError, match="mixed.txt: line 1 mixes numbers and words"):
+        read_points(tmp_path / "mixed.txt")
+
+
+def pcd_text(points, header_points, width=None, data="ascii"):
+    width = header_points if width is None else width
+    head = (f"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {width}\nHEIGHT 1\n"
+            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {header_points}\nDATA {data}\n").encode()
+    if data == "ascii":
+        return head + "".join(f"{x} {y} {z}\n" for x, y, z in points).encode()
+    return head + points.astype("<f4").tobytes()
+
+
+def test_pcd_counts_are_checked_against_the_whole_file(tmp_path, points):
+    n = len(points)
+    (tmp_path / "ok.pcd").write_bytes(pcd_text(points, n))
+    assert read_points(tmp_path / "ok.pcd").shape == (n, 3)
+    cases = {"more_rows.pcd": (pcd_text(points, n - 2), f"promises {n - 2} points, the data has {n} rows"),
+             "width.pcd": (pcd_text(points, n, width=n + 1), "WIDTH x HEIGHT"),
+             "extra_bytes.pcd": (pcd_text(points, n - 2, data="binary"), f"promises {n - 2} points of 12 bytes")}
+    for name, (content, message) in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(PointCloudError, match=f"{name}: .*{re.escape(message)}"):
+            read_points(tmp_path / name)

@@ -75,9 +75,11 @@ def _parse_ply_vertex(path: Path, header: list[str]) -> tuple[str, int, list[tup
     if header[0] != "ply":
         raise _fail(path, "a PLY file must start with the line 'ply'")
     fmt, elements, current = None, [], None
-    for line in header[1:]:
+    for number, line in enumerate(header[1:], start=2):
         words = line.split()
-        if words[0] == "format" and len(words) >= 2:
+        if words[0] in ("comment", "obj_info", "end_header"):
+            continue
+        if words[0] == "format" and len(words) == 3:
             fmt = words[1]
         elif words[0] == "element" and len(words) == 3:
             current = (words[1], _count(path, words[2], f"element {words[1]!r}"), [])
@@ -91,6 +93,9 @@ def _parse_ply_vertex(path: Path, header: list[str]) -> tuple[str, int, list[tup
                 current[2].append((words[2], _PLY_TYPES[words[1]]))
             else:
                 raise _fail(path, f"unknown PLY property type in {line!r}")
+        else:  # a misspelt keyword would shift the columns of everything after it
+            raise _fail(path, f"header line {number} is not a PLY header line: {line!r} (expected format, element, "
+                              f"property, comment, obj_info or end_header)")
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise _fail(path, f"PLY format must be ascii, binary_little_endian or binary_big_endian, got {fmt!r}")
     skip = 0
@@ -176,9 +181,16 @@ def _read_pcd(path: Path, data: bytes) -> np.ndarray:
     if vector_axes:
         raise _fail(path, f"PCD COUNT of {', '.join(vector_axes)} must be 1 (one coordinate per point), got "
                           f"{[counts[names.index(a)] for a in vector_axes]}")
+    if "POINTS" in fields and {"WIDTH", "HEIGHT"} <= fields.keys():
+        width, height = _count(path, fields["WIDTH"][0], "WIDTH"), _count(path, fields["HEIGHT"][0], "HEIGHT")
+        if width * height != points:
+            raise _fail(path, f"PCD WIDTH x HEIGHT ({width} x {height}) does not match POINTS ({points})")
     if mode == "ascii":
         offsets = np.cumsum([0] + counts)
         columns = [int(offsets[names.index(a)]) for a in "xyz"]
+        rows = sum(1 for line in data[body:].splitlines() if line.strip())
+        if rows > points:
+            raise _fail(path, f"the header promises {points} points, the data has {rows} rows")
         table = _text_rows(path, data[body:], points, 0, columns, "PCD ascii rows with one number per field value")
         if table.shape[0] < points:
             raise _fail(path, f"truncated: header promises {points} points, found {table.shape[0]} rows")
@@ -191,17 +203,42 @@ def _read_pcd(path: Path, data: bytes) -> np.ndarray:
             raise _fail(path, f"unsupported PCD TYPE/SIZE combination in {list(zip(types, sizes))}") from None
         if len(data) < body + points * dtype.itemsize:
             raise _fail(path, f"truncated: {points} points need {points * dtype.itemsize} bytes of data")
+        if len(data) > body + points * dtype.itemsize:
+            raise _fail(path, f"the header promises {points} points of {dtype.itemsize} bytes, the data holds "
+                              f"{len(data) - body} bytes")
         table = np.frombuffer(data, dtype=dtype, count=points, offset=body)
         return np.stack([table[a] for a in "xyz"], axis=1)
     raise _fail(path, f"PCD DATA {mode!r} is not supported (ascii or binary; convert binary_compressed with "
                       "pcl_convert_pcd_ascii_binary)")
 
 
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _header_rows(path: Path, first: str, delimiter: str | None) -> int:
+    """1 when the first line is a header row of names (``x y z``, ``X,Y,Z,intensity``), 0 when it is
+    a row of numbers (``1.0E+00`` included); a row that mixes the two is neither: PointCloudError."""
+    tokens = [t.strip() for t in first.split(delimiter)] if delimiter else first.split()
+    tokens = [t for t in tokens if t]
+    numeric = [_is_number(t) for t in tokens]
+    if all(numeric):
+        return 0
+    if not any(numeric):
+        return 1
+    raise _fail(path, f"line 1 mixes numbers and words: {first.strip()!r} (rows must be numbers x y z ...; a "
+                      f"header row, names only)")
+
+
 def _read_text(path: Path) -> np.ndarray:
     delimiter = "," if path.suffix.lower() == ".csv" else None
     with path.open("rb") as f:
         first = f.readline().decode("latin-1")
-    header = 1 if re.search(r"[A-Za-df-z_]", first.split("#")[0]) else 0  # a header row of names (x, y, z, ...)
+    header = _header_rows(path, first.split("#")[0], delimiter)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "input contained no data": reported below
