@@ -1,7 +1,10 @@
 """vrnet_ext: VRNet point-cloud registration on fused C++/OpenMP kernels.
 
 Attributes load on first use (``vrnet_ext.ops`` imports torch and the compiled kernels)."""
+from vrnet_ext import _moved
 from vrnet_ext._lazy import lazy_attributes
+
+_moved.install()  # old module paths (vrnet_ext.io, ...) still import, with a DeprecationWarning
 
 __version__ = "0.1.0"
 __all__ = ["register", "RegistrationResult", "ops", "nn", "VRNet", "VRNetConfig", "VRNetOutput", "has_extension",
