@@ -309,3 +309,39 @@ def test_pcd_counts_are_checked_against_the_whole_file(tmp_path, points):
         (tmp_path / name).write_bytes(content)
         with pytest.raises(PointCloudError, match=f"{name}: .*{re.escape(message)}"):
             read_points(tmp_path / name)
+
+
+def write_log(path, blocks):
+    path.write_text("".join(f"{i}\t {j}\t 60\n" + "".join(" ".join(f"{v:.9e}" for v in row) + "\n" for row in T)
+                            for (i, j), T in blocks.items()))
+
+
+def test_ground_truth_from_a_3dmatch_log_by_fragments_or_file_names(tmp_path):
+    from vrnet_ext.geometry.io import read_ground_truth
+
+    rng = np.random.default_rng(3)
+    blocks = {}
+    for pair in ((0, 4), (0, 10), (4, 10)):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+        blocks[pair] = T
+    write_log(tmp_path / "gt.log", blocks)
+    log = tmp_path / "gt.log"
+    # block "i j" maps fragment j into fragment i: source j, target i as it is; source i, target j inverted
+    np.testing.assert_allclose(read_ground_truth(log, fragments=(4, 0)), blocks[(0, 4)], atol=1e-8)
+    np.testing.assert_allclose(read_ground_truth(log, fragments=(0, 4)), np.linalg.inv(blocks[(0, 4)]), atol=1e-8)
+    named = read_ground_truth(log, tmp_path / "cloud_bin_10.ply", tmp_path / "cloud_bin_4.ply")
+    np.testing.assert_allclose(named, blocks[(4, 10)], atol=1e-8)
+    with pytest.raises(PointCloudError, match="gt.log: the 3DMatch log has no entry for fragments 1 and 2"):
+        read_ground_truth(log, fragments=(1, 2))
+    with pytest.raises(PointCloudError, match="gt.log: a 3DMatch log of 3 pairs"):
+        read_ground_truth(log, "a.ply", "b.ply")
+    write_log(tmp_path / "one.log", {(0, 4): blocks[(0, 4)]})
+    np.testing.assert_allclose(read_ground_truth(tmp_path / "one.log"), blocks[(0, 4)], atol=1e-8)
+    np.savetxt(tmp_path / "T.txt", blocks[(0, 4)])
+    np.testing.assert_allclose(read_ground_truth(tmp_path / "T.txt", "cloud_bin_0.ply", "cloud_bin_4.ply"),
+                               blocks[(0, 4)])
+    with pytest.raises(PointCloudError, match="T.txt: fragments .* not a 3DMatch log"):
+        read_ground_truth(tmp_path / "T.txt", fragments=(0, 4))
+    with pytest.raises(PointCloudError, match="gt.log: a 4x4 transform needs 16 numbers, found 57 .*read_ground_truth"):
+        read_transform(log)

@@ -464,3 +464,20 @@ def test_every_option_of_every_command_has_help_naming_its_default():
             shown = action.default not in (None, False, "", [], argparse.SUPPRESS) and action.nargs != 0
             if shown:
                 assert "default" in formatter._get_help_string(action), f"vrnet {name} {action.option_strings[0]}"
+
+
+KITCHEN_LOG = DATA_DIR / "scenes" / "3dmatch_redkitchen" / "gt_3DMatch_redkitchen.log"
+
+
+@pytest.mark.skipif(not KITCHEN_LOG.exists(), reason=f"3DMatch kitchen fragments not found beside {KITCHEN_LOG}")
+def test_register_takes_the_official_3dmatch_log_as_ground_truth(capsys):
+    """The pair is picked by the fragments' file names (cloud_bin_0 onto cloud_bin_4: the log's
+    block "0 4" inverted) or by --gt-fragments; the errors are small either way."""
+    folder = KITCHEN_LOG.parent
+    pair = [str(folder / "cloud_bin_0.ply"), str(folder / "cloud_bin_4.ply")]
+    for extra in ([], ["--gt-fragments", "0", "4"]):
+        assert main(["register", *pair, "--gt", str(KITCHEN_LOG), *extra, "--json", "-"]) == 0
+        captured = capsys.readouterr()
+        errors = json.loads(captured.out)["errors"]
+        assert errors["rotation_error_deg"] < 5.0 and errors["translation_error"] < 0.2, errors
+        assert "inverse of --gt" not in captured.err

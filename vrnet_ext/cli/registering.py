@@ -55,7 +55,11 @@ def add_register(sub) -> None:
                    help="ICP from no motion first runs on 4x coarser voxels with a 4x longer reach")
     p.add_argument("--estimator", choices=ICP_STEPS, default=DEFAULT_ICP_STEP,
                    help="ICP step: point-to-point (Kabsch), point-to-plane, or plane-to-plane (GICP)")
-    p.add_argument("--gt", default=None, help="ground-truth 4x4 transform file: report the errors")
+    p.add_argument("--gt", default=None,
+                   help="ground truth, to report the errors: a 4x4 transform file (SOURCE into TARGET's frame), or a "
+                        "3DMatch gt.log (the pair picked by --gt-fragments, or by cloud_bin_<i> file names)")
+    p.add_argument("--gt-fragments", type=int, nargs=2, metavar=("SOURCE_INDEX", "TARGET_INDEX"), default=None,
+                   help="with a 3DMatch gt.log: the fragment indices of SOURCE and TARGET")
     p.add_argument("--json", type=json_output, default=None, help="write the result here (- for standard output)")
     p.add_argument("--out", type=writable_path, default=None, help="write the moved source as a PLY here")
     p.add_argument("--plot", type=writable_path, default=None, help="write top/side views (PNG) here")
@@ -81,7 +85,7 @@ def _register_and_report(args) -> dict:
     """Registers, prints the report and writes --out / --plot -> the JSON record."""
     import numpy as np
 
-    from vrnet_ext.geometry.io import read_points, read_transform, write_ply
+    from vrnet_ext.geometry.io import read_ground_truth, read_points, write_ply
     from vrnet_ext.geometry.transforms import apply
     from vrnet_ext.names import DEFAULT_SCENE_MODEL
     from vrnet_ext.registration import IcpSettings, register, transform_errors
@@ -100,7 +104,8 @@ def _register_and_report(args) -> dict:
 
         model = load_model(args.checkpoint, args.device)[0]
     src, tgt = read_points(args.source), read_points(args.target)
-    truth = read_transform(args.gt) if args.gt else None
+    fragments = tuple(args.gt_fragments) if args.gt_fragments else None
+    truth = read_ground_truth(args.gt, args.source, args.target, fragments) if args.gt else None
     icp_settings = IcpSettings(estimator=args.estimator, points=args.icp_points, voxel_size=args.voxel_size,
                                max_distance=args.max_distance, max_iterations=args.icp_iterations,
                                transform_tolerance=args.icp_tolerance, coarse_start=args.coarse_start)

@@ -352,22 +352,85 @@ def write_ply(path: str | os.PathLike, points: np.ndarray) -> None:
         f.write(np.ascontiguousarray(points).tobytes())
 
 
+MAX_LOG_BYTES = 1 << 24  # a 3DMatch-style log of a whole scene is well under 1 MB
+_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+
+
 def read_transform(path: str | os.PathLike) -> np.ndarray:
-    """Reads a 4x4 rigid transform written as 16 numbers (rows; '#' comments ignored) -> (4, 4) float64."""
+    """A 4x4 rigid transform written as 16 numbers (rows; '#' comments ignored) -> (4, 4) float64."""
     path = Path(path)
+    rows = _number_rows(path)
+    numbers = [float(v) for row in rows for v in row]
+    if len(numbers) != 16:
+        hint = " (a 3DMatch log: read_ground_truth)" if _is_log(rows) else ""
+        raise _fail(path, f"a 4x4 transform needs 16 numbers, found {len(numbers)}{hint}")
+    return _rigid(path, np.array(numbers).reshape(4, 4))
+
+
+_FRAGMENT = re.compile(r"cloud_bin_(\d+)$")  # how the 3DMatch benchmark names its fragments
+
+
+def read_ground_truth(path: str | os.PathLike, source: str | os.PathLike | None = None,
+                      target: str | os.PathLike | None = None, fragments: tuple[int, int] | None = None) -> np.ndarray:
+    """The ground truth ``T_target_source`` (4, 4) of a pair from ``path``: a 4x4 transform
+    (:func:`read_transform`), or one pair of a 3DMatch ``gt.log`` (blocks of a line ``i j n`` and the
+    4x4 that maps fragment j into the frame of fragment i). For a log, ``fragments=(source index,
+    target index)`` picks the pair, else the indices of the ``source`` and ``target`` file names
+    (``cloud_bin_<i>.ply``, as the benchmark names them), else the log must hold one pair. The
+    block ``target source`` is used as it is, ``source target`` inverted."""
+    path = Path(path)
+    rows = _number_rows(path)
+    if not _is_log(rows):
+        if fragments is not None:
+            raise _fail(path, f"fragments {fragments} were given, but this is a 4x4 transform, not a 3DMatch log")
+        return read_transform(path)
+    if fragments is None and source is not None and target is not None:
+        found = [_FRAGMENT.search(Path(name).stem) for name in (source, target)]
+        fragments = (int(found[0].group(1)), int(found[1].group(1))) if all(found) else None
+    return _rigid(path, _log_pair(path, rows, fragments))
+
+
+def _number_rows(path: Path) -> list[list[str]]:
+    """The numbers of each line of a small text file (blank and '#' lines dropped)."""
     if not path.is_file():
         raise PointCloudError(f"{path}: no such file")
-    if path.stat().st_size > 1 << 16:
-        raise _fail(path, "too large for a 4x4 transform (16 numbers as text)")
+    if path.stat().st_size > MAX_LOG_BYTES:
+        raise _fail(path, f"too large for a transform or a 3DMatch log ({path.stat().st_size} bytes)")
     try:
         text = path.read_text(encoding="ascii")
     except UnicodeDecodeError:
-        raise _fail(path, "a 4x4 transform must be a text file of 16 numbers (this one is not ASCII text)") from None
-    numbers = [float(v) for v in re.findall(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?",
-                                             "\n".join(l for l in text.splitlines() if not l.lstrip().startswith("#")))]
-    if len(numbers) != 16:
-        raise _fail(path, f"a 4x4 transform needs 16 numbers, found {len(numbers)}")
-    T = np.array(numbers).reshape(4, 4)
+        raise _fail(path, "a transform must be a text file of numbers (this one is not ASCII text)") from None
+    return [re.findall(_NUMBER, line) for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+
+
+def _is_log(rows: list[list[str]]) -> bool:
+    """Whether the lines are a 3DMatch log: 5 per pair, the first of each holding ``i j n``."""
+    return bool(rows) and len(rows) % 5 == 0 and all(len(rows[k]) == 3 for k in range(0, len(rows), 5))
+
+
+def _log_pair(path: Path, rows: list[list[str]], fragments: tuple[int, int] | None) -> np.ndarray:
+    """The 4x4 of a 3DMatch log (``rows``: its lines as numbers) for ``fragments`` (source, target)."""
+    blocks = {}
+    for k in range(0, len(rows), 5):
+        matrix = rows[k + 1:k + 5]
+        if any(len(row) != 4 for row in matrix):
+            raise _fail(path, f"3DMatch log entry {' '.join(rows[k])}: the 4 lines after it need 4 numbers each")
+        blocks[(int(float(rows[k][0])), int(float(rows[k][1])))] = np.array(matrix, dtype=np.float64)
+    if fragments is None:
+        if len(blocks) != 1:
+            raise _fail(path, f"a 3DMatch log of {len(blocks)} pairs: give the fragments (source and target "
+                              f"indices), or name the clouds cloud_bin_<index>")
+        return next(iter(blocks.values()))
+    source, target = fragments
+    if (target, source) in blocks:
+        return blocks[(target, source)]
+    if (source, target) in blocks:
+        return np.linalg.inv(blocks[(source, target)])
+    raise _fail(path, f"the 3DMatch log has no entry for fragments {source} and {target}")
+
+
+def _rigid(path: Path, T: np.ndarray) -> np.ndarray:
+    """``T`` if it is a rigid transform, else PointCloudError."""
     # published ground truth is only ~1e-4 orthonormal (3DMatch's gt.log: up to 1.3e-4)
     rotation = T[:3, :3]
     if (not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3)
