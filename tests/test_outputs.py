@@ -58,3 +58,11 @@ def test_json_to_standard_output_is_the_record_alone(tmp_path, capsys):
     record = json.loads(captured.out)
     assert record["pairs"] and "mean rotation error" in captured.err
     assert not (Path.cwd() / "-").exists()
+
+
+def test_a_picture_without_a_format_is_refused_before_any_work(tmp_path, capsys):
+    for argv in (["demo", "--out", str(tmp_path / "picture")],
+                 ["register", "a.ply", "b.ply", "--plot", str(tmp_path / "views.txt")]):
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert "give a picture file name ending in .png" in capsys.readouterr().err

@@ -162,6 +162,32 @@ def test_cli_register(tmp_path, capsys):
     assert "matches the inverse of --gt" in capsys.readouterr().err
 
 
+def test_the_register_picture_shows_input_result_and_truth_with_the_fit_in_its_title(tmp_path, monkeypatch):
+    """--plot draws the source before any motion, after the result and (with --gt) after the ground
+    truth, each from above and from the side, under a title with the method, fitness and errors."""
+    import vrnet_ext.plots as plots
+
+    drawn = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path, dpi: drawn.append(fig) or path)
+    src = room()
+    truth = motion(5.0, [0.1, 0.0, 0.05])
+    np.save(tmp_path / "src.npy", src)
+    np.save(tmp_path / "tgt.npy", apply(truth, src))
+    np.savetxt(tmp_path / "gt.txt", truth)
+    assert main(["register", str(tmp_path / "src.npy"), str(tmp_path / "tgt.npy"), "--gt", str(tmp_path / "gt.txt"),
+                 "--plot", str(tmp_path / "r.png"), "--icp-points", "3000"]) == 0
+    (fig,) = drawn
+    titles = [ax.get_title() for ax in fig.axes]
+    assert titles == [f"{row}: {view}" for row in ("input (no motion)", "result", "ground truth")
+                      for view in ("top view (x, y)", "side view (x, z)")], titles
+    heading = fig._suptitle.get_text()
+    assert heading.startswith("FPFH + spatial consistency + ICP (point_to_plane): fitness ") and "inlier RMSE" in heading
+    assert "against the ground truth: rotation " in heading, heading
+    colours = {tuple(collection.get_facecolor()[0][:3]) for collection in fig.axes[0].collections}
+    assert len(colours) == 2  # source and target in their own colours, both half transparent
+    assert all(collection.get_alpha() < 1 for collection in fig.axes[0].collections)
+
+
 def test_the_vrnet_executable_writes_everything_and_keeps_its_exit_status(tmp_path):
     """``vrnet`` ends with os._exit: every output written, stdout flushed (even to a pipe), the status kept."""
     src = room(2000)

@@ -22,12 +22,18 @@ def _save(fig, path: str | Path, dpi: int) -> Path:
     return path
 
 
-def plot_registration(src, tgt, transforms: dict, path: str | Path, max_points: int = 20000, seed: int = 0) -> Path:
-    """Top and side views of the target (grey) with the source moved by each named 4x4 transform.
+FLAT = 0.15  # a view flatter than this (height / width: the side of a LiDAR scan) is stretched vertically
+STRETCHED = 0.3  # to this height / width
 
-    src (N, 3), tgt (M, 3) numpy arrays; ``transforms`` maps a label ("initial", "final", ...) to a
-    (4, 4) array. Clouds are randomly thinned to ``max_points`` for drawing.
-    """
+
+def registration_figure(src, tgt, transforms: dict, title: str = "", max_points: int = 20000, seed: int = 0):
+    """A figure of one row per named 4x4 transform (e.g. "input (no motion)", "result", "ground
+    truth"), each with a top view (x, y) and a side view (x, z) of the target (orange) and the source
+    moved by it (blue), both half transparent so that neither hides the other; ``title`` above all.
+    src (N, 3), tgt (M, 3) numpy arrays, randomly thinned to ``max_points`` for drawing. Each view is
+    cropped to where the clouds are (0.5-99.5 percentiles: a stray point does not shrink the scene
+    to a corner) and sized to its shape; a flat view (the side of a LiDAR scan) is stretched
+    vertically, and its title says by how much."""
     import numpy as np
 
     rng = np.random.default_rng(seed)
@@ -36,18 +42,40 @@ def plot_registration(src, tgt, transforms: dict, path: str | Path, max_points: 
         return points[rng.choice(len(points), max_points, replace=False)] if len(points) > max_points else points
 
     src, tgt = thin(src), thin(tgt)
-    views = (("top view (x, y)", 0, 1), ("side view (x, z)", 0, 2))
-    fig, axes = plt.subplots(len(transforms), 2, figsize=(12, 5.5 * len(transforms)), squeeze=False)
-    for row, (label, T) in enumerate(transforms.items()):
-        moved = apply(T, src)
-        for col, (title, a, b) in enumerate(views):
+    moved = {label: apply(T, src) for label, T in transforms.items()}
+    shown = np.concatenate([tgt, *moved.values()])
+    low, high = np.percentile(shown, 0.5, axis=0), np.percentile(shown, 99.5, axis=0)
+    extent = np.maximum(high - low, 1e-9)
+    margin = 0.03 * extent
+    views = [("top view (x, y)", 0, 1), ("side view (x, z)", 0, 2)]
+    shapes = [extent[b] / extent[a] for _, a, b in views]  # height / width of each view
+    stretch = [STRETCHED / shape if shape < FLAT else 1.0 for shape in shapes]
+    drawn = [min(3.0, shape * factor) for shape, factor in zip(shapes, stretch)]
+    widths = [1.0 / shape for shape in drawn]
+    row_height = 12.0 / sum(widths)
+    fig, axes = plt.subplots(len(transforms), 2, figsize=(13, 0.8 + (row_height + 0.7) * len(transforms)),
+                             squeeze=False, gridspec_kw={"width_ratios": widths})
+    for row, (label, points) in enumerate(moved.items()):
+        for col, (view, a, b) in enumerate(views):
             ax = axes[row][col]
-            ax.scatter(tgt[:, a], tgt[:, b], s=0.2, c="0.6", label="target", rasterized=True)
-            ax.scatter(moved[:, a], moved[:, b], s=0.2, c="tab:red", label=f"source ({label})", rasterized=True)
-            ax.set_aspect("equal")
-            ax.set_title(f"{label}: {title}")
-            ax.legend(loc="upper right", markerscale=20)
-    return _save(fig, path, dpi=110)
+            ax.scatter(points[:, a], points[:, b], s=0.3, c="tab:blue", alpha=0.45, label="source", rasterized=True)
+            ax.scatter(tgt[:, a], tgt[:, b], s=0.3, c="tab:orange", alpha=0.45, label="target", rasterized=True)
+            ax.set_xlim(low[a] - margin[a], high[a] + margin[a])
+            ax.set_ylim(low[b] - margin[b], high[b] + margin[b])
+            ax.set_aspect(stretch[col])
+            note = f", height stretched x{stretch[col]:.1f}" if stretch[col] > 1.0 else ""
+            ax.set_title(f"{label}: {view}{note}")
+    fig.legend(*axes[0][0].get_legend_handles_labels(), loc="upper right", markerscale=15)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def plot_registration(src, tgt, transforms: dict, path: str | Path, title: str = "", max_points: int = 20000,
+                      seed: int = 0) -> Path:
+    """:func:`registration_figure` written to ``path`` (PNG)."""
+    return _save(registration_figure(src, tgt, transforms, title, max_points, seed), path, dpi=110)
 
 
 def plot_pair(src, tgt, *, truth, vcp, rcp, estimate, path: str | Path, title: str = "") -> Path:

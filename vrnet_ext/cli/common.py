@@ -140,6 +140,17 @@ def writable_path(text: str) -> str:
     return text
 
 
+PICTURE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+
+
+def picture_path(text: str) -> str:
+    """A picture to write (:func:`writable_path`) whose name says its format (checked before the work)."""
+    if Path(text).suffix.lower() not in PICTURE_SUFFIXES:
+        raise argparse.ArgumentTypeError(f"{text!r}: give a picture file name ending in "
+                                         f"{', '.join(PICTURE_SUFFIXES)}")
+    return writable_path(text)
+
+
 MAX_VIEW_POINTS = 200_000  # train-scene: the InfoNCE matrix grows as the square of the view's points
 
 

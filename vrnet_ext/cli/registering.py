@@ -6,7 +6,8 @@ import resource
 import sys
 
 from vrnet_ext.cli.common import (DefaultsHelpFormatter, as_flags, device_name, json_output, memory_size,
-                                  nonnegative_int, positive_float, positive_int, report_to, writable_path, write_json)
+                                  nonnegative_int, picture_path, positive_float, positive_int, report_to, writable_path,
+                                  write_json)
 
 
 def add_register(sub) -> None:
@@ -62,7 +63,9 @@ def add_register(sub) -> None:
                    help="with a 3DMatch gt.log: the fragment indices of SOURCE and TARGET")
     p.add_argument("--json", type=json_output, default=None, help="write the result here (- for standard output)")
     p.add_argument("--out", type=writable_path, default=None, help="write the moved source as a PLY here")
-    p.add_argument("--plot", type=writable_path, default=None, help="write top/side views (PNG) here")
+    p.add_argument("--plot", type=picture_path, default=None,
+                   help="write a picture here (.png, .pdf, .svg, .jpg): the source before any motion, after the result "
+                        "and after --gt, from above and from the side")
     p.add_argument("--backend", choices=BACKENDS, default=DEFAULT_BACKEND,
                    help="ext: the compiled kernels; torch: the pure-PyTorch references")
     p.add_argument("--device", type=device_name, default="cpu", help="torch device to run on, e.g. cpu or cuda")
@@ -144,9 +147,25 @@ def _register_and_report(args) -> dict:
     if args.plot:
         from vrnet_ext.plots import plot_registration
 
-        views = {"initial": result.initial, "final": result.T_target_source}
-        print(f"wrote {plot_registration(src, tgt, views, args.plot)}")
+        views = {"input (no motion)": np.eye(4), "result": result.T_target_source}
+        if truth is not None:
+            views["ground truth"] = truth
+        print(f"wrote {plot_registration(src, tgt, views, args.plot, title=plot_title(result, record))}")
     return record
+
+
+def plot_title(result, record: dict) -> str:
+    """What a picture of a registration says above it: the method, the fit, the errors against the
+    ground truth when there is one, and the first warning."""
+    lines = [f"{INITIAL_NAMES[result.start]} + ICP ({result.estimator}): fitness {result.fitness:.1%}, "
+             f"inlier RMSE {result.inlier_rmse:.3g}"]
+    if "errors" in record:
+        errors = record["errors"]
+        lines.append(f"against the ground truth: rotation {errors['rotation_error_deg']:.2f} deg, translation "
+                     f"{errors['translation_error']:.3g}")
+    if result.warnings:
+        lines.append(f"warning: {result.warnings[0][:110]}")
+    return "\n".join(lines)
 
 
 def add_demo(sub) -> None:
@@ -161,7 +180,7 @@ def add_demo(sub) -> None:
     p.add_argument("--data-dir", default=None, help="use ModelNet40 test shapes from this folder instead")
     p.add_argument("--pairs", type=int, default=4, help="pairs to register")
     p.add_argument("--seed", type=int, default=0, help="seed of the shapes and motions")
-    p.add_argument("--out", default="demo.png", help="picture of the first pair")
+    p.add_argument("--out", type=picture_path, default="demo.png", help="picture of the first pair")
     p.add_argument("--json", type=json_output, default=None, help="also write the results here (- for standard output)")
 
 
