@@ -193,3 +193,38 @@ def test_bad_files(tmp_path):
         load_h5(wrong)
     with pytest.raises(ValueError, match="setting"):
         PairSpec(setting="XY")
+
+
+def release_part(path, shapes, seed):
+    """A file of the modelnet40_ply_hdf5_2048 layout: data (S, 2048, 3), label (S, 1), normal."""
+    rng = np.random.default_rng(seed)
+    with h5py.File(path, "w") as f:
+        f.create_dataset("data", data=rng.normal(size=(shapes, 2048, 3)).astype(np.float32))
+        f.create_dataset("label", data=rng.integers(0, 40, (shapes, 1)).astype(np.uint8))
+        f.create_dataset("normal", data=np.zeros((shapes, 2048, 3), np.float32))
+
+
+def test_vrnet_data_makes_the_modelnet40_files_from_the_release_archive(tmp_path, capsys):
+    """A tiny archive of the release's layout (two train parts, one test part, in a folder inside
+    the zip) becomes the two files, first 1024 points of each shape, parts in numeric order; the
+    pairs the commands build come from them."""
+    import zipfile
+
+    from vrnet_ext.cli import main
+
+    parts = {"ply_data_train0.h5": (3, 0), "ply_data_train1.h5": (2, 1), "ply_data_test0.h5": (4, 2)}
+    with zipfile.ZipFile(tmp_path / "modelnet40_ply_hdf5_2048.zip", "w") as archive:
+        for name, (shapes, seed) in parts.items():
+            release_part(tmp_path / name, shapes, seed)
+            archive.write(tmp_path / name, f"modelnet40_ply_hdf5_2048/{name}")
+    out = tmp_path / "made"
+    assert main(["data", "modelnet40", str(tmp_path / "modelnet40_ply_hdf5_2048.zip"), "--out-dir", str(out)]) == 0
+    assert "(5 shapes)" in capsys.readouterr().out
+    with h5py.File(out / "modelnet40_1024_train.h5") as made, h5py.File(tmp_path / "ply_data_train1.h5") as second:
+        assert made["data"].shape == (5, 1024, 3) and made["label"].shape == (5, 1)
+        np.testing.assert_array_equal(made["data"][3:], second["data"][:, :1024])
+    pairs = ModelNet40Pairs(out, partition="test", max_items=4)
+    assert len(pairs) == 4 and pairs[0]["src"].shape[1] == 3
+    (tmp_path / "empty").mkdir()
+    assert main(["data", "modelnet40", str(tmp_path / "empty")]) == 2
+    assert "no ply_data_train*.h5" in capsys.readouterr().err

@@ -480,8 +480,14 @@ def test_every_option_of_every_command_has_help_naming_its_default():
 
     from vrnet_ext.cli import build_parser
 
-    commands = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)][0].choices
-    for name, parser in commands.items():
+    def commands(parser, prefix=""):  # every (sub)command, nested ones (vrnet data modelnet40) included
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, child in action.choices.items():
+                    yield f"{prefix}{name}", child
+                    yield from commands(child, f"{prefix}{name} ")
+
+    for name, parser in commands(build_parser()):
         formatter = parser._get_formatter()
         for action in parser._actions:
             if not action.option_strings or isinstance(action, argparse._HelpAction):

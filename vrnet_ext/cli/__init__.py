@@ -16,6 +16,7 @@ import argparse
 import os
 import sys
 
+from vrnet_ext.cli.data import add_data, run_data
 from vrnet_ext.cli.registering import add_demo, add_register, run_demo, run_register
 from vrnet_ext.cli.training import (add_eval, add_export, add_plot, add_train, add_train_scene, build_train_config,
                                     run_eval, run_export, run_plot, run_train, run_train_scene)
@@ -38,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_demo(sub)
     add_export(sub)
     add_train_scene(sub)
+    add_data(sub)
     return parser
 
 
@@ -70,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
 def _dispatch(args) -> int:
     try:
         commands = {"train": run_train, "eval": run_eval, "plot": run_plot, "register": run_register,
-                    "demo": run_demo, "export": run_export, "train-scene": run_train_scene}
+                    "demo": run_demo, "export": run_export, "train-scene": run_train_scene, "data": run_data}
         return commands[args.command](args)
     except (FileNotFoundError, ValueError) as exc:
         from vrnet_ext.cli.common import as_flags

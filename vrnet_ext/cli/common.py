@@ -162,8 +162,9 @@ def view_points(text: str) -> int:
     return value
 
 
-DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5 (default: $VRNET_DATA/modelnet40, "
-                 "else ../shared/data/modelnet40 beside the project)")
+DATA_DIR_HELP = ("folder holding modelnet40_1024_{train,test}.h5, made by `vrnet data modelnet40` (default: "
+                 "$VRNET_DATA/modelnet40; else ../shared/data/modelnet40 beside a source checkout; else "
+                 "~/.local/share/vrnet_ext/modelnet40)")
 
 
 STDOUT = "-"  # --json -: the record on standard output

@@ -16,20 +16,30 @@ PARTITIONS = ("train", "val", "test")
 _FILES = {"train": "modelnet40_1024_train.h5", "test": "modelnet40_1024_test.h5"}
 
 
+def user_data_dir() -> Path:
+    """Where ``vrnet data`` writes when ``VRNET_DATA`` is not set: ``$XDG_DATA_HOME/vrnet_ext``
+    (``~/.local/share/vrnet_ext``)."""
+    return Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share") / "vrnet_ext"
+
+
 def default_root() -> Path:
-    """``$VRNET_DATA/modelnet40`` when set, else ``../shared/data/modelnet40`` beside the project."""
+    """``$VRNET_DATA/modelnet40`` when set; else ``../shared/data/modelnet40`` beside a source
+    checkout when that exists; else :func:`user_data_dir`'s ``modelnet40`` (what ``vrnet data
+    modelnet40`` fills)."""
     env = os.environ.get("VRNET_DATA")
     if env:
         return Path(env) / "modelnet40"
-    return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "modelnet40"
+    beside = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "modelnet40"
+    return beside if beside.is_dir() else user_data_dir() / "modelnet40"
 
 
 def load_h5(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """(points (S, P, 3) float32, labels (S,) int64) from one or more PointNet-layout HDF5 files."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"ModelNet40 file not found: {path} (set data_dir to the folder holding it, "
-                                f"or VRNET_DATA to the data folder that holds modelnet40/)")
+        raise FileNotFoundError(f"ModelNet40 file not found: {path} (make it from the public release with `vrnet "
+                                f"data modelnet40`, docs/data.md; or set data_dir to the folder holding it, or "
+                                f"VRNET_DATA to the data folder that holds modelnet40/)")
     try:
         with h5py.File(path, "r") as f:
             missing = {"data", "label"} - set(f.keys())
