@@ -513,3 +513,14 @@ def test_register_takes_the_official_3dmatch_log_as_ground_truth(capsys):
         errors = json.loads(captured.out)["errors"]
         assert errors["rotation_error_deg"] < 5.0 and errors["translation_error"] < 0.2, errors
         assert "inverse of --gt" not in captured.err
+
+
+def test_an_old_option_name_still_works_hidden_and_says_the_new_one(tmp_path, capsys):
+    assert main(["demo", "--model", "vrnet-pv-upc-rcp", "--pairs", "1", "--out", str(tmp_path / "d.png")]) == 0
+    captured = capsys.readouterr()
+    assert "--model is now --checkpoint" in captured.err and "model vrnet-pv-upc-rcp" in captured.out
+    from vrnet_ext.cli import build_parser
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["demo", "--help"])
+    assert "--model" not in capsys.readouterr().out

@@ -140,6 +140,15 @@ def writable_path(text: str) -> str:
     return text
 
 
+class RenamedOption(argparse.Action):
+    """An option's old name, hidden from ``--help``: it still works, and warns with the new name."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        new = next(a.option_strings[0] for a in parser._actions if a.dest == self.dest and a is not self)
+        print(f"{parser.prog}: warning: {option_string} is now {new}", file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
 PICTURE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
 
 

@@ -5,9 +5,9 @@ import argparse
 import resource
 import sys
 
-from vrnet_ext.cli.common import (DefaultsHelpFormatter, as_flags, device_name, json_output, memory_size,
-                                  nonnegative_int, picture_path, positive_float, positive_int, report_to, writable_path,
-                                  write_json)
+from vrnet_ext.cli.common import (DefaultsHelpFormatter, RenamedOption, as_flags, device_name, json_output,
+                                  memory_size, nonnegative_int, picture_path, positive_float, positive_int,
+                                  report_to, writable_path, write_json)
 
 
 def add_register(sub) -> None:
@@ -175,8 +175,10 @@ def add_demo(sub) -> None:
                                    "--data-dir, registers them with a shipped model, prints the errors and times "
                                    "and draws the first pair.",
                        formatter_class=DefaultsHelpFormatter)
-    p.add_argument("--model", default=None,
-                   help="shipped model name or checkpoint path (default: the shipped PV/UPC model)")
+    p.add_argument("--checkpoint", default=None,
+                   help="shipped model name or checkpoint path, as for `vrnet eval` (default: the shipped PV/UPC "
+                        "model)")
+    p.add_argument("--model", dest="checkpoint", action=RenamedOption, help=argparse.SUPPRESS)
     p.add_argument("--data-dir", default=None, help="use ModelNet40 test shapes from this folder instead")
     p.add_argument("--pairs", type=int, default=4, help="pairs to register")
     p.add_argument("--seed", type=int, default=0, help="seed of the shapes and motions")
@@ -197,7 +199,7 @@ def _demo_and_report(args) -> dict:
     from vrnet_ext.demo import run_demo
     from vrnet_ext.model.pretrained import DEFAULT_MODEL, load_vrnet
 
-    name = args.model or DEFAULT_MODEL
+    name = args.checkpoint or DEFAULT_MODEL
     model, _ = load_vrnet(name)
     result = run_demo(model, args.pairs, args.seed, args.data_dir, args.out)
     print(f"model {name}; {result['shapes']}")

@@ -179,6 +179,7 @@ def add_eval(sub) -> None:
                    help="the Transformer's products: auto = bfloat16 on a CPU with native bf16 (AVX512-BF16 / AMX), "
                         "else float32 (default: auto)")
     p.add_argument("--device", default="cpu", help="torch device to run on, e.g. cpu or cuda")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", type=json_output, default=None,
                    help="output JSON path, - for standard output (default: eval_SETTING_SPLIT.json beside a "
                         "checkpoint file, or in the working folder for a shipped model)")
@@ -222,7 +223,8 @@ def _evaluate_and_report(args) -> tuple[dict, Path | str]:
     data = ModelNet40Pairs(args.data_dir or cfg.get("data_dir"), partition="test", setting=setting, split=split,
                            max_items=args.max_items, spec=spec)
     model.to(args.device)
-    result = evaluate(model, data, batch_size=args.batch_size, device=args.device, backend=args.backend)
+    result = evaluate(model, data, batch_size=args.batch_size, device=args.device, backend=args.backend,
+                      progress=not args.no_progress)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
     result.update(setting=setting, split=split, far_points=args.far_points, checkpoint=str(args.checkpoint),
                   iterations=model.config.iterations, **{k: getattr(model.config, k) for k in SOLVE_KEYS},
@@ -235,6 +237,9 @@ def _evaluate_and_report(args) -> tuple[dict, Path | str]:
 
 def add_plot(sub) -> None:
     p = sub.add_parser("plot", help="plot a training run's curves to RUN_DIR/curves.png",
+                       description="Draws the losses and validation errors of every epoch of a `vrnet train` run "
+                                   "(its metrics.jsonl) into RUN_DIR/curves.png. Training draws it itself at the end; "
+                                   "this redraws it during or after a run.",
                        formatter_class=DefaultsHelpFormatter)
     p.add_argument("run_dir", help="the --out-dir of `vrnet train`")
 

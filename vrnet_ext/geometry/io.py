@@ -400,7 +400,8 @@ def _number_rows(path: Path) -> list[list[str]]:
         text = path.read_text(encoding="ascii")
     except UnicodeDecodeError:
         raise _fail(path, "a transform must be a text file of numbers (this one is not ASCII text)") from None
-    return [re.findall(_NUMBER, line) for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    return [re.findall(_NUMBER, line) for line in lines]
 
 
 def _is_log(rows: list[list[str]]) -> bool:
