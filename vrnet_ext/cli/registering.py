@@ -209,6 +209,8 @@ def _demo_and_report(args) -> dict:
               f"{row['vcp_only_rotation_error_deg']:>8.3f}° {row['translation_error']:>14.4f} {row['seconds']:>7.3f}s")
     print(f"mean rotation error {result['mean_rotation_error_deg']:.3f}°, mean translation error "
           f"{result['mean_translation_error']:.4f}, median {result['median_seconds_per_pair']:.3f} s per pair")
+    print("(VCP-only: the rotation error of a Procrustes on the virtual corresponding points alone, before the "
+          "correction walk rectifies them: what the walk adds)")
     if result.get("plot"):
         print(f"wrote {result['plot']}")
     return result
