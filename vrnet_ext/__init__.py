@@ -6,7 +6,7 @@ from vrnet_ext._lazy import lazy_attributes
 
 _moved.install()  # old module paths (vrnet_ext.io, ...) still import, with a DeprecationWarning
 
-__version__ = "0.1.0"
+__version__ = "0.2.0.dev0"
 __all__ = ["register", "RegistrationResult", "ops", "nn", "VRNet", "VRNetConfig", "VRNetOutput", "has_extension",
            "load_pretrained", "set_flush_denormal", "__version__"]
 __getattr__ = lazy_attributes(__name__, {
