@@ -524,3 +524,37 @@ def test_an_old_option_name_still_works_hidden_and_says_the_new_one(tmp_path, ca
     with pytest.raises(SystemExit):
         build_parser().parse_args(["demo", "--help"])
     assert "--model" not in capsys.readouterr().out
+
+
+def test_a_plane_and_a_corridor_are_reported_as_undetermined_and_real_rooms_are_not():
+    """A plane turned by 40 degrees comes back with a warning naming the three free directions
+    (rotation about its normal, translation along it); a corridor, the translation along it; the
+    room corner, none."""
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(-1, 1, (20_000, 2)), 0.0005 * rng.normal(size=20_000)]
+    turn = to_homogeneous(Rotation.from_euler("z", 40, degrees=True).as_matrix(), np.zeros(3))
+    result = register(plane, apply(turn, plane), method="icp", icp_settings=IcpSettings(points=5000))
+    (note,) = [w for w in result.warnings if "does not determine" in w]
+    assert "3 of the transform's 6 directions" in note and "rotation about (0.00, 0.00, 1.00)" in note.replace("-", "")
+    walls = [np.c_[rng.uniform(-5, 5, 8000), np.full(8000, side), rng.uniform(0, 2, 8000)] for side in (-1.0, 1.0)]
+    corridor = np.concatenate([*walls, np.c_[rng.uniform(-5, 5, 8000), rng.uniform(-1, 1, 8000), np.zeros(8000)]])
+    result = register(corridor, corridor + [0.3, 0.0, 0.0], method="icp", icp_settings=IcpSettings(points=8000))
+    (note,) = [w for w in result.warnings if "does not determine" in w]
+    assert "1 of the transform's 6 directions (translation along (1.00" in note.replace("-", "")
+    src = room()
+    assert not [w for w in register(src, apply(motion(5.0, [0.1, 0.0, 0.0]), src), method="icp").warnings
+                if "does not determine" in w]
+
+
+@pytest.mark.parametrize("count", [6000, 8000, 10_000])
+def test_clouds_of_identical_points_are_refused_naming_the_argument(count):
+    with pytest.raises(ValueError, match=f"src: all {count} points coincide"):
+        register(np.full((count, 3), 0.1), room(), method="icp")
+
+
+def test_one_far_point_does_not_make_a_room_a_line():
+    src = np.vstack([room(), [[1e4, 0.0, 0.0]]])
+    result = register(src, src + [0.05, 0.0, 0.0], method="icp", icp_settings=IcpSettings(points=3000))
+    assert not [w for w in result.warnings if "line" in w], result.warnings
+    line = np.c_[np.linspace(0, 10, 5000), np.zeros((5000, 2))] + 1e-6 * np.random.default_rng(1).normal(size=(5000, 3))
+    assert any("src lies on a line" in w for w in register(line, line + [0.05, 0, 0], method="icp").warnings)

@@ -26,7 +26,7 @@ FLAT = 0.15  # a view flatter than this (height / width: the side of a LiDAR sca
 STRETCHED = 0.3  # to this height / width
 
 
-def registration_figure(src, tgt, transforms: dict, title: str = "", max_points: int = 20000, seed: int = 0):
+def registration_figure(src, tgt, transforms: dict, *, title: str = "", max_points: int = 20000, seed: int = 0):
     """A figure of one row per named 4x4 transform (e.g. "input (no motion)", "result", "ground
     truth"), each with a top view (x, y) and a side view (x, z) of the target (orange) and the source
     moved by it (blue), both half transparent so that neither hides the other; ``title`` above all.
@@ -72,10 +72,11 @@ def registration_figure(src, tgt, transforms: dict, title: str = "", max_points:
     return fig
 
 
-def plot_registration(src, tgt, transforms: dict, path: str | Path, title: str = "", max_points: int = 20000,
+def plot_registration(src, tgt, transforms: dict, path: str | Path, *, title: str = "", max_points: int = 20000,
                       seed: int = 0) -> Path:
-    """:func:`registration_figure` written to ``path`` (PNG)."""
-    return _save(registration_figure(src, tgt, transforms, title, max_points, seed), path, dpi=110)
+    """:func:`registration_figure` written to ``path`` (a picture format by its suffix)."""
+    return _save(registration_figure(src, tgt, transforms, title=title, max_points=max_points, seed=seed), path,
+                 dpi=110)
 
 
 def plot_pair(src, tgt, *, truth, vcp, rcp, estimate, path: str | Path, title: str = "") -> Path:

@@ -116,14 +116,18 @@ SHAPE_SAMPLE = 20_000  # points whose spread judges the shape (evenly strided)
 
 
 def _shape_notes(points: np.ndarray, name: str) -> list[str]:
-    """ValueError when every point of ``points`` (N, 3) coincides; a warning when they lie on a line
-    (the rotation about it is then undetermined)."""
-    sample = points[:: max(1, len(points) // SHAPE_SAMPLE)]
-    spread = np.linalg.svd(sample - sample.mean(axis=0), compute_uv=False)
-    if spread[0] <= 1e-12 * max(1.0, float(np.abs(sample).max())):
+    """ValueError naming the argument when every point of ``points`` (N, 3) coincides; a warning when
+    they lie on a line (the rotation about it is then undetermined). The line is judged on the
+    points nearest their median (all but the farthest 1 %): one stray point far away does not make
+    a scan a line."""
+    if not np.ptp(points, axis=0).any():
         raise ValueError(f"{name}: all {len(points)} points coincide; a rigid transform between such clouds "
                          f"is undefined")
-    if spread[1] < COLLINEAR * spread[0]:
+    sample = points[:: max(1, len(points) // SHAPE_SAMPLE)]
+    distance = np.linalg.norm(sample - np.median(sample, axis=0), axis=1)
+    core = sample[distance <= np.quantile(distance, 0.99)]
+    spread = np.linalg.svd(core - core.mean(axis=0), compute_uv=False)
+    if len(spread) > 1 and spread[1] < COLLINEAR * spread[0]:
         return [f"{name} lies on a line: the rotation about that line is undetermined, whatever the fitness says"]
     return []
 
@@ -150,7 +154,8 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, run: _Run) -> Registrati
                      seconds=seconds, points=points, warnings=warnings, start=name, consensus=estimate.consensus)
     if run.icp.max_iterations == 0:
         return RegistrationResult(fitness=float("nan"), **unrefined)
-    refined, failures, settings = _refine(pair, starts, run, seconds, points)
+    refined, failures, problem = _refine(pair, starts, run, seconds, points)
+    settings = problem.settings
     if not refined:
         warnings.append(f"{'; '.join(failures)}; returning the unrefined initial estimate")
         return RegistrationResult(fitness=0.0, **unrefined)
@@ -166,6 +171,9 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, run: _Run) -> Registrati
     if not best.converged:
         warnings.append(f"ICP did not converge within {settings.max_iterations} iterations (raise "
                         f"IcpSettings.max_iterations)")
+    degenerate = problem.degeneracy(best.T_target_source)
+    if degenerate:
+        warnings.append(degenerate)
     if best.fitness < LOW_FITNESS:
         warnings.append(f"low fitness: only {best.fitness:.1%} of the source points have a target point within "
                         f"{settings.max_distance:.3g}; the scans may overlap little or the result may be wrong")
@@ -201,10 +209,10 @@ def _estimate(estimator, pair: ScanPair, seed: int):
 
 
 def _refine(pair: ScanPair, starts: dict[str, np.ndarray], run: _Run, seconds: dict[str, float],
-            points: dict[str, int]) -> tuple[dict[str, RegistrationResult], list[str], IcpSettings]:
+            points: dict[str, int]) -> tuple[dict[str, RegistrationResult], list[str], IcpProblem]:
     """ICP from every start on both scans voxel-downsampled (one :class:`IcpProblem` for all) ->
-    (refinements by start, failure messages, the settings with the reach resolved); the ICP point
-    counts go into ``points``."""
+    (refinements by start, failure messages, the problem, its settings' reach resolved); the ICP
+    point counts go into ``points``."""
     start = time.perf_counter()
     voxel = run.icp.voxel_size if run.icp.voxel_size is not None else voxel_size_for(pair.tgt.points,
                                                                                       pair.counts.icp_points)
@@ -226,7 +234,7 @@ def _refine(pair: ScanPair, starts: dict[str, np.ndarray], run: _Run, seconds: d
         except IcpFailure as failure:
             failures.append(f"{failure} (from {_label(name)})")
     seconds["icp"] = time.perf_counter() - start
-    return refined, failures, settings
+    return refined, failures, problem
 
 
 def _coarse_start(pair: ScanPair, voxel: float, settings: IcpSettings, run: _Run) -> np.ndarray:

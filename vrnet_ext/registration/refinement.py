@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from vrnet_ext import ops
+from vrnet_ext.registration.degeneracy import degeneracy_note
 from vrnet_ext.registration.estimators import make_estimator
 from vrnet_ext.names import DEFAULT_ICP_STEP
 from vrnet_ext.registration.counts import PointCounts
@@ -18,6 +19,7 @@ from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import apply
 
 
+NORMAL_NEIGHBOURS = 20  # the target normals of the degeneracy check (as point-to-plane's)
 COARSE_FACTOR = 4  # IcpSettings.coarse_start: the coarse voxel edge and reach, in fine ones
 REFERENCE_KNN_ELEMENTS = 1 << 24  # 128 MB of float64 distances per chunk for backend="torch"
 
@@ -107,6 +109,7 @@ class IcpProblem:
         self.step = make_estimator(settings.estimator)
         self.step.prepare(self.src[0], self.tgt[0])
         self.reach = TargetReach(self.tgt, settings.max_distance)
+        self._tgt_normals = getattr(self.step, "tgt_normals", None)  # point-to-plane's; others' made on demand
 
     def run(self, initial: np.ndarray) -> RegistrationResult:
         """ICP from ``initial`` (4, 4); see :func:`icp`."""
@@ -143,6 +146,18 @@ class IcpProblem:
                                   method="icp", estimator=settings.estimator, iterations=done, converged=converged,
                                   fitness=len(close) / src_t.shape[1], inlier_rmse=rmse, correspondences=len(close),
                                   points={"source": src_t.shape[1], "target": tgt_t.shape[1]})
+
+
+    def degeneracy(self, transform: np.ndarray) -> str | None:
+        """A warning when the pairs within reach under ``transform`` (4, 4) leave directions of the
+        transform unconstrained (:mod:`vrnet_ext.registration.degeneracy`), else None."""
+        T = torch.as_tensor(transform, dtype=torch.float64, device=self.src.device)
+        moved = apply(T, self.src)
+        candidates, dist2, idx = _nearest_in_reach(moved, self.tgt, self.reach, self.backend)
+        close = dist2 <= self.settings.max_distance ** 2
+        if self._tgt_normals is None:
+            self._tgt_normals = ops.normals(self.tgt[0], NORMAL_NEIGHBOURS)
+        return degeneracy_note(moved[0, candidates[close]], self._tgt_normals[idx[close]])
 
 
 def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, settings: IcpSettings, *,
