@@ -139,3 +139,22 @@ def test_the_vector_and_the_portable_graph_give_the_same_fit(tmp_path):
     results = under_each_cpu_dispatch(script, tmp_path, os.path.dirname(__file__))
     for (T_vector, mask_vector), (T_generic, mask_generic) in zip(*results):
         assert torch.equal(T_vector, T_generic) and torch.equal(mask_vector, mask_generic)
+
+
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_copies_of_one_wrong_correspondence_do_not_capture_the_fit(backend):
+    """About 40 correspondences of the true motion among 60 outliers, and 300 copies of one outlier:
+    the copies count once, so the fit is the true motion and the same as without them; every copy
+    gets its original's flag."""
+    p, q, R, _, inlier = correspondences(100, 0.6, seed=4)
+    wrong = int((~inlier).nonzero()[0])
+    p_copies = torch.cat([p, p[wrong].expand(300, 3)])
+    q_copies = torch.cat([q, q[wrong].expand(300, 3)])
+    T, inliers = ops.spatial_consistency(p_copies, q_copies, 0.05, 0.05, backend=backend)
+    assert rotation_error_deg(T[:3, :3], R) < 2.0, rotation_error_deg(T[:3, :3], R)
+    assert bool((inliers[100:] == inliers[wrong]).all()) and len(inliers) == 400
+    distinct = ops.spatial_consistency(p, q, 0.05, 0.05, backend=backend)
+    torch.testing.assert_close(T, distinct[0], rtol=0, atol=0)
+    torch.testing.assert_close(inliers[:100], distinct[1])
+    copies, none = ops.spatial_consistency(p[:1].expand(5, 3), q[:1].expand(5, 3), 0.05, 0.05, backend=backend)
+    assert torch.equal(copies, torch.eye(4, dtype=torch.float64)) and not none.any()

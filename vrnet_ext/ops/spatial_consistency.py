@@ -16,8 +16,9 @@ CVPR 2022):
 4. the best fit (most inliers; ties: the earlier seed, in order of degree) is refitted on its
    inliers while they grow.
 
-Returns the (4, 4) float64 transform taking ``src`` onto ``tgt`` and the (K,) bool inlier mask
-(the identity and no inliers when no fit has 3). Deterministic; not differentiable. The compiled
+Identical correspondences count once (copies would support each other and capture the fit;
+each copy gets its original's inlier flag). Returns the (4, 4) float64 transform taking ``src``
+onto ``tgt`` and the (K,) bool inlier mask (the identity and no inliers when no fit has 3). Deterministic; not differentiable. The compiled
 op keeps the graph as a bitset (K^2 / 8 bytes; at most 32,768 correspondences); the reference
 builds dense matrices (for tests).
 """
@@ -142,12 +143,36 @@ def spatial_consistency(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, 
     (both in the points' unit); seeds: at most this many fits; consensus: neighbours per fit.
     """
     _validate(src, tgt, tolerance, inlier_threshold, seeds, consensus)
+    rows = torch.cat([src.detach(), tgt.detach()], 1).double().cpu()
+    first, inverse = _first_occurrences(rows)
+    if len(first) == len(rows):
+        return _fit(rows[:, :3], rows[:, 3:], backend, tolerance, inlier_threshold, seeds, consensus)
+    if len(first) < 3:  # copies of one or two correspondences: no fit
+        return torch.eye(4, dtype=torch.float64), torch.zeros(len(rows), dtype=torch.bool)
+    T, inliers = _fit(rows[first, :3], rows[first, 3:], backend, tolerance, inlier_threshold, seeds, consensus)
+    return T, inliers[inverse]
+
+
+def _first_occurrences(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """rows (K, 6) -> (the index of each distinct row's first occurrence, in their order (U,); for each
+    row, its distinct row's position in that list (K,)). Copies of a correspondence are one
+    correspondence: counted as many, they would be each other's support and capture the fit."""
+    _, inverse = torch.unique(rows, dim=0, return_inverse=True)
+    first = torch.full((int(inverse.max()) + 1,), len(rows), dtype=torch.long)
+    first.scatter_reduce_(0, inverse, torch.arange(len(rows)), reduce="amin")
+    order = torch.argsort(first)
+    position = torch.empty_like(order)
+    position[order] = torch.arange(len(order))
+    return first[order], position[inverse]
+
+
+def _fit(p: torch.Tensor, q: torch.Tensor, backend: str, tolerance: float, inlier_threshold: float, seeds: int,
+         consensus: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The op on distinct correspondences p, q (K, 3) float64."""
     if use_extension(backend, torch.device("cpu")):  # a CPU op: once per registration
-        return torch.ops.vrnet_ext.spatial_consistency(src.detach().double().cpu().contiguous(),
-                                                       tgt.detach().double().cpu().contiguous(), float(tolerance),
+        return torch.ops.vrnet_ext.spatial_consistency(p.contiguous(), q.contiguous(), float(tolerance),
                                                        float(inlier_threshold), int(seeds), int(consensus))
-    return spatial_consistency_reference(src.detach(), tgt.detach(), float(tolerance), float(inlier_threshold),
-                                         int(seeds), int(consensus))
+    return spatial_consistency_reference(p, q, float(tolerance), float(inlier_threshold), int(seeds), int(consensus))
 
 
 if has_extension():
