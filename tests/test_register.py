@@ -558,3 +558,15 @@ def test_one_far_point_does_not_make_a_room_a_line():
     assert not [w for w in result.warnings if "line" in w], result.warnings
     line = np.c_[np.linspace(0, 10, 5000), np.zeros((5000, 2))] + 1e-6 * np.random.default_rng(1).normal(size=(5000, 3))
     assert any("src lies on a line" in w for w in register(line, line + [0.05, 0, 0], method="icp").warnings)
+
+
+def test_a_low_fitness_on_sparse_clouds_says_so_and_names_the_remedy():
+    """Clouds sparser than ICP's reach (they came downsampled): the low fitness is not taken for a
+    doubtful result; the warning names the clouds' spacing and the voxel size that fits it."""
+    src, tgt = room(seed=0), apply(motion(3.0, [0.02, 0.0, 0.0]), room(seed=1))
+    result = register(src, tgt, method="icp")
+    (note,) = [w for w in result.warnings if w.startswith("low fitness")]
+    assert "point spacing" in note and "voxel_size=" in note and "may be wrong" not in note, note
+    spacing = float(note.split("voxel_size=")[1])
+    refined = register(src, tgt, method="icp", icp_settings=IcpSettings(voxel_size=spacing))
+    assert refined.fitness > 0.5 and not [w for w in refined.warnings if w.startswith("low fitness")]

@@ -24,6 +24,7 @@ from vrnet_ext.registration.refinement import COARSE_FACTOR, IcpFailure, IcpProb
 from vrnet_ext.registration.result import RegistrationResult
 
 LOW_FITNESS = 0.2  # below this share of source points with a target point within reach, warn
+SPARSE = 1.5  # a reach below this many point spacings of the target cannot judge the overlap
 FITNESS_TIE = 0.005  # refinements whose fitness differs by less converged to the same fit
 
 
@@ -175,8 +176,7 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, run: _Run) -> Registrati
     if degenerate:
         warnings.append(degenerate)
     if best.fitness < LOW_FITNESS:
-        warnings.append(f"low fitness: only {best.fitness:.1%} of the source points have a target point within "
-                        f"{settings.max_distance:.3g}; the scans may overlap little or the result may be wrong")
+        warnings.append(_low_fitness_note(best.fitness, settings.max_distance, problem.spacing()))
     return RegistrationResult(T_target_source=best.T_target_source, initial=best.initial, method=name, estimator=step,
                               iterations=best.iterations, converged=best.converged, fitness=best.fitness,
                               inlier_rmse=best.inlier_rmse, correspondences=best.correspondences, seconds=seconds,
@@ -250,6 +250,17 @@ def _coarse_start(pair: ScanPair, voxel: float, settings: IcpSettings, run: _Run
                    backend=run.backend).T_target_source
     except IcpFailure:
         return np.eye(4)
+
+
+def _low_fitness_note(fitness: float, reach: float, spacing: float) -> str:
+    """The warning for a low fitness: the scans may overlap little or the result be wrong; unless the
+    reach is shorter than the clouds' own point spacing (they came downsampled), where the share of
+    points within reach says little and a coarser ICP voxel is the remedy."""
+    measured = f"only {fitness:.1%} of the source points have a target point within {reach:.3g}"
+    if reach < SPARSE * spacing:
+        return (f"low fitness: {measured}, less than the target's point spacing ({spacing:.3g}: the clouds came "
+                f"downsampled), so the share says little; refine at their resolution with voxel_size={spacing:.2g}")
+    return f"low fitness: {measured}; the scans may overlap little or the result may be wrong"
 
 
 def _as_estimate(name: str, value) -> RegistrationResult:

@@ -148,6 +148,14 @@ class IcpProblem:
                                   points={"source": src_t.shape[1], "target": tgt_t.shape[1]})
 
 
+    def spacing(self, sample: int = 2000) -> float:
+        """The median distance from a target point to its nearest other target point (over an even
+        sample of at most ``sample`` points): the target's resolution."""
+        tgt = self.tgt[0]
+        picked = tgt[:: max(1, len(tgt) // sample)]
+        dist2, _ = ops.knn(picked[None], tgt[None], 2, backend=self.backend)
+        return float(dist2[0, :, 1].sqrt().median())
+
     def degeneracy(self, transform: np.ndarray) -> str | None:
         """A warning when the pairs within reach under ``transform`` (4, 4) leave directions of the
         transform unconstrained (:mod:`vrnet_ext.registration.degeneracy`), else None."""
