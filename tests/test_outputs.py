@@ -66,3 +66,19 @@ def test_a_picture_without_a_format_is_refused_before_any_work(tmp_path, capsys)
         with pytest.raises(SystemExit):
             main(argv)
         assert "give a picture file name ending in .png" in capsys.readouterr().err
+
+
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys):
+    """A symlink loop, and (where the machine has one) a pseudo file system that takes no new file:
+    refused when the arguments are read, naming the path, with no traceback."""
+    loop = tmp_path / "loop.json"
+    loop.symlink_to(loop)
+    cases = [(str(loop), "cannot be followed to a file")]
+    if Path("/sys/kernel").is_dir():
+        cases.append(("/sys/kernel/result.json", "cannot be written"))
+    for target, message in cases:
+        with pytest.raises(SystemExit):
+            main(["register", "a.ply", "b.ply", "--json", target])
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+    assert loop.is_symlink() and not [p for p in tmp_path.iterdir() if p.name.endswith(".probe")]

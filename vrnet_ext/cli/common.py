@@ -8,6 +8,7 @@ import math
 import os
 import re
 import sys
+import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager, nullcontext, redirect_stdout
 from pathlib import Path
@@ -128,15 +129,28 @@ def output_folder(text: str) -> str:
 
 
 def writable_path(text: str) -> str:
-    """An output file whose folder exists and is writable, and that is not a folder itself (checked
-    before the work, not after it)."""
-    path = Path(text).expanduser().resolve()
+    """An output file whose folder exists and takes a new file, that is not a folder itself, and
+    that can be opened for writing if it exists (an immutable file, a read-only or pseudo file
+    system: /sys, /proc) - checked before the work, not after it, without changing anything. A
+    device or FIFO passes: it is written into."""
+    try:
+        path = Path(text).expanduser().resolve()
+    except (RuntimeError, OSError) as error:  # a symlink loop
+        raise argparse.ArgumentTypeError(f"{text!r}: cannot be followed to a file ({error})") from None
     if not path.parent.is_dir():
         raise argparse.ArgumentTypeError(f"{text!r}: the folder {path.parent} does not exist")
     if path.is_dir():
         raise argparse.ArgumentTypeError(f"{text!r} is a folder; give a file name")
-    if not os.access(path.parent, os.W_OK):
-        raise argparse.ArgumentTypeError(f"{text!r}: the folder {path.parent} is not writable")
+    if path.exists() and not path.is_file():
+        return text
+    try:
+        descriptor, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".probe", dir=path.parent)
+        os.close(descriptor)
+        os.unlink(probe)
+        if path.exists():
+            os.close(os.open(path, os.O_WRONLY | os.O_APPEND))
+    except OSError as error:
+        raise argparse.ArgumentTypeError(f"{text!r}: cannot be written ({error.strerror or error})") from None
     return text
 
 

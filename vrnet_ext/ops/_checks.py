@@ -29,6 +29,9 @@ def float32_region(t: torch.Tensor) -> torch.autocast:
 def check_tensor(value: object, name: str) -> torch.Tensor:
     if not isinstance(value, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if value.is_meta:  # (torch.compile's fake tensors are not meta: they pass)
+        raise ValueError(f"{name} is a meta tensor (a shape without data); the ops compute on data: move it to a "
+                         f"device first")
     return value
 
 

@@ -29,7 +29,7 @@ import math
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import check_finite
+from vrnet_ext.ops._checks import check_finite, check_tensor
 from vrnet_ext.ops.kabsch import kabsch_reference
 
 MAX_CORRESPONDENCES = 1 << 15
@@ -43,6 +43,7 @@ def _validate(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, inlier_thr
             raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
         if not t.is_floating_point():
             raise TypeError(f"{name} must be a floating tensor, got {t.dtype}")
+        check_tensor(t, name)
     if src.dim() != 2 or src.shape[1] != 3:
         raise ValueError(f"src must have shape (K, 3), got {tuple(src.shape)}")
     if tgt.shape != src.shape:
