@@ -16,6 +16,7 @@ import argparse
 import os
 import sys
 
+from vrnet_ext.cli.batch import add_register_batch, run_register_batch
 from vrnet_ext.cli.data import add_data, run_data
 from vrnet_ext.cli.registering import add_demo, add_register, run_demo, run_register
 from vrnet_ext.cli.training import (add_eval, add_export, add_plot, add_train, add_train_scene, build_train_config,
@@ -36,6 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_eval(sub)
     add_plot(sub)
     add_register(sub)
+    add_register_batch(sub)
     add_demo(sub)
     add_export(sub)
     add_train_scene(sub)
@@ -72,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
 def _dispatch(args) -> int:
     try:
         commands = {"train": run_train, "eval": run_eval, "plot": run_plot, "register": run_register,
-                    "demo": run_demo, "export": run_export, "train-scene": run_train_scene, "data": run_data}
+                    "demo": run_demo, "export": run_export, "train-scene": run_train_scene, "data": run_data,
+                    "register-batch": run_register_batch}
         return commands[args.command](args)
     except (FileNotFoundError, ValueError) as exc:
         from vrnet_ext.cli.common import as_flags

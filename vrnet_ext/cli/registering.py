@@ -11,10 +11,6 @@ from vrnet_ext.cli.common import (DefaultsHelpFormatter, RenamedOption, as_flags
 
 
 def add_register(sub) -> None:
-    from vrnet_ext.names import (BACKENDS, DEFAULT_BACKEND, DEFAULT_ICP_STEP, DEFAULT_METHOD, GLOBAL_ESTIMATORS,
-                                 ICP_STEPS)
-    from vrnet_ext.registration.counts import PointCounts
-
     p = sub.add_parser(
         "register", help="register two real scans (PLY, PCD, NPY, XYZ/TXT/PTS/CSV, KITTI .bin)",
         description="Estimates the rigid transform taking SOURCE onto TARGET: a global estimate (--method sc2: "
@@ -27,6 +23,25 @@ def add_register(sub) -> None:
         formatter_class=DefaultsHelpFormatter)
     p.add_argument("source", help="point-cloud file to move")
     p.add_argument("target", help="point-cloud file to align to (same unit)")
+    p.add_argument("--gt", default=None,
+                   help="ground truth, to report the errors: a 4x4 transform file (SOURCE into TARGET's frame), or a "
+                        "3DMatch gt.log (the pair picked by --gt-fragments, or by cloud_bin_<i> file names)")
+    p.add_argument("--gt-fragments", type=int, nargs=2, metavar=("SOURCE_INDEX", "TARGET_INDEX"), default=None,
+                   help="with a 3DMatch gt.log: the fragment indices of SOURCE and TARGET")
+    p.add_argument("--json", type=json_output, default=None, help="write the result here (- for standard output)")
+    p.add_argument("--out", type=writable_path, default=None, help="write the moved source as a PLY here")
+    p.add_argument("--plot", type=picture_path, default=None,
+                   help="write a picture here (.png, .pdf, .svg, .jpg): the source before any motion, after the result "
+                        "and after --gt, from above and from the side")
+    add_registration_options(p)
+
+
+def add_registration_options(p) -> None:
+    """The options of how to register (shared by ``register`` and ``register-batch``)."""
+    from vrnet_ext.names import (BACKENDS, DEFAULT_BACKEND, DEFAULT_ICP_STEP, DEFAULT_METHOD, GLOBAL_ESTIMATORS,
+                                 ICP_STEPS)
+    from vrnet_ext.registration.counts import PointCounts
+
     p.add_argument("--method", choices=GLOBAL_ESTIMATORS, default=argparse.SUPPRESS,
                    help=f"global estimate (default: {DEFAULT_METHOD}, the best recall on the real pairs of "
                         f"benchmarks/bench_real_pairs.py; vrnet when --checkpoint is given, fpfh with --fpfh)")
@@ -56,16 +71,6 @@ def add_register(sub) -> None:
                    help="ICP from no motion first runs on 4x coarser voxels with a 4x longer reach")
     p.add_argument("--estimator", choices=ICP_STEPS, default=DEFAULT_ICP_STEP,
                    help="ICP step: point-to-point (Kabsch), point-to-plane, or plane-to-plane (GICP)")
-    p.add_argument("--gt", default=None,
-                   help="ground truth, to report the errors: a 4x4 transform file (SOURCE into TARGET's frame), or a "
-                        "3DMatch gt.log (the pair picked by --gt-fragments, or by cloud_bin_<i> file names)")
-    p.add_argument("--gt-fragments", type=int, nargs=2, metavar=("SOURCE_INDEX", "TARGET_INDEX"), default=None,
-                   help="with a 3DMatch gt.log: the fragment indices of SOURCE and TARGET")
-    p.add_argument("--json", type=json_output, default=None, help="write the result here (- for standard output)")
-    p.add_argument("--out", type=writable_path, default=None, help="write the moved source as a PLY here")
-    p.add_argument("--plot", type=picture_path, default=None,
-                   help="write a picture here (.png, .pdf, .svg, .jpg): the source before any motion, after the result "
-                        "and after --gt, from above and from the side")
     p.add_argument("--backend", choices=BACKENDS, default=DEFAULT_BACKEND,
                    help="ext: the compiled kernels; torch: the pure-PyTorch references")
     p.add_argument("--device", type=device_name, default="cpu", help="torch device to run on, e.g. cpu or cuda")
@@ -91,30 +96,13 @@ def _register_and_report(args) -> dict:
     from vrnet_ext.geometry.io import read_ground_truth, read_points, write_ply
     from vrnet_ext.geometry.transforms import apply
     from vrnet_ext.names import DEFAULT_SCENE_MODEL
-    from vrnet_ext.registration import IcpSettings, register, transform_errors
+    from vrnet_ext.registration import register, transform_errors
 
-    if args.max_memory is not None:
-        from vrnet_ext.registration.budget import require_headroom
-
-        require_headroom(args.max_memory)
-    # None: register() picks its default (the library decides it, once)
-    method = getattr(args, "method", None) or ("fpfh" if args.fpfh else "vrnet" if args.checkpoint else None)
-    if args.fpfh and method != "fpfh" or args.checkpoint and method != "vrnet":
-        raise ValueError(f"--method {method} does not take {'--fpfh' if args.fpfh else '--checkpoint'}")
-    model = None
-    if args.checkpoint:  # before the scans: a bad checkpoint fails at once
-        from vrnet_ext.model.pretrained import load_model
-
-        model = load_model(args.checkpoint, args.device)[0]
+    arguments = registration_arguments(args)
     src, tgt = read_points(args.source), read_points(args.target)
     fragments = tuple(args.gt_fragments) if args.gt_fragments else None
     truth = read_ground_truth(args.gt, args.source, args.target, fragments) if args.gt else None
-    icp_settings = IcpSettings(estimator=args.estimator, points=args.icp_points, voxel_size=args.voxel_size,
-                               max_distance=args.max_distance, max_iterations=args.icp_iterations,
-                               transform_tolerance=args.icp_tolerance, coarse_start=args.coarse_start)
-    result = register(src, tgt, method=method, model=model, global_points=args.global_points,
-                      network_points=args.network_points, icp_settings=icp_settings, seed=args.seed,
-                      device=args.device, backend=args.backend, max_memory=args.max_memory)
+    result = register(src, tgt, **arguments)
     record = result.to_dict()
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     record.update(source=str(args.source), target=str(args.target), peak_rss_mb=peak_mb,
@@ -166,6 +154,32 @@ def plot_title(result, record: dict) -> str:
     if result.warnings:
         lines.append(f"warning: {result.warnings[0][:110]}")
     return "\n".join(lines)
+
+
+def registration_arguments(args) -> dict:
+    """``register()``'s keyword arguments from the command's options (the model loaded first when
+    --checkpoint names one, so that a bad file fails before any scan is read; the method left to
+    ``register()``'s default when no option names one)."""
+    from vrnet_ext.registration import IcpSettings
+
+    if args.max_memory is not None:
+        from vrnet_ext.registration.budget import require_headroom
+
+        require_headroom(args.max_memory)
+    method = getattr(args, "method", None) or ("fpfh" if args.fpfh else "vrnet" if args.checkpoint else None)
+    if args.fpfh and method != "fpfh" or args.checkpoint and method != "vrnet":
+        raise ValueError(f"--method {method} does not take {'--fpfh' if args.fpfh else '--checkpoint'}")
+    model = None
+    if args.checkpoint:
+        from vrnet_ext.model.pretrained import load_model
+
+        model = load_model(args.checkpoint, args.device)[0]
+    icp_settings = IcpSettings(estimator=args.estimator, points=args.icp_points, voxel_size=args.voxel_size,
+                               max_distance=args.max_distance, max_iterations=args.icp_iterations,
+                               transform_tolerance=args.icp_tolerance, coarse_start=args.coarse_start)
+    return dict(method=method, model=model, global_points=args.global_points, network_points=args.network_points,
+                icp_settings=icp_settings, seed=args.seed, device=args.device, backend=args.backend,
+                max_memory=args.max_memory)
 
 
 def add_demo(sub) -> None:

@@ -12,6 +12,9 @@
   :func:`fitness`, a score of any transform on a pair;
 - :mod:`~vrnet_ext.registration.result`: the one result type, :class:`RegistrationResult`;
 - :mod:`~vrnet_ext.registration.pipeline`: :func:`register`, global estimate + ICP + warnings;
+- :mod:`~vrnet_ext.registration.degeneracy`: which directions the scans' geometry leaves free;
+- :mod:`~vrnet_ext.registration.batch`: :func:`register_batch`, a manifest of pairs, resumable,
+  sharded by torchrun;
 - :mod:`~vrnet_ext.registration.prepared`: both scans prepared once per registration
   (:class:`ScanPair`: voxels and FPFH shared by every estimator and ICP start);
 - :mod:`~vrnet_ext.registration.budget`: the memory plan, from each estimator's own cost;
@@ -33,6 +36,7 @@ _EXPORTS = {
                      "SpatialConsistency", "make_global_estimator"), "vrnet_ext.registration.global_estimators"),
     **dict.fromkeys(("IcpFailure", "IcpProblem", "IcpSettings", "fitness", "icp"), "vrnet_ext.registration.refinement"),
     "register": "vrnet_ext.registration.pipeline",
+    "register_batch": "vrnet_ext.registration.batch",
     **dict.fromkeys(("RegistrationResult", "transform_errors"), "vrnet_ext.registration.result"),
 }
 __all__ = list(_EXPORTS)
