@@ -148,7 +148,7 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, run: _Run) -> Registrati
     pair = ScanPair.of(src, tgt, counts, run.device)
     seconds: dict[str, float] = {}
     estimate, starts = _global_starts(pair, run, seconds)
-    name, step = estimate.method, run.icp.estimator
+    name, step = getattr(run.estimator, "name", GlobalEstimator.name), run.icp.estimator
     points = {"source": len(src), "target": len(tgt), **estimate.points}
     unrefined = dict(T_target_source=estimate.T_target_source, initial=estimate.T_target_source, method=name,
                      estimator=step, iterations=0, converged=False, inlier_rmse=float("nan"), correspondences=0,
