@@ -93,8 +93,7 @@ def add_train(sub) -> None:
         elif kind is bool:
             add(flag, type=parse_bool, default=None, help=description)
         else:
-            base = int if "int" in str(kind) else float if "float" in str(kind) else str
-            add(flag, type=base, default=None, help=description)
+            add(flag, type=_value_type(kind), default=None, help=description)
     model = p.add_argument_group("model options (stored in the checkpoint)")
     unset = "the preset's, else VRNetConfig's"
     preset_default = f" (default: {unset})"
@@ -149,6 +148,18 @@ def run_train(args) -> int:
     print(f"wrote {out_dir}/: {', '.join(written)}")
     print(f"evaluate with: vrnet eval --checkpoint {out_dir / 'best.pt'}")
     return 0
+
+
+def _value_type(hint) -> type:
+    """The type a training option's values are read as, from its annotation: ``int``, ``float`` or
+    ``str``, also inside ``X | None`` (an annotation the parser does not read is an error here, not a
+    silent ``str``)."""
+    if hint in (int, float, str):
+        return hint
+    inner = [arg for arg in typing.get_args(hint) if arg is not type(None)]
+    if len(inner) == 1 and inner[0] in (int, float, str):
+        return inner[0]
+    raise TypeError(f"no command-line type for the annotation {hint!r}")
 
 
 def add_eval(sub) -> None:
