@@ -1,7 +1,6 @@
 import numpy as np
 import pytest
 import torch
-from scipy.spatial.transform import Rotation
 
 from conftest import DATA_DIR
 from synthetic import motion, room

@@ -1,12 +1,10 @@
 """The registration wing's inner API: one build of the global estimator and one memory plan per
-call, both scans prepared once for every start, results built by keyword, small functions."""
-from pathlib import Path
+call, both scans prepared once for every start, results built by keyword."""
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import vrnet_ext
 from vrnet_ext import ops
 from vrnet_ext.data.procedural import room_scan
 from vrnet_ext.registration import (GLOBAL_ESTIMATORS, GlobalEstimator, IcpSettings, PointCounts, RegistrationResult,

@@ -224,6 +224,16 @@ def report_to(json_path: str | Path | None) -> Iterator[None]:
         yield
 
 
+def report_and_record(args, work) -> int:
+    """Runs ``work(args)`` (which prints a report and returns a record), the report on standard error
+    when ``--json -`` takes standard output, then writes the record where ``--json`` says."""
+    with report_to(args.json):
+        record = work(args)
+    if args.json:
+        write_json(args.json, record)
+    return 0
+
+
 def write_json(path: str | Path, record: dict) -> None:
     """The record as JSON at ``path`` (atomically; a device or FIFO is written into), or on standard
     output for ``-``."""

@@ -7,7 +7,7 @@ import sys
 
 from vrnet_ext.cli.common import (DefaultsHelpFormatter, RenamedOption, as_flags, device_name, json_output,
                                   memory_size, nonnegative_int, picture_path, positive_float, positive_int,
-                                  report_to, writable_path, write_json)
+                                  report_and_record, writable_path)
 
 
 def add_register(sub) -> None:
@@ -82,11 +82,7 @@ INITIAL_NAMES = {"vrnet": "VRNet", "fpfh": "FPFH + RANSAC", "sc2": "FPFH + spati
 
 
 def run_register(args) -> int:
-    with report_to(args.json):
-        record = _register_and_report(args)
-    if args.json:
-        write_json(args.json, record)
-    return 0
+    return report_and_record(args, _register_and_report)
 
 
 def _register_and_report(args) -> dict:
@@ -201,11 +197,7 @@ def add_demo(sub) -> None:
 
 
 def run_demo(args) -> int:
-    with report_to(args.json):
-        result = _demo_and_report(args)
-    if args.json:
-        write_json(args.json, result)
-    return 0
+    return report_and_record(args, _demo_and_report)
 
 
 def _demo_and_report(args) -> dict:

@@ -1,7 +1,6 @@
 """``vrnet train``, ``vrnet eval``, ``vrnet plot``, ``vrnet export`` and ``vrnet train-scene``."""
 from __future__ import annotations
 
-import argparse
 import json
 import typing
 from dataclasses import fields

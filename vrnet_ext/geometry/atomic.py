@@ -85,6 +85,28 @@ def remove_leftovers(path: str | os.PathLike) -> list[Path]:
     return removed
 
 
+def read_json_lines(path: str | os.PathLike) -> list[dict]:
+    """The records of a JSON Lines file written a record at a time, up to the first line a killed
+    writer left unfinished ([] when the file does not exist)."""
+    import json
+
+    records = []
+    path = Path(path)
+    for line in path.read_text().splitlines() if path.exists() else []:
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            break
+    return records
+
+
+def write_json_lines(path: str | os.PathLike, records: list[dict]) -> None:
+    """``records`` as JSON Lines at ``path``, through :func:`atomic_output`."""
+    import json
+
+    write_text_atomically(path, "".join(json.dumps(record) + "\n" for record in records))
+
+
 def save_atomically(obj: object, path: str | os.PathLike) -> None:
     """``torch.save(obj, path)`` through :func:`atomic_output`. The object is serialised in memory
     first, so a full disk surfaces as the OS's reason ("No space left on device"), not as a

@@ -52,7 +52,8 @@ from vrnet_ext.learning.losses import HybridLossWeights, correspondence_loss, hy
 from vrnet_ext.model import VRNet, VRNetConfig
 from vrnet_ext.learning.curves import plot_metrics
 from vrnet_ext.runtime import device_has_native_bf16, set_flush_denormal
-from vrnet_ext.geometry.atomic import remove_leftovers, save_atomically, write_text_atomically
+from vrnet_ext.geometry.atomic import (read_json_lines, remove_leftovers, save_atomically, write_json_lines,
+                                      write_text_atomically)
 from vrnet_ext.learning.lineage import Lineage, lineage_before
 from vrnet_ext.learning.warm_start import init_features_from, init_walk_from
 from vrnet_ext.learning.config import TrainConfig
@@ -226,21 +227,9 @@ class _StopRequest:
 OUTPUTS = ("last.pt", "best.pt", "best_stage1.pt", "best_stage2.pt", "metrics.jsonl", "metrics.csv")
 
 
-def _metrics(out_dir: Path) -> list[dict]:
-    """The rows of metrics.jsonl up to the first one a kill left unfinished."""
-    rows = []
-    path = out_dir / "metrics.jsonl"
-    for line in path.read_text().splitlines() if path.exists() else []:
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:
-            break
-    return rows
-
-
 def _write_metrics(out_dir: Path, records: list[dict]) -> None:
     """metrics.jsonl and metrics.csv (over the union of the records' keys), each written atomically."""
-    write_text_atomically(out_dir / "metrics.jsonl", "".join(json.dumps(r) + "\n" for r in records))
+    write_json_lines(out_dir / "metrics.jsonl", records)
     columns = list(dict.fromkeys(key for r in records for key in r))
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=columns, lineterminator="\n")
@@ -251,7 +240,7 @@ def _write_metrics(out_dir: Path, records: list[dict]) -> None:
 
 def _log(out_dir: Path, record: dict) -> None:
     """Adds the epoch's row to the metrics files."""
-    _write_metrics(out_dir, _metrics(out_dir) + [record])
+    _write_metrics(out_dir, read_json_lines(out_dir / "metrics.jsonl") + [record])
 
 
 def _tidy(out_dir: Path, state: dict | None) -> None:
@@ -262,7 +251,8 @@ def _tidy(out_dir: Path, state: dict | None) -> None:
         remove_leftovers(out_dir / name)
     if (out_dir / "metrics.jsonl").exists():
         done = (state["stage"], state["epoch"] + 1) if state is not None else (0, 0)
-        _write_metrics(out_dir, [row for row in _metrics(out_dir) if (row.get("stage", 0), row.get("epoch", 0)) <= done])
+        rows = read_json_lines(out_dir / "metrics.jsonl")
+        _write_metrics(out_dir, [row for row in rows if (row.get("stage", 0), row.get("epoch", 0)) <= done])
 
 
 def _replica_spread(model: VRNet, run: _Run) -> float:
@@ -371,7 +361,7 @@ class _Stage:
 
 def _train_stages(setup: _Setup, state: dict | None, progress: _Progress) -> dict:
     """The stage and epoch loops of :func:`train` (``state``: the checkpoint resumed from, or None)."""
-    cfg, run = setup.cfg, setup.run
+    run = setup.run
     record: dict = {}
     for number in (1, 2):
         stage = _start_stage(setup, number, state)
@@ -483,7 +473,7 @@ def _end_epoch(setup: _Setup, stage: _Stage, epoch: int, done: dict, progress: _
     """The epoch's record: the learning rate, the mean losses and (rank 0) the validation pass; then
     the files, ``last.pt`` last: the best models and the metrics row come first, so that a run killed
     between them resumes from the previous ``last.pt``, redoes the epoch and writes them again (a
-    resume drops the rows after its checkpoint: :func:`_trim_metrics`)."""
+    resume drops the rows after its checkpoint: :func:`_tidy`)."""
     cfg, run, model, out_dir = setup.cfg, setup.run, setup.model, setup.out_dir
     epoch_lr = stage.optimizer.param_groups[0]["lr"]
     stage.scheduler.step()

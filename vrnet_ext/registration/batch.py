@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from vrnet_ext.geometry.atomic import write_text_atomically
+from vrnet_ext.geometry.atomic import read_json_lines, write_json_lines
 from vrnet_ext.geometry.io import PointCloudError, read_ground_truth, read_points
 from vrnet_ext.registration.pipeline import register
 from vrnet_ext.registration.result import transform_errors
@@ -112,24 +112,13 @@ def part_path(out: Path, shard: Shard) -> Path:
     return out.with_name(f"{out.name}.part{shard.rank}of{shard.world}")
 
 
-def read_records(path: Path) -> list[dict]:
-    """The records of a JSON Lines file up to the first line a kill left unfinished."""
-    records = []
-    for line in path.read_text().splitlines() if path.exists() else []:
-        try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError:
-            break
-    return records
-
-
 def _parts(out: Path) -> list[Path]:
     return sorted(out.parent.glob(f"{out.name}.part*of*"))
 
 
 def done_indices(out: Path) -> set[int]:
     """The pairs that already have a record, in ``out`` or in any rank's part."""
-    return {record["index"] for path in [out, *_parts(out)] for record in read_records(path)}
+    return {record["index"] for path in [out, *_parts(out)] for record in read_json_lines(path)}
 
 
 class _Scans:
@@ -187,7 +176,7 @@ def register_batch(manifest: str | os.PathLike, out: str | os.PathLike, options:
     done = done_indices(out)
     mine = [task for task in tasks if shard.takes(task.index) and task.index not in done]
     part = part_path(out, shard)
-    write_text_atomically(part, "".join(json.dumps(r) + "\n" for r in read_records(part)))  # drop a torn line
+    write_json_lines(part, read_json_lines(part))  # drop a line a kill left unfinished
     scans, records, started = _Scans(), [], time.perf_counter()
     with ThreadPoolExecutor(max_workers=1) as reader, open(part, "a") as sink:
         pending = reader.submit(_read_pair_safely, scans, mine[0]) if mine else None
@@ -219,11 +208,11 @@ def merge(manifest: str | os.PathLike, out: str | os.PathLike) -> list[dict]:
     order = {task.index for task in read_manifest(manifest)}
     by_index = {}
     for path in [out, *_parts(out)]:
-        for record in read_records(path):
+        for record in read_json_lines(path):
             if record["index"] in order:
                 by_index.setdefault(record["index"], record)
     records = [by_index[index] for index in sorted(by_index)]
-    write_text_atomically(out, "".join(json.dumps(r) + "\n" for r in records))
+    write_json_lines(out, records)
     for path in _parts(out):
         path.unlink()
     return records
