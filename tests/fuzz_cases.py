@@ -9,7 +9,12 @@ Each op is compared with float64 brute force within the precision limits its doc
 (``PRECISION`` below mirrors them), on random shapes, dtypes, layouts (non-contiguous views),
 degenerate geometry (duplicate, collinear, coincident points), offsets and scales; malformed
 arguments must raise ``ValueError`` or ``TypeError`` naming the argument. Readers and the
-checkpoint loader get mutated files and must return a valid result or raise their own error type.
+checkpoint loader get mutated files and must return a valid result or raise their own error type;
+text clouds are also read by an independent strict parser (``strict_xyz``) and must agree with it;
+checkpoints get weights of odd strides, element counts and dtypes; outputs get every kind of path
+(devices, FIFOs, folders, symlinks and their loops); training runs get killed before any write and
+must resume to the files of a run never killed; spatial consistency gets copies and coincident
+points and must agree with its reference.
 """
 from __future__ import annotations
 
@@ -515,6 +520,269 @@ def run_full_disk(examples: int) -> None:
     complete_or_absent()
 
 
+def run_spatial_consistency(examples: int) -> None:
+    """Correspondences of a motion among outliers, with copies, coincident points and any scale: a
+    finite rigid transform and a (K,) mask from both backends, equal; copies share their flag."""
+    from vrnet_ext.ops.spatial_consistency import spatial_consistency_reference
+
+    @_settings(examples)
+    @given(st.integers(3, 120), st.floats(0.0, 0.9), st.integers(0, 40), st.sampled_from([1e-3, 1.0, 1e3]),
+           st.floats(0.01, 0.5), st.integers(0, 10**6), st.booleans())
+    def fits(K, outliers, copies, scale, tolerance, seed, coincide):
+        g = torch.Generator().manual_seed(seed)
+        p = torch.rand(K, 3, generator=g, dtype=torch.float64) * scale
+        if coincide:
+            p[: K // 2] = p[0]
+        R = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64)).Q
+        R = R * torch.sign(torch.det(R))
+        q = p @ R.T + 0.3 * scale
+        wrong = torch.rand(K, generator=g) < outliers
+        q[wrong] = torch.rand(int(wrong.sum()), 3, generator=g, dtype=torch.float64) * scale
+        if copies:
+            p, q = torch.cat([p, p[-1:].expand(copies, 3)]), torch.cat([q, q[-1:].expand(copies, 3)])
+        T, mask = ops.spatial_consistency(p, q, tolerance * scale, tolerance * scale, seeds=10, consensus=5)
+        assert T.shape == (4, 4) and T.dtype == torch.float64 and torch.isfinite(T).all()
+        assert torch.allclose(T[:3, :3] @ T[:3, :3].T, torch.eye(3, dtype=torch.float64), atol=1e-9)
+        assert mask.shape == (len(p),) and mask.dtype == torch.bool
+        if copies:
+            assert bool((mask[K - 1:] == mask[K - 1]).all())
+        reference = ops.spatial_consistency(p, q, tolerance * scale, tolerance * scale, seeds=10, consensus=5,
+                                            backend="torch")
+        assert torch.equal(mask, reference[1])
+        spread = torch.linalg.svdvals(p[mask] - p[mask].mean(0)) if int(mask.sum()) >= 3 else torch.zeros(3)
+        if spread[1] > 1e-6 * scale:  # inliers that determine a rotation (not coincident or collinear)
+            assert torch.allclose(T, reference[0], atol=1e-6 * max(1.0, scale)), (T, reference[0])
+
+    assert spatial_consistency_reference is not None
+    fits()
+
+
+def strict_xyz(text: str) -> np.ndarray | None:
+    """An independent reading of a whitespace-separated text cloud: comment lines ('#') and blank
+    ones skipped; a first line of words only is a header; every other line has 3 or more numbers
+    (the first three kept); None where the reader must refuse (a mixed or short line, no rows, a
+    non-finite value, fewer than 3 points)."""
+    rows, header_allowed = [], True
+    for line in text.splitlines():
+        body = line.split("#")[0].strip()
+        if not body:
+            continue
+        tokens = body.split()
+        numeric = []
+        for token in tokens:
+            try:
+                numeric.append(float(token))
+            except ValueError:
+                numeric.append(None)
+        if header_allowed and all(value is None for value in numeric):
+            header_allowed = False
+            continue
+        header_allowed = False
+        if any(value is None for value in numeric) or len(numeric) < 3:
+            return None
+        rows.append(numeric[:3])
+    if len(rows) < 3 or len({len(r) for r in rows}) > 1:
+        return None
+    table = np.array(rows, dtype=np.float64)
+    return table if np.isfinite(table).all() else None
+
+
+def run_strict_readers(examples: int) -> None:
+    """Mutated text clouds (exponent case, words, short rows, header lines) read by read_points and
+    by :func:`strict_xyz`: the same points, or both refuse."""
+    from vrnet_ext.geometry.io import PointCloudError, read_points
+
+    folder = Path(tempfile.mkdtemp())
+    token = st.one_of(st.floats(-1e6, 1e6, allow_nan=False).map(lambda v: f"{v:.6E}"),
+                      st.floats(-1e3, 1e3, allow_nan=False).map(lambda v: f"{v:.4f}"),
+                      st.sampled_from(["x", "y", "z", "nan", "inf", "1e", "--1", "1.0E+00", "#c"]))
+    line = st.lists(token, min_size=0, max_size=5).map(" ".join)
+
+    @_settings(examples)
+    @given(st.lists(line, min_size=0, max_size=12))
+    def same(lines):
+        text = "\n".join(lines) + "\n"
+        path = folder / "m.xyz"
+        path.write_text(text)
+        expected = strict_xyz(text)
+        try:
+            points = read_points(path)
+        except PointCloudError as error:
+            assert str(path) in str(error)
+            assert expected is None or len(expected) < 3, (text, expected)
+            return
+        assert expected is not None, (text, points)
+        np.testing.assert_array_equal(points, expected)
+
+    same()
+
+
+def run_checkpoint_tensors(examples: int) -> None:
+    """A checkpoint whose one weight is a tensor of odd strides, element counts or dtype: refused
+    naming the weight, or loaded with exactly those values when shape and dtype fit."""
+    from vrnet_ext import VRNet, VRNetConfig
+    from vrnet_ext.model.checkpoints import CheckpointError
+    from vrnet_ext.model.pretrained import load_model
+
+    config = VRNetConfig.small(k=4, dgcnn_channels=(8, 8), emb_dims=16, heads=2, ff_dims=16, walk_channels=(8, 3))
+    state = VRNet(config).state_dict()
+    names = sorted(k for k, v in state.items() if v.is_floating_point() and v.dim() >= 1)
+    folder = Path(tempfile.mkdtemp())
+
+    @_settings(examples)
+    @given(st.sampled_from(names), st.sampled_from(["expand", "transpose", "strided", "numel", "dtype", "huge"]),
+           st.sampled_from([torch.float16, torch.float32, torch.float64, torch.int32]))
+    def loads_or_refuses(name, kind, dtype):
+        want = state[name]
+        base = torch.randn(want.numel() * 2 + 8).to(dtype) if dtype.is_floating_point else \
+            torch.arange(want.numel() * 2 + 8, dtype=dtype)
+        if kind == "expand":
+            value = base[:1].expand(want.shape)
+        elif kind == "transpose":
+            value = base[:want.numel()].reshape(want.shape[::-1]).permute(*reversed(range(want.dim())))
+        elif kind == "strided":
+            value = base[: 2 * want.numel()].as_strided(want.shape, [2 * s for s in want.stride()])
+        elif kind == "numel":
+            value = base[: want.numel() + 1]
+        elif kind == "dtype":
+            value = base[:want.numel()].reshape(want.shape).to(torch.int64)
+        else:
+            value = base[:1].expand(2 ** 24)
+        weights = dict(state, **{name: value})
+        path = folder / "m.pt"
+        torch.save({"model": weights, "config": {"model": config.to_dict()}}, path)
+        try:
+            model, _ = load_model(path)
+        except CheckpointError as error:
+            assert name in str(error) and str(path) in str(error), str(error)
+            return
+        assert value.shape == want.shape and value.dtype in (torch.float16, torch.float32)
+        torch.testing.assert_close(model.state_dict()[name], value.float(), rtol=0, atol=0)
+
+    loads_or_refuses()
+
+
+def run_output_paths(examples: int) -> None:
+    """Writes to a regular file, through a symlink, to a dangling symlink, to /dev/null, a FIFO with a
+    reader, a folder, a symlink loop or a missing folder: the content lands where the path leads, or
+    OutputError names the path; devices and FIFOs stay what they were; no temporary file is left."""
+    import os
+    import stat
+    import threading
+
+    from vrnet_ext.geometry.atomic import OutputError, write_text_atomically
+
+    @_settings(examples)
+    @given(st.sampled_from(["new", "existing", "symlink", "dangling", "devnull", "fifo", "folder", "loop",
+                            "missing_folder"]), st.text(max_size=50))
+    def lands(kind, content):
+        folder = Path(tempfile.mkdtemp())
+        path = folder / "out.json"
+        real = folder / "real.json"
+        received = []
+        if kind == "existing":
+            path.write_text("old")
+        elif kind == "symlink":
+            real.write_text("old")
+            path.symlink_to(real)
+        elif kind == "dangling":
+            path.symlink_to(real)
+        elif kind == "devnull":
+            path = Path("/dev/null")
+        elif kind == "fifo":
+            os.mkfifo(path)
+            reader = threading.Thread(target=lambda: received.append(path.read_bytes().decode()), daemon=True)
+            reader.start()
+        elif kind == "folder":
+            path.mkdir()
+        elif kind == "loop":
+            path.symlink_to(path)
+        elif kind == "missing_folder":
+            path = folder / "absent" / "out.json"
+        try:
+            write_text_atomically(path, content)
+        except OutputError as error:
+            assert kind in ("folder", "loop", "missing_folder") and str(path) in str(error), (kind, str(error))
+        else:
+            assert kind not in ("folder", "loop", "missing_folder"), kind
+            if kind in ("new", "existing", "symlink", "dangling"):
+                assert (real if kind in ("symlink", "dangling") else path).read_bytes().decode() == content
+                assert kind not in ("symlink", "dangling") or path.is_symlink()
+            if kind == "fifo":
+                reader.join(timeout=30)
+                assert received == [content] and stat.S_ISFIFO(os.stat(path).st_mode)
+            if kind == "devnull":
+                assert stat.S_ISCHR(os.stat(path).st_mode)
+        assert not [p for p in folder.rglob(".*") if p.is_file()], kind
+
+    lands()
+
+
+TRAINING_RUNS_PER_EXAMPLE = 10  # a kill point costs two training runs: one example in ten gets one
+
+
+def run_kill_points(examples: int) -> None:
+    """A tiny training run killed before one of its writes (checkpoint, best model, metrics row),
+    then resumed from its last.pt (or started again without one): the same models and metrics rows
+    as a run never killed. ``examples // 10`` kill points (a deep pass of 5000 tries 500)."""
+    import json
+
+    from conftest import ChairPairs
+    import vrnet_ext.learning.train as train_module
+    from vrnet_ext.learning.train import TrainConfig, train
+    from vrnet_ext.model.checkpoints import read_checkpoint
+
+    class Killed(BaseException):
+        pass
+
+    writes, kill_at = [], [None]
+    save, log = train_module._save, train_module._log
+
+    def write(real, *args):
+        if len(writes) == kill_at[0]:
+            raise Killed
+        writes.append(1)
+        real(*args)
+
+    train_module._save = lambda checkpoint, path: write(save, checkpoint, path)
+    train_module._log = lambda out_dir, record: write(log, out_dir, record)
+
+    def run(out, **overrides):
+        cfg = TrainConfig.from_preset("tiny", out_dir=str(out), progress=False, stage1_epochs=2, stage2_epochs=1,
+                                      checkpoint_minutes=1e9, **overrides)
+        train(cfg, datasets=(ChairPairs(8, 0), ChairPairs(4, 1)))
+
+    def outcome(out):
+        models = {p.name: read_checkpoint(p)["model"] for p in sorted(out.glob("*.pt"))}
+        rows = [{k: v for k, v in json.loads(line).items() if not k.endswith("seconds")}
+                for line in (out / "metrics.jsonl").read_text().splitlines()]
+        return models, rows
+
+    folder = Path(tempfile.mkdtemp())
+    run(folder / "straight")
+    straight, total = outcome(folder / "straight"), len(writes)
+
+    @_settings(max(1, examples // TRAINING_RUNS_PER_EXAMPLE))
+    @given(st.integers(0, total - 1), st.integers(0, 10**6))
+    def resumes(k, tag):
+        out = folder / f"k{k}_{tag}"
+        writes.clear()
+        kill_at[0] = k
+        try:
+            run(out)
+            raise AssertionError("the kill did not happen")
+        except Killed:
+            pass
+        kill_at[0] = None
+        run(out, resume=str(out / "last.pt")) if (out / "last.pt").exists() else run(out)
+        models, rows = outcome(out)
+        assert rows == straight[1] and set(models) == set(straight[0]), k
+        for name, weights in models.items():
+            assert all(torch.equal(weights[p], straight[0][name][p]) for p in weights), (k, name)
+
+    resumes()
+
+
 OPS = {
     "knn": (knn_case(), check_knn),
     "gather_reduce": (graph_case(), check_gather_reduce),
@@ -526,7 +794,9 @@ OPS = {
 }
 RUNNERS = {"malformed": run_malformed, "readers": run_readers, "checkpoints": run_checkpoints,
            "second_order": run_second_order, "memory_plan": run_memory_plan, "georeferenced": run_georeferenced,
-           "full_disk": run_full_disk}
+           "full_disk": run_full_disk, "spatial_consistency": run_spatial_consistency,
+           "strict_readers": run_strict_readers, "checkpoint_tensors": run_checkpoint_tensors,
+           "output_paths": run_output_paths, "kill_points": run_kill_points}
 TARGETS = sorted(OPS) + sorted(RUNNERS)
 
 

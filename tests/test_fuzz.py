@@ -2,8 +2,9 @@
 compiled code fails one test with the child's exit status instead of killing the session, and a
 hang fails at the timeout.
 
-CI runs a small, derandomised budget. A deep local pass: ``VRNET_FUZZ_EXAMPLES=1500 python -m pytest
-tests/test_fuzz.py`` (or ``python tests/fuzz_cases.py knn 1500`` for one target).
+CI runs a small, derandomised budget (40 examples per target). The nightly profile:
+``VRNET_FUZZ_EXAMPLES=5000 python -m pytest tests/test_fuzz.py`` (5000 examples per target, 500 kill
+points of training runs), or ``python tests/fuzz_cases.py knn 5000`` for one target.
 """
 import os
 import subprocess
