@@ -228,3 +228,13 @@ def test_a_crafted_checkpoint_is_refused_before_it_is_expanded(tmp_path, crafted
     assert verdict.startswith("refused:") and "crafted.pt" in verdict, verdict
     assert ("extra.weight" if crafted == "extra_weight" else name) in verdict, verdict
     assert int(grown) <= 4 * path.stat().st_size, (crafted, int(grown), path.stat().st_size)
+
+
+def test_export_names_the_run_it_read_when_that_run_is_out_of_bounds(tmp_path):
+    config = dict(VRNetConfig.small(**TINY).to_dict(), iterations=10 ** 6)
+    torch.manual_seed(0)
+    weights = VRNet(VRNetConfig.small(**TINY)).state_dict()
+    run = write_checkpoint(tmp_path / "run.pt", model_config=config, weights=weights)
+    with pytest.raises(CheckpointError, match=r"run\.pt: model iterations = 1000000 is outside"):
+        export_pretrained(run, tmp_path / "out" / "model.pt", {})
+    assert not (tmp_path / "out" / "model.pt").exists()

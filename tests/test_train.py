@@ -434,3 +434,16 @@ def test_every_training_option_is_read_as_its_annotation_says():
         plain = [arg for arg in typing.get_args(hint) if arg is not type(None)] or [hint]
         if name in types and plain[0] in (int, float) and len(plain) == 1:  # (str: also choices, type None)
             assert types[name] is plain[0], (name, hint, types[name])
+
+
+@requires_modelnet
+def test_resuming_a_finished_run_into_another_folder_says_so_and_points_to_its_models(tmp_path, capsys):
+    from vrnet_ext.cli import main
+
+    common = ["train", "--preset", "tiny", "--data-dir", str(MODELNET_DIR), "--no-progress"]
+    assert main([*common, "--out-dir", str(tmp_path / "a")]) == 0
+    capsys.readouterr()
+    assert main([*common, "--out-dir", str(tmp_path / "b"), "--resume", str(tmp_path / "a" / "last.pt")]) == 0
+    out = capsys.readouterr().out
+    assert "holds a finished run" in out and f"--checkpoint {tmp_path / 'a' / 'best.pt'}" in out, out
+    assert (tmp_path / "a" / "best.pt").exists()

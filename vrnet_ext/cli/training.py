@@ -144,6 +144,11 @@ def run_train(args) -> int:
     written = [roles.get(name, name) for name in ("last.pt", "best.pt", "best_stage1.pt", "best_stage2.pt",
                                                   "metrics.jsonl", "metrics.csv", "curves.png")
                if (out_dir / name).exists()]
+    if not record and cfg.resume:  # every epoch was already done in the checkpoint: nothing trained
+        print(f"{cfg.resume} holds a finished run ({cfg.stage1_epochs} + {cfg.stage2_epochs} epochs): nothing to "
+              f"train (give more --stage2-epochs to continue it)")
+        print(f"evaluate with: vrnet eval --checkpoint {Path(cfg.resume).with_name('best.pt')}")
+        return 0
     print(f"wrote {out_dir}/: {', '.join(written)}")
     print(f"evaluate with: vrnet eval --checkpoint {out_dir / 'best.pt'}")
     return 0

@@ -70,12 +70,14 @@ def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike
     inference-time fields of the model config (:data:`INFERENCE_FIELDS`)."""
 
     state = read_checkpoint(checkpoint)
+    model_from_state(state, str(checkpoint))  # its configuration within the limits, its weights matching it
     weights = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
-    config = {k: v for k, v in state["config"].items() if k not in ("data_dir", "out_dir", "resume", "features_from", "walk_from")}
+    local = ("data_dir", "out_dir", "resume", "features_from", "walk_from")
+    config = {k: v for k, v in state["config"].items() if k not in local}
     overrides = dict(model_overrides or {})
     if set(overrides) - set(INFERENCE_FIELDS):
         raise ValueError(f"model_overrides may set {', '.join(INFERENCE_FIELDS)} only, got {sorted(overrides)}")
-    config["model"] = validate_model_config(dict(config["model"], **overrides), str(out_path)).to_dict()
+    config["model"] = validate_model_config(dict(config["model"], **overrides), "model_overrides").to_dict()
     card = json.loads(json.dumps(card))
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
