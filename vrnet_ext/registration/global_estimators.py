@@ -32,7 +32,7 @@ from vrnet_ext.registration.counts import PointCounts
 from vrnet_ext.registration.prepared import ScanPair
 from vrnet_ext import ops
 from vrnet_ext.geometry.features import ScanView, nearest_features
-from vrnet_ext.registration.ransac import feature_ransac, ransac
+from vrnet_ext.registration.ransac import SCORING_MB as RANSAC_SCORING_MB, feature_ransac, ransac
 from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import from_normalised, to_homogeneous
 
@@ -108,7 +108,7 @@ class FpfhRansac(GlobalEstimator):
     sized_by: ClassVar[tuple[str, ...]] = ("global_points",)
 
     def peak_mb(self, largest_scan, counts):
-        return _fpfh_mb(counts.global_points)
+        return max(_fpfh_mb(counts.global_points), RANSAC_SCORING_MB)
 
     def estimate_pair(self, pair, seed):
         src, tgt = pair.global_views()

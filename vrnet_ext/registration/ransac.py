@@ -34,7 +34,9 @@ def _enough_hypotheses(inlier_ratio: float, confidence: float) -> float:
 
 
 HYPOTHESES = 1_000_000  # enough for 3 % inliers: log(0.001) / log(1 - 0.03^3) = 256,000 hypotheses
-SCORED_AT_ONCE = 1 << 21  # hypothesis x match residuals scored at a time (48 MB of float64 offsets)
+SCORED_AT_ONCE = 1 << 18  # hypothesis x match residuals scored at a time
+# The scoring's transient, in MB: the moved matches and their offsets (float64 x 3 each) and the residuals.
+SCORING_MB = SCORED_AT_ONCE * (3 * 8 + 3 * 8 + 8) / 2 ** 20
 
 
 def ransac(src: torch.Tensor, tgt: torch.Tensor, matches: torch.Tensor, inlier_distance: float, *,

@@ -110,6 +110,7 @@ class IcpProblem:
         self.step.prepare(self.src[0], self.tgt[0])
         self.reach = TargetReach(self.tgt, settings.max_distance)
         self._tgt_normals = getattr(self.step, "tgt_normals", None)  # point-to-plane's; others' made on demand
+        self._final = None  # (transform, moved source, pairs within reach) where the last run ended
 
     def run(self, initial: np.ndarray) -> RegistrationResult:
         """ICP from ``initial`` (4, 4); see :func:`icp`."""
@@ -139,10 +140,13 @@ class IcpProblem:
             if change_rotation < settings.transform_tolerance and change_translation < settings.transform_tolerance:
                 converged = True
                 break
-        _, dist2, _ = _nearest_in_reach(apply(T, src_t), tgt_t, self.reach, self.backend)
+        moved = apply(T, src_t)
+        pairs = _nearest_in_reach(moved, tgt_t, self.reach, self.backend)
+        self._final = (T.cpu().numpy(), moved, pairs)  # the degeneracy check of this result reuses them
+        dist2 = pairs[1]
         close = dist2[dist2 <= max_distance ** 2]
         rmse = float(close.mean().sqrt()) if len(close) else float("nan")
-        return RegistrationResult(T_target_source=T.cpu().numpy(), initial=np.asarray(initial, dtype=np.float64),
+        return RegistrationResult(T_target_source=self._final[0], initial=np.asarray(initial, dtype=np.float64),
                                   method="icp", estimator=settings.estimator, iterations=done, converged=converged,
                                   fitness=len(close) / src_t.shape[1], inlier_rmse=rmse, correspondences=len(close),
                                   points={"source": src_t.shape[1], "target": tgt_t.shape[1]})
@@ -159,9 +163,11 @@ class IcpProblem:
     def degeneracy(self, transform: np.ndarray) -> str | None:
         """A warning when the pairs within reach under ``transform`` (4, 4) leave directions of the
         transform unconstrained (:mod:`vrnet_ext.registration.degeneracy`), else None."""
-        T = torch.as_tensor(transform, dtype=torch.float64, device=self.src.device)
-        moved = apply(T, self.src)
-        candidates, dist2, idx = _nearest_in_reach(moved, self.tgt, self.reach, self.backend)
+        if self._final is not None and np.array_equal(self._final[0], transform):
+            _, moved, (candidates, dist2, idx) = self._final  # the pairs the last run ended with
+        else:
+            moved = apply(torch.as_tensor(transform, dtype=torch.float64, device=self.src.device), self.src)
+            candidates, dist2, idx = _nearest_in_reach(moved, self.tgt, self.reach, self.backend)
         close = dist2 <= self.settings.max_distance ** 2
         if self._tgt_normals is None:
             self._tgt_normals = ops.normals(self.tgt[0], NORMAL_NEIGHBOURS)
