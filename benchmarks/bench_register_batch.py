@@ -35,6 +35,7 @@ def _timed(command: list[str], env: dict | None = None) -> float:
 
 def main(argv: list[str] | None = None) -> None:
     from vrnet_ext.cli.common import DefaultsHelpFormatter
+    from vrnet_ext.geometry.atomic import read_json_lines
     from vrnet_ext.registration.batch import read_manifest
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
@@ -64,10 +65,10 @@ def main(argv: list[str] | None = None) -> None:
     rows["torchrun, 2 processes x 1 thread"] = _timed(
         ["torchrun", "--nproc-per-node", "2", "-m", "vrnet_ext.cli", "register-batch", str(manifest), "--out",
          str(work / "sharded.jsonl"), "--no-progress"], env)
-    batch = [json.loads(line) for line in (work / "batch.jsonl").read_text().splitlines()]
-    sharded = [json.loads(line) for line in (work / "sharded.jsonl").read_text().splitlines()]
-    same = {"register-batch = one process per pair": [r["T_target_source"] for r in batch] == singles,
-            "torchrun = register-batch": [r["T_target_source"] for r in sharded] == [r["T_target_source"] for r in batch]}
+    batch, sharded = read_json_lines(work / "batch.jsonl"), read_json_lines(work / "sharded.jsonl")
+    transforms = [r["T_target_source"] for r in batch]
+    same = {"register-batch = one process per pair": transforms == singles,
+            "torchrun = register-batch": [r["T_target_source"] for r in sharded] == transforms}
     judged = [r for r in batch if "registered" in r]
     recall = sum(r["registered"] for r in judged) / max(1, len(judged))
     base = rows["one process per pair"]

@@ -22,14 +22,12 @@ def add_data(sub) -> None:
 
 
 def run_data(args) -> int:
-    import os
     from pathlib import Path
 
     from vrnet_ext.data.convert import convert_modelnet40
-    from vrnet_ext.data.modelnet import user_data_dir
+    from vrnet_ext.data.modelnet import written_root
 
-    data = Path(os.environ["VRNET_DATA"]) if os.environ.get("VRNET_DATA") else user_data_dir()
-    out_dir = Path(args.out_dir) if args.out_dir else data / "modelnet40"
+    out_dir = Path(args.out_dir) if args.out_dir else written_root()
     counts = convert_modelnet40(args.source, out_dir)
     print(f"wrote {out_dir}/modelnet40_1024_train.h5 ({counts['train']} shapes) and modelnet40_1024_test.h5 "
           f"({counts['test']} shapes)")

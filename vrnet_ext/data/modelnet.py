@@ -16,21 +16,22 @@ PARTITIONS = ("train", "val", "test")
 _FILES = {"train": "modelnet40_1024_train.h5", "test": "modelnet40_1024_test.h5"}
 
 
-def user_data_dir() -> Path:
-    """Where ``vrnet data`` writes when ``VRNET_DATA`` is not set: ``$XDG_DATA_HOME/vrnet_ext``
-    (``~/.local/share/vrnet_ext``)."""
-    return Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share") / "vrnet_ext"
+def written_root() -> Path:
+    """Where ``vrnet data modelnet40`` writes by default: ``$VRNET_DATA/modelnet40`` when set, else
+    ``$XDG_DATA_HOME/vrnet_ext/modelnet40`` (``~/.local/share/vrnet_ext/modelnet40``)."""
+    env = os.environ.get("VRNET_DATA")
+    if env:
+        return Path(env) / "modelnet40"
+    return Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share") / "vrnet_ext" / "modelnet40"
 
 
 def default_root() -> Path:
     """``$VRNET_DATA/modelnet40`` when set; else ``../shared/data/modelnet40`` beside a source
-    checkout when that exists; else :func:`user_data_dir`'s ``modelnet40`` (what ``vrnet data
-    modelnet40`` fills)."""
-    env = os.environ.get("VRNET_DATA")
-    if env:
-        return Path(env) / "modelnet40"
+    checkout when that exists; else where ``vrnet data modelnet40`` writes (:func:`written_root`)."""
     beside = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "modelnet40"
-    return beside if beside.is_dir() else user_data_dir() / "modelnet40"
+    if not os.environ.get("VRNET_DATA") and beside.is_dir():
+        return beside
+    return written_root()
 
 
 def load_h5(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:

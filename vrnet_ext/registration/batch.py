@@ -138,18 +138,26 @@ class _Scans:
         return points
 
 
-def _read_pair(scans: _Scans, task: PairTask) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    truth = read_ground_truth(task.gt, task.source, task.target) if task.gt is not None else None
-    return scans(task.source), scans(task.target), truth
+def _read_pair(scans: _Scans, task: PairTask) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | Exception:
+    """The pair's scans and ground truth (None without one), or the error that stopped reading them
+    (recorded with the pair by :func:`register_pair`, not raised)."""
+    try:
+        truth = read_ground_truth(task.gt, task.source, task.target) if task.gt is not None else None
+        return scans(task.source), scans(task.target), truth
+    except (PointCloudError, FileNotFoundError, ValueError) as error:
+        return error
 
 
-def register_pair(task: PairTask, read: tuple, options: BatchOptions) -> dict:
-    """One pair's record: the result (or the error that stopped it) and, with ground truth, its
-    errors and whether it counts as registered."""
+def register_pair(task: PairTask, read: tuple | Exception, options: BatchOptions) -> dict:
+    """One pair's record from what :func:`_read_pair` gave (the scans and ground truth, or the error
+    reading them): the result (or the error that stopped it) and, with ground truth, its errors and
+    whether it counts as registered."""
     record: dict[str, Any] = {"index": task.index, "id": task.id, "source": str(task.source),
                               "target": str(task.target)}
     started = time.perf_counter()
     try:
+        if isinstance(read, Exception):
+            raise read
         src, tgt, truth = read
         result = register(src, tgt, **options.register)
     except (PointCloudError, FileNotFoundError, ValueError, RuntimeError) as error:
@@ -179,26 +187,16 @@ def register_batch(manifest: str | os.PathLike, out: str | os.PathLike, options:
     write_json_lines(part, read_json_lines(part))  # drop a line a kill left unfinished
     scans, records, started = _Scans(), [], time.perf_counter()
     with ThreadPoolExecutor(max_workers=1) as reader, open(part, "a") as sink:
-        pending = reader.submit(_read_pair_safely, scans, mine[0]) if mine else None
+        pending = reader.submit(_read_pair, scans, mine[0]) if mine else None
         for position, task in enumerate(tqdm(mine, desc=f"pairs (rank {shard.rank})" if shard.world > 1 else "pairs",
                                              unit="pair", disable=not progress)):
             read = pending.result()
-            pending = reader.submit(_read_pair_safely, scans, mine[position + 1]) if position + 1 < len(mine) else None
-            record = register_pair(task, read, options) if not isinstance(read, BaseException) else \
-                {"index": task.index, "id": task.id, "source": str(task.source), "target": str(task.target),
-                 "error": f"{type(read).__name__}: {read}"}
+            pending = reader.submit(_read_pair, scans, mine[position + 1]) if position + 1 < len(mine) else None
+            record = register_pair(task, read, options)
             sink.write(json.dumps(record) + "\n")
             sink.flush()
             records.append(record)
     return summary(records, time.perf_counter() - started)
-
-
-def _read_pair_safely(scans: _Scans, task: PairTask):
-    """:func:`_read_pair`, or the error that stopped it (recorded with the pair, not raised)."""
-    try:
-        return _read_pair(scans, task)
-    except (PointCloudError, FileNotFoundError, ValueError) as error:
-        return error
 
 
 def merge(manifest: str | os.PathLike, out: str | os.PathLike) -> list[dict]:

@@ -203,7 +203,7 @@ def _global_starts(pair: ScanPair, run: _Run, seconds: dict[str, float]) -> tupl
 
 def _estimate(estimator, pair: ScanPair, seed: int):
     """The estimator's answer on the prepared pair (an object that only has ``estimate`` gets the arrays)."""
-    if isinstance(estimator, GlobalEstimator) or hasattr(estimator, "estimate_pair"):
+    if hasattr(estimator, "estimate_pair"):
         return estimator.estimate_pair(pair, seed)
     return estimator.estimate(pair.src.points, pair.tgt.points, seed)
 
