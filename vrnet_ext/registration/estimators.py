@@ -56,8 +56,12 @@ def plane_covariances(points: torch.Tensor, neighbours: int) -> torch.Tensor:
     """points (N, 3) -> (N, 3, 3) GICP's plane covariances: the covariance of each point with its
     nearest ``neighbours`` keeps its eigenvectors and gets eigenvalues (PLANE_FLATNESS, 1, 1), i.e.
     ``I - (1 - PLANE_FLATNESS) n n^T`` with n the normal (smallest eigenvector, ``ops.normals``)."""
-    normals = ops.normals(points, neighbours)
-    eye = torch.eye(3, dtype=points.dtype, device=points.device)
+    return flat_covariances(ops.normals(points, neighbours))
+
+
+def flat_covariances(normals: torch.Tensor) -> torch.Tensor:
+    """normals (N, 3) -> (N, 3, 3) ``I - (1 - PLANE_FLATNESS) n n^T`` (:func:`plane_covariances`)."""
+    eye = torch.eye(3, dtype=normals.dtype, device=normals.device)
     return eye - (1.0 - PLANE_FLATNESS) * normals[:, :, None] * normals[:, None, :]
 
 
@@ -141,7 +145,8 @@ class Gicp(Estimator):
     def prepare(self, src, tgt):
         super().prepare(src, tgt)
         self.src_cov = plane_covariances(src, self.neighbours)
-        self.tgt_cov = plane_covariances(tgt, self.neighbours)
+        self.tgt_normals = ops.normals(tgt, self.neighbours)  # kept: the degeneracy check reads them too
+        self.tgt_cov = flat_covariances(self.tgt_normals)
 
     def step(self, T, src_idx, tgt_idx, weights):
         R = T[:3, :3]
