@@ -50,53 +50,25 @@ from vrnet_ext.geometry.preprocessing import voxel_size_for  # noqa: E402
 GLOBAL_POINTS, ICP_POINTS = 5000, 50_000
 SUCCESS_RE_DEG, SUCCESS_TE_M = 15.0, 0.3
 
-OPEN3D_SCRIPT = textwrap.dedent("""
+OPEN3D_SCRIPT = textwrap.dedent(f"""
     import json, resource, sys, time
     start = time.perf_counter()
+    sys.path.insert(0, {str(ROOT / "benchmarks")!r})
     import numpy as np
-    import open3d as o3d
+    from open3d_pipeline import cloud, features, global_estimate, icp_clouds, refine
     from vrnet_ext.geometry.io import read_points
     src_path, tgt_path, estimator, out = sys.argv[1:5]
     voxel, icp_voxel = float(sys.argv[5]), float(sys.argv[6])
     global_method = sys.argv[7] if len(sys.argv) > 7 else "ransac"
     src_points, tgt_points = read_points(src_path), read_points(tgt_path)
     begin = time.perf_counter()
-    reg = o3d.pipelines.registration
-    def cloud(points):
-        return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    def features(pcd):
-        down = pcd.voxel_down_sample(voxel)
-        down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
-        return down, reg.compute_fpfh_feature(down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel,
-                                                                                        max_nn=100))
     src, tgt = cloud(src_points), cloud(tgt_points)
-    (src_down, src_fpfh), (tgt_down, tgt_fpfh) = features(src), features(tgt)
-    if global_method == "fgr":
-        ransac = reg.registration_fgr_based_on_feature_matching(
-            src_down, tgt_down, src_fpfh, tgt_fpfh,
-            reg.FastGlobalRegistrationOption(maximum_correspondence_distance=1.5 * voxel))
-    else:
-        ransac = reg.registration_ransac_based_on_feature_matching(
-            src_down, tgt_down, src_fpfh, tgt_fpfh, True, 1.5 * voxel,
-            reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
-            reg.RANSACConvergenceCriteria(100000, 0.999))
-    src_icp, tgt_icp = src.voxel_down_sample(icp_voxel), tgt.voxel_down_sample(icp_voxel)
-    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=50)
-    if estimator != "point_to_point":
-        for pcd in (src_icp, tgt_icp):
-            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
-    if estimator == "gicp":
-        icp = reg.registration_generalized_icp(src_icp, tgt_icp, 3 * icp_voxel, ransac.transformation,
-                                               reg.TransformationEstimationForGeneralizedICP(), criteria)
-    else:
-        method = (reg.TransformationEstimationPointToPoint() if estimator == "point_to_point"
-                  else reg.TransformationEstimationPointToPlane())
-        icp = reg.registration_icp(src_icp, tgt_icp, 3 * icp_voxel, ransac.transformation, method, criteria)
+    ransac = global_estimate(features(src, voxel), features(tgt, voxel), voxel, global_method)
+    icp = refine(*icp_clouds(src, tgt, icp_voxel, estimator), icp_voxel, ransac.transformation, estimator)
     seconds = time.perf_counter() - begin
-    json.dump({"transform": np.asarray(icp.transformation).tolist(), "initial": np.asarray(ransac.transformation).tolist(),
+    json.dump({{"transform": np.asarray(icp.transformation).tolist(), "initial": np.asarray(ransac.transformation).tolist(),
                "register_s": seconds, "fitness": icp.fitness,
-               "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}, open(out, "w"))
+               "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}}, open(out, "w"))
 """)
 
 

@@ -34,3 +34,34 @@ def box_scan(points: int = 4000, seed: int = 0) -> np.ndarray:
         scan[faces == face, face % 3] = [-2, -1.5, -1.25, 2, 1.5, 1.25][face]
     table = rng.uniform([-0.5, -0.3, -0.5], [0.5, 0.3, -0.5], (points // 4, 3))
     return np.concatenate([scan, table]) + rng.normal(0, 0.003, (points + points // 4, 3))
+
+
+def furnished_room(points: int = 20000, seed: int = 0) -> np.ndarray:
+    """:func:`box_scan` with six boxes of furniture at random places and sizes: a room with no symmetry."""
+    rng = np.random.default_rng(seed)
+    parts = [box_scan(points, seed)]
+    for _ in range(6):
+        low = rng.uniform([-1.8, -1.3, -1.25], [1.2, 0.8, -1.25])
+        size = rng.uniform([0.2, 0.2, 0.3], [0.8, 0.7, 1.5])
+        faces = rng.integers(0, 6, points // 10)
+        box = low + rng.uniform(0, 1, (points // 10, 3)) * size
+        for face in range(6):
+            box[faces == face, face % 3] = low[face % 3] + (face >= 3) * size[face % 3]
+        parts.append(box)
+    return np.concatenate(parts)
+
+
+def room_views(count: int = 4, seed: int = 0, radius: float = 2.0) -> tuple[list[np.ndarray], np.ndarray]:
+    """``count`` overlapping views of :func:`furnished_room` (the points within ``radius`` of camera
+    positions along the room's length), each in its own frame -> (views, poses (count, 4, 4)
+    ``T_room_view``)."""
+    room_points = furnished_room(seed=seed)
+    rng = np.random.default_rng(seed + 1)
+    views, poses = [], []
+    for k, x in enumerate(np.linspace(-1.2, 1.2, count)):
+        centre = np.array([x, rng.uniform(-0.3, 0.3), 0.0])
+        inside = room_points[np.linalg.norm(room_points - centre, axis=1) < radius]
+        pose = motion(rng.uniform(5, 30), centre, seed=seed * 100 + k)
+        views.append((inside - pose[:3, 3]) @ pose[:3, :3])  # T_room_view^-1 applied
+        poses.append(pose)
+    return views, np.stack(poses)

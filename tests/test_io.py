@@ -345,3 +345,50 @@ def test_ground_truth_from_a_3dmatch_log_by_fragments_or_file_names(tmp_path):
         read_ground_truth(tmp_path / "T.txt", fragments=(0, 4))
     with pytest.raises(PointCloudError, match="gt.log: a 4x4 transform needs 16 numbers, found 57 .*read_ground_truth"):
         read_transform(log)
+
+
+def test_read_poses_takes_kitti_lines_flat_lines_and_blocks(tmp_path):
+    from vrnet_ext.geometry.io import read_poses
+
+    rng = np.random.default_rng(0)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3, 3)))
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, :3, :3] = q * np.sign(np.linalg.det(q))[:, None, None]
+    poses[:, :3, 3] = rng.normal(size=(3, 3))
+    def line(values):
+        return " ".join(f"{v:.17g}" for v in values)
+
+    layouts = {"kitti.txt": "\n".join(line(p[:3].ravel()) for p in poses),
+               "flat.txt": "# poses\n" + "\n".join(line(p.ravel()) for p in poses),
+               "blocks.txt": "\n\n".join("\n".join(line(row) for row in p) for p in poses)}
+    for name, text in layouts.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_allclose(read_poses(tmp_path / name, list('abc')), poses, atol=1e-12)
+    with pytest.raises(PointCloudError, match="expected 2 poses"):
+        read_poses(tmp_path / "kitti.txt", ["a", "b"])
+    poses[1, 0, 0] = 3.0
+    (tmp_path / "scaled.txt").write_text("\n".join(line(p.ravel()) for p in poses))
+    with pytest.raises(PointCloudError, match="not a rigid transform"):
+        read_poses(tmp_path / "scaled.txt", list("abc"))
+
+
+def test_read_poses_chains_a_3dmatch_log_by_fragment_names(tmp_path):
+    from vrnet_ext.geometry.io import read_poses
+
+    poses = np.stack([np.eye(4)] + [np.eye(4) for _ in range(2)])
+    for k in (1, 2):
+        poses[k, :3, :3] = Rotation.from_rotvec([0.1 * k, -0.2, 0.3]).as_matrix()
+        poses[k, :3, 3] = [k, 2.0 * k, -0.5]
+    fragments = [7, 3, 12]  # the scans cloud_bin_7, cloud_bin_3, cloud_bin_12, in this order
+
+    def block(a, b):  # fragment b into fragment a's frame, as gt.log writes it
+        T = np.linalg.inv(poses[a]) @ poses[b]
+        return f"{fragments[a]} {fragments[b]} 13\n" + "\n".join(" ".join(f"{v:.17g}" for v in row) for row in T)
+
+    (tmp_path / "gt.log").write_text(block(0, 2) + "\n" + block(2, 1) + "\n")
+    scans = [f"scans/cloud_bin_{i}.ply" for i in fragments]
+    np.testing.assert_allclose(read_poses(tmp_path / "gt.log", scans), poses, atol=1e-12)
+    with pytest.raises(PointCloudError, match="no chain of the log's pairs links scans/cloud_bin_5.ply"):
+        read_poses(tmp_path / "gt.log", scans + ["scans/cloud_bin_5.ply"])
+    with pytest.raises(PointCloudError, match="name the scans cloud_bin_<index> \\(room.ply is not\\)"):
+        read_poses(tmp_path / "gt.log", scans[:2] + ["room.ply"])

@@ -1,6 +1,6 @@
-"""Every name a user chooses from, and every default that is one of them, in one place: the command
-line reads its ``choices=`` and defaults here, the library its checks. Imports nothing (``vrnet
---help`` answers without torch).
+"""Every name a user chooses from, every default that is one of them, and the numeric defaults that
+both the library and the command line show, in one place: the command line reads its ``choices=``
+and defaults here, the library its checks. Imports nothing (``vrnet --help`` answers without torch).
 
 Abbreviations of the ModelNet40 protocol (the paper's Tables): settings CO (complete clouds), PV
 (partial views), RS (randomly sampled source and target), PV+RS (both); splits UPC (unseen point
@@ -28,3 +28,12 @@ GLOBAL_ESTIMATORS = ("sc2", "fpfh", "vrnet", "fgr", "icp")  # vrnet_ext.registra
 DEFAULT_METHOD = "sc2"
 ICP_STEPS = ("point_to_point", "point_to_plane", "gicp")  # vrnet_ext.registration.estimators
 DEFAULT_ICP_STEP = "point_to_plane"
+
+SUCCESS_ROTATION_DEG = 15.0  # a registration counts as correct below this rotation error (3DMatch's) ...
+SUCCESS_TRANSLATION = 0.3  # ... and below this translation error (the scans' unit; 0.3 m is 3DMatch's)
+
+# register_scene: every pair of at most this many scans; for more, each scan with its next
+# SCENE_NEIGHBOURS and with up to SCENE_LOOP_CANDIDATES scans the first poses put nearest.
+SCENE_ALL_PAIRS_UP_TO = 30
+SCENE_NEIGHBOURS = 2
+SCENE_LOOP_CANDIDATES = 4

@@ -112,3 +112,58 @@ def plot_pair(src, tgt, *, truth, vcp, rcp, estimate, path: str | Path, title: s
         ax.set_xticklabels([]); ax.set_yticklabels([]); ax.set_zticklabels([])
     fig.suptitle(title)
     return _save(fig, path, dpi=100)
+
+
+def scene_figure(scans: list, poses, names: list[str], edges: list, *, title: str = "",
+                 points_per_scan: int = 4000, seed: int = 0):
+    """A top view of a registered scene (``vrnet register-scene --plot``): each placed scan's points
+    (``scans``: (N_i, 3) arrays, None for a scan not placed) moved by its pose (``poses`` (P, 4, 4))
+    in its own colour, the scan origins joined in scan order (the trajectory), and the pairwise
+    edges: grey where the pose graph kept them, red dashed where it dropped them (``edges``: objects
+    with ``source``, ``target``, ``kept``). "Top" is the direction the scene is thinnest in (its
+    least principal axis), so rooms, floors and LiDAR sweeps are seen from above whatever their frame."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    placed = [i for i, scan in enumerate(scans) if scan is not None]
+    moved = {}
+    for i in placed:
+        picked = scans[i][rng.choice(len(scans[i]), min(points_per_scan, len(scans[i])), replace=False)]
+        moved[i] = apply(poses[i], picked)
+    every = np.concatenate(list(moved.values()))
+    centre = every.mean(axis=0)
+    _, _, axes_rows = np.linalg.svd(every - centre, full_matrices=False)
+    plane = axes_rows[:2].T  # the two widest directions: (3, 2)
+
+    def top(points):
+        return (np.asarray(points) - centre) @ plane
+
+    origins = {i: top(poses[i][None, :3, 3])[0] for i in placed}
+    fig, ax = plt.subplots(figsize=(9, 9))
+    colours = plt.get_cmap("tab20")
+    for k, i in enumerate(placed):
+        flat = top(moved[i])
+        ax.scatter(flat[:, 0], flat[:, 1], s=0.4, color=colours(k % 20), alpha=0.5, rasterized=True)
+    for edge in edges:
+        if edge.source in origins and edge.target in origins:
+            a, b = origins[edge.source], origins[edge.target]
+            ax.plot([a[0], b[0]], [a[1], b[1]], color="0.55" if edge.kept else "tab:red",
+                    linestyle="-" if edge.kept else "--", linewidth=0.6 if edge.kept else 1.0, zorder=2)
+    path = np.array([origins[i] for i in placed])
+    ax.plot(path[:, 0], path[:, 1], "-o", color="black", markersize=4, linewidth=1.2, zorder=3)
+    for k, i in enumerate(placed):
+        ax.annotate(names[i], origins[i], fontsize=7, color=colours(k % 20), xytext=(3, 3), textcoords="offset points")
+    dropped = sum(not edge.kept for edge in edges)
+    ax.plot([], [], color="0.55", label="pair kept")
+    ax.plot([], [], color="tab:red", linestyle="--", label=f"pair dropped ({dropped})")
+    ax.plot([], [], "-o", color="black", markersize=4, label="scan origins, in order")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_aspect("equal")
+    ax.set_title(title or f"{len(placed)} scans, top view")
+    fig.tight_layout()
+    return fig
+
+
+def plot_scene(scans: list, poses, names: list[str], edges: list, path: str | Path, *, title: str = "") -> Path:
+    """:func:`scene_figure` written to ``path`` (a picture format by its suffix)."""
+    return _save(scene_figure(scans, poses, names, edges, title=title), path, dpi=110)

@@ -19,6 +19,7 @@ import sys
 from vrnet_ext.cli.batch import add_register_batch, run_register_batch
 from vrnet_ext.cli.data import add_data, run_data
 from vrnet_ext.cli.registering import add_demo, add_register, run_demo, run_register
+from vrnet_ext.cli.scene import add_register_scene, run_register_scene
 from vrnet_ext.cli.training import (add_eval, add_export, add_plot, add_train, add_train_scene, build_train_config,
                                     run_eval, run_export, run_plot, run_train, run_train_scene)
 
@@ -38,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_plot(sub)
     add_register(sub)
     add_register_batch(sub)
+    add_register_scene(sub)
     add_demo(sub)
     add_export(sub)
     add_train_scene(sub)
@@ -75,7 +77,7 @@ def _dispatch(args) -> int:
     try:
         commands = {"train": run_train, "eval": run_eval, "plot": run_plot, "register": run_register,
                     "demo": run_demo, "export": run_export, "train-scene": run_train_scene, "data": run_data,
-                    "register-batch": run_register_batch}
+                    "register-batch": run_register_batch, "register-scene": run_register_scene}
         return commands[args.command](args)
     except (FileNotFoundError, ValueError) as exc:
         from vrnet_ext.cli.common import as_flags

@@ -6,7 +6,7 @@ import os
 import sys
 
 from vrnet_ext.cli.common import DefaultsHelpFormatter, positive_float, writable_path
-from vrnet_ext.cli.registering import add_registration_options, registration_arguments
+from vrnet_ext.cli.registering import add_registration_options, add_success_options, registration_arguments
 
 
 def add_register_batch(sub) -> None:
@@ -24,10 +24,7 @@ def add_register_batch(sub) -> None:
     p.add_argument("manifest", help="pairs: CSV / TSV with a header (source, target[, gt][, id]) or JSON Lines")
     p.add_argument("--out", type=writable_path, required=True,
                    help="the JSON Lines file of records (resumed if it exists)")
-    p.add_argument("--success-rotation", type=positive_float, default=15.0,
-                   help="a pair with ground truth counts as registered below this rotation error (degrees)")
-    p.add_argument("--success-translation", type=positive_float, default=0.3,
-                   help="... and below this translation error (the scans' unit)")
+    add_success_options(p, "a pair with ground truth")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_registration_options(p)
 

@@ -152,6 +152,16 @@ def plot_title(result, record: dict) -> str:
     return "\n".join(lines)
 
 
+def add_success_options(p, what: str) -> None:
+    """--success-rotation and --success-translation: when ``what`` counts as registered."""
+    from vrnet_ext.names import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION
+
+    p.add_argument("--success-rotation", type=positive_float, default=SUCCESS_ROTATION_DEG,
+                   help=f"{what} counts as registered below this rotation error (degrees)")
+    p.add_argument("--success-translation", type=positive_float, default=SUCCESS_TRANSLATION,
+                   help="... and below this translation error (the scans' unit)")
+
+
 def registration_arguments(args) -> dict:
     """``register()``'s keyword arguments from the command's options (the model loaded first when
     --checkpoint names one, so that a bad file fails before any scan is read; the method left to

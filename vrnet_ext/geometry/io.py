@@ -367,6 +367,58 @@ def read_transform(path: str | os.PathLike) -> np.ndarray:
     return _rigid(path, np.array(numbers).reshape(4, 4))
 
 
+def read_poses(path: str | os.PathLike, scans: list[str | os.PathLike]) -> np.ndarray:
+    """One ground-truth pose per scan (``T_world_scan``, in the order of ``scans``) from a text
+    file: one line of 12 numbers per pose (the top three rows of the 4x4, as KITTI's poses.txt), one
+    line of 16, or four lines of 4 numbers each ('#' comments ignored); or a 3DMatch ``gt.log`` of
+    pairs, the scans named ``cloud_bin_<i>`` as the benchmark names them, chained from the first
+    scan (its frame is then the world's) -> (len(scans), 4, 4) float64."""
+    path, count = Path(path), len(scans)
+    rows = _number_rows(path)
+    if _is_log(rows):
+        return _chained_log(path, rows, scans)
+    widths = {len(row) for row in rows}
+    if widths == {12} and len(rows) == count:
+        matrices = [np.vstack([np.array(row, dtype=np.float64).reshape(3, 4), [0, 0, 0, 1]]) for row in rows]
+    elif widths == {16} and len(rows) == count:
+        matrices = [np.array(row, dtype=np.float64).reshape(4, 4) for row in rows]
+    elif widths == {4} and len(rows) == 4 * count:
+        matrices = [np.array(rows[4 * k:4 * k + 4], dtype=np.float64) for k in range(count)]
+    else:
+        raise _fail(path, f"expected {count} poses (one line of 12 or 16 numbers each, or 4 lines of 4), found "
+                          f"{len(rows)} lines of {sorted(widths)} numbers")
+    return np.stack([_rigid(path, T) for T in matrices])
+
+
+def _chained_log(path: Path, rows: list[list[str]], scans: list[str | os.PathLike]) -> np.ndarray:
+    """The poses of ``scans`` (named cloud_bin_<i>) chained through the pairs of a 3DMatch log."""
+    found = [_FRAGMENT.search(Path(scan).stem) for scan in scans]
+    if not all(found):
+        unnamed = [str(scan) for scan, match in zip(scans, found) if not match]
+        raise _fail(path, f"a 3DMatch log names fragments by index: name the scans cloud_bin_<index> ({unnamed[0]} "
+                          f"is not)")
+    index = {int(match.group(1)): k for k, match in enumerate(found)}
+    poses: dict[int, np.ndarray] = {0: np.eye(4)}
+    links: dict[int, list[tuple[int, np.ndarray]]] = {k: [] for k in range(len(scans))}
+    for k in range(0, len(rows), 5):
+        i, j = int(float(rows[k][0])), int(float(rows[k][1]))
+        if i in index and j in index:
+            T = _rigid(path, _log_pair(path, rows[k:k + 5], None))  # fragment j into fragment i's frame
+            links[index[i]].append((index[j], T))
+            links[index[j]].append((index[i], np.linalg.inv(T)))
+    queue = [0]
+    while queue:
+        node = queue.pop()
+        for other, T in links[node]:
+            if other not in poses:
+                poses[other] = poses[node] @ T
+                queue.append(other)
+    missing = [str(scans[k]) for k in range(len(scans)) if k not in poses]
+    if missing:
+        raise _fail(path, f"no chain of the log's pairs links {', '.join(missing)} to {scans[0]}")
+    return np.stack([poses[k] for k in range(len(scans))])
+
+
 _FRAGMENT = re.compile(r"cloud_bin_(\d+)$")  # how the 3DMatch benchmark names its fragments
 
 

@@ -15,6 +15,10 @@
 - :mod:`~vrnet_ext.registration.degeneracy`: which directions the scans' geometry leaves free;
 - :mod:`~vrnet_ext.registration.batch`: :func:`register_batch`, a manifest of pairs, resumable,
   sharded by torchrun;
+- :mod:`~vrnet_ext.registration.multiway`: :func:`register_scene`, many scans of one scene into
+  one frame (pairs, loop checks in :mod:`~vrnet_ext.registration.cycles`, a robust pose graph in
+  :mod:`~vrnet_ext.registration.pose_graph`, a fused cloud); its errors against ground-truth poses:
+  :mod:`~vrnet_ext.registration.scene_metrics`;
 - :mod:`~vrnet_ext.registration.prepared`: both scans prepared once per registration
   (:class:`ScanPair`: voxels and FPFH shared by every estimator and ICP start);
 - :mod:`~vrnet_ext.registration.budget`: the memory plan, from each estimator's own cost;
@@ -35,7 +39,11 @@ _EXPORTS = {
     **dict.fromkeys(("Fgr", "FpfhRansac", "GlobalEstimator", "NoMotion", "ObjectNetwork", "SceneNetwork",
                      "SpatialConsistency", "make_global_estimator"), "vrnet_ext.registration.global_estimators"),
     **dict.fromkeys(("IcpFailure", "IcpProblem", "IcpSettings", "fitness", "icp"), "vrnet_ext.registration.refinement"),
-    "register": "vrnet_ext.registration.pipeline",
+    **dict.fromkeys(("RegistrationRun", "register", "register_prepared"), "vrnet_ext.registration.pipeline"),
+    **dict.fromkeys(("SceneEdge", "SceneOptions", "SceneResult", "register_scene"), "vrnet_ext.registration.multiway"),
+    **dict.fromkeys(("PoseEdge", "PoseGraphSettings", "PoseGraphSolution", "optimize_pose_graph"),
+                    "vrnet_ext.registration.pose_graph"),
+    "scene_errors": "vrnet_ext.registration.scene_metrics",
     "register_batch": "vrnet_ext.registration.batch",
     **dict.fromkeys(("RegistrationResult", "transform_errors"), "vrnet_ext.registration.result"),
 }

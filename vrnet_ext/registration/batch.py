@@ -29,7 +29,8 @@ import numpy as np
 from vrnet_ext.geometry.atomic import read_json_lines, write_json_lines
 from vrnet_ext.geometry.io import PointCloudError, read_ground_truth, read_points
 from vrnet_ext.registration.pipeline import register
-from vrnet_ext.registration.result import transform_errors
+from vrnet_ext.names import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION
+from vrnet_ext.registration.result import is_registered, transform_errors
 
 MAX_MANIFEST_BYTES = 1 << 26  # 64 MB: some hundred thousand pairs
 COLUMNS = {"source": ("source", "source_file"), "target": ("target", "target_file"), "gt": ("gt", "gt_file"),
@@ -57,8 +58,8 @@ class BatchOptions:
     ``success_translation`` (the scans' unit: 15 degrees and 0.3 m are 3DMatch's)."""
 
     register: dict[str, Any] = field(default_factory=dict)
-    success_rotation_deg: float = 15.0
-    success_translation: float = 0.3
+    success_rotation_deg: float = SUCCESS_ROTATION_DEG
+    success_translation: float = SUCCESS_TRANSLATION
 
 
 @dataclass(frozen=True)
@@ -167,8 +168,7 @@ def register_pair(task: PairTask, read: tuple | Exception, options: BatchOptions
     if truth is not None:
         errors = transform_errors(result.T_target_source, truth)
         record["errors"] = errors
-        record["registered"] = bool(errors["rotation_error_deg"] < options.success_rotation_deg
-                                    and errors["translation_error"] < options.success_translation)
+        record["registered"] = is_registered(errors, options.success_rotation_deg, options.success_translation)
     return record
 
 

@@ -29,9 +29,11 @@ FITNESS_TIE = 0.005  # refinements whose fitness differs by less converged to th
 
 
 @dataclass(frozen=True)
-class _Run:
-    """One :func:`register` call's settings, resolved once: the global estimator (built once), the
-    point counts asked for, the refinement, the seed, where and how to compute, the memory budget."""
+class RegistrationRun:
+    """The settings of :func:`register`, resolved once (:meth:`of`): the global estimator (built
+    once), the point counts asked for, the refinement, the seed, where and how to compute, the
+    memory budget. Registering many pairs with one run (:func:`register_prepared`) builds the
+    estimator (and loads a model) once."""
 
     estimator: GlobalEstimator
     counts: PointCounts
@@ -40,6 +42,21 @@ class _Run:
     device: torch.device
     backend: str
     max_memory: int | None
+
+    @classmethod
+    def of(cls, *, method: str | GlobalEstimator | None = None, model: VRNet | SceneVRNet | None = None,
+           global_points: int = PointCounts.global_points, network_points: int = PointCounts.network_points,
+           icp_settings: IcpSettings = IcpSettings(), seed: int = 0, device: str | torch.device = "cpu",
+           backend: str = "ext", max_memory: int | None = None) -> "RegistrationRun":
+        """The arguments of :func:`register` (same names, same meaning) checked and resolved."""
+        _require_icp_settings(icp_settings)
+        counts = PointCounts(global_points=global_points, network_points=network_points,
+                             icp_points=icp_settings.points)
+        if max_memory is not None and icp_settings.voxel_size is not None:
+            raise ValueError("give max_memory or voxel_size, not both (the budget chooses the ICP voxel)")
+        device = torch.device(device)
+        return cls(estimator=_global_estimator(method, model, device, backend), counts=counts, icp=icp_settings,
+                   seed=seed, device=device, backend=backend, max_memory=max_memory)
 
 
 def register(src, tgt, *, method: str | GlobalEstimator | None = None,
@@ -74,16 +91,12 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     (:func:`vrnet_ext.registration.budget.plan_registration` with the estimator's own cost,
     :meth:`GlobalEstimator.peak_mb`; notes in ``warnings``) or MemoryBudgetError says at once what would fit.
     """
-    if not isinstance(icp_settings, IcpSettings):
-        raise TypeError(f"icp_settings must be an IcpSettings, got {type(icp_settings).__name__}")
+    _require_icp_settings(icp_settings)
     src, tgt = as_points(src, "src"), as_points(tgt, "tgt")
     shape_notes = _shape_notes(src, "src") + _shape_notes(tgt, "tgt")
-    counts = PointCounts(global_points=global_points, network_points=network_points, icp_points=icp_settings.points)
-    if max_memory is not None and icp_settings.voxel_size is not None:
-        raise ValueError("give max_memory or voxel_size, not both (the budget chooses the ICP voxel)")
-    device = torch.device(device)
-    run = _Run(estimator=_global_estimator(method, model, device, backend), counts=counts, icp=icp_settings,
-               seed=seed, device=device, backend=backend, max_memory=max_memory)
+    run = RegistrationRun.of(method=method, model=model, global_points=global_points, network_points=network_points,
+                             icp_settings=icp_settings, seed=seed, device=device, backend=backend,
+                             max_memory=max_memory)
     if not _far_from_origin(src, tgt):
         result = _register_centred(src, tgt, run)
     else:
@@ -93,6 +106,11 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
         result.initial = in_shifted_frames(result.initial, centre)
     result.warnings = shape_notes + result.warnings
     return result
+
+
+def _require_icp_settings(value) -> None:
+    if not isinstance(value, IcpSettings):
+        raise TypeError(f"icp_settings must be an IcpSettings, got {type(value).__name__}")
 
 
 def _global_estimator(method, model, device: torch.device, backend: str) -> GlobalEstimator:
@@ -139,13 +157,22 @@ def _far_from_origin(src: np.ndarray, tgt: np.ndarray) -> bool:
     return coarse_in_float32(largest, float(np.max(tgt.max(axis=0) - tgt.min(axis=0))))
 
 
-def _register_centred(src: np.ndarray, tgt: np.ndarray, run: _Run) -> RegistrationResult:
+def _register_centred(src: np.ndarray, tgt: np.ndarray, run: RegistrationRun) -> RegistrationResult:
     """:func:`register` on clouds near enough to the origin for float32."""
     counts, warnings = run.counts, []
     if run.max_memory is not None:
         plan = plan_registration(run.max_memory, run.estimator, len(src), len(tgt), counts)
         counts, warnings = plan.counts, list(plan.notes)
-    pair = ScanPair.of(src, tgt, counts, run.device)
+    result = register_prepared(ScanPair.of(src, tgt, counts, run.device), run)
+    result.warnings = warnings + result.warnings
+    return result
+
+
+def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResult:
+    """The global estimate and ICP of :func:`register` on a pair already prepared (its clouds near
+    the origin, its point counts fitted to any budget; ``run.max_memory`` is not looked at here):
+    many registrations between a set of scans share each scan's preparation this way."""
+    src, tgt, warnings = pair.src.points, pair.tgt.points, []
     seconds: dict[str, float] = {}
     estimate, starts = _global_starts(pair, run, seconds)
     name, step = getattr(run.estimator, "name", GlobalEstimator.name), run.icp.estimator
@@ -183,7 +210,7 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, run: _Run) -> Registrati
                               points=points, warnings=warnings, start=winner, consensus=estimate.consensus)
 
 
-def _global_starts(pair: ScanPair, run: _Run, seconds: dict[str, float]) -> tuple[RegistrationResult,
+def _global_starts(pair: ScanPair, run: RegistrationRun, seconds: dict[str, float]) -> tuple[RegistrationResult,
                                                                                   dict[str, np.ndarray]]:
     """The estimator's estimate on the prepared pair, and every start ICP runs from (by name: the
     estimator's own, then those of ``also_start_from``, on the same prepared scans); times in ``seconds``."""
@@ -208,7 +235,7 @@ def _estimate(estimator, pair: ScanPair, seed: int):
     return estimator.estimate(pair.src.points, pair.tgt.points, seed)
 
 
-def _refine(pair: ScanPair, starts: dict[str, np.ndarray], run: _Run, seconds: dict[str, float],
+def _refine(pair: ScanPair, starts: dict[str, np.ndarray], run: RegistrationRun, seconds: dict[str, float],
             points: dict[str, int]) -> tuple[dict[str, RegistrationResult], list[str], IcpProblem]:
     """ICP from every start on both scans voxel-downsampled (one :class:`IcpProblem` for all) ->
     (refinements by start, failure messages, the problem, its settings' reach resolved); the ICP
@@ -237,7 +264,7 @@ def _refine(pair: ScanPair, starts: dict[str, np.ndarray], run: _Run, seconds: d
     return refined, failures, problem
 
 
-def _coarse_start(pair: ScanPair, voxel: float, settings: IcpSettings, run: _Run) -> np.ndarray:
+def _coarse_start(pair: ScanPair, voxel: float, settings: IcpSettings, run: RegistrationRun) -> np.ndarray:
     """ICP from no motion on both scans downsampled ``COARSE_FACTOR`` times coarser, with a reach
     as much longer -> its 4x4 estimate (the identity if it finds no pairs)."""
     coarse = COARSE_FACTOR * voxel

@@ -42,11 +42,14 @@ class PreparedScan:
 
 @dataclass
 class ScanPair:
-    """Source and target of one registration, prepared once, and the point counts of the run."""
+    """Source and target of one registration, prepared once, and the point counts of the run.
+    ``voxel``: the global estimators' voxel edge when fixed for many pairs (a scene: each scan's
+    FPFH is then computed once), else None (:attr:`global_voxel` derives it from the target)."""
 
     src: PreparedScan
     tgt: PreparedScan
     counts: PointCounts = PointCounts()
+    voxel: float | None = None
 
     @classmethod
     def of(cls, src: np.ndarray, tgt: np.ndarray, counts: PointCounts = PointCounts(),
@@ -62,8 +65,8 @@ class ScanPair:
     @cached_property
     def global_voxel(self) -> float:
         """The voxel edge that leaves the target about ``counts.global_points`` points (the global
-        estimators' feature radii are multiples of it)."""
-        return voxel_size_for(self.tgt.points, self.counts.global_points)
+        estimators' feature radii are multiples of it), unless fixed by ``voxel``."""
+        return self.voxel if self.voxel is not None else voxel_size_for(self.tgt.points, self.counts.global_points)
 
     def global_views(self) -> tuple[ScanView, ScanView]:
         """Both scans at :attr:`global_voxel`, with their FPFH descriptors."""

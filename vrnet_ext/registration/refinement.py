@@ -193,14 +193,22 @@ def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, settings: IcpSett
     return IcpProblem(src, tgt, settings, device, backend).run(initial)
 
 
-def fitness(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: float, backend: str = "ext") -> float:
-    """Share of the points of src (N, 3), moved by the 4x4 ``transform``, that have a point of
-    tgt (M, 3) within ``reach``: a score of any transform on a pair (Open3D's fitness)."""
+def pairs_within_reach(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: float,
+                       backend: str = "ext") -> tuple[np.ndarray, np.ndarray]:
+    """The points of src (N, 3), moved by the 4x4 ``transform``, whose nearest point of tgt (M, 3) is
+    within ``reach`` -> (their indices into src (P,), those nearest points' indices into tgt (P,))."""
     src_t = torch.as_tensor(src, dtype=torch.float64).unsqueeze(0)
     tgt_t = torch.as_tensor(tgt, dtype=torch.float64).unsqueeze(0)
     T = torch.as_tensor(transform, dtype=torch.float64)
-    _, dist2, _ = _nearest_in_reach(apply(T, src_t), tgt_t, TargetReach(tgt_t, reach), backend)
-    return int((dist2 <= reach ** 2).sum()) / len(src)
+    candidates, dist2, idx = _nearest_in_reach(apply(T, src_t), tgt_t, TargetReach(tgt_t, reach), backend)
+    close = dist2 <= reach ** 2
+    return candidates[close].numpy(), idx[close].numpy()
+
+
+def fitness(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: float, backend: str = "ext") -> float:
+    """Share of the points of src (N, 3), moved by the 4x4 ``transform``, that have a point of
+    tgt (M, 3) within ``reach``: a score of any transform on a pair (Open3D's fitness)."""
+    return len(pairs_within_reach(src, tgt, transform, reach, backend)[0]) / len(src)
 
 
 @dataclass(frozen=True)

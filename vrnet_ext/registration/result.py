@@ -7,6 +7,7 @@ import numpy as np
 import torch
 
 from vrnet_ext.geometry.metrics import rotation_error_deg, translation_error
+from vrnet_ext.names import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION
 
 
 @dataclass(kw_only=True)
@@ -47,6 +48,12 @@ class RegistrationResult:
         out["T_target_source"] = self.T_target_source.tolist()
         out["initial"] = self.initial.tolist()
         return out
+
+
+def is_registered(errors: dict[str, float], rotation_deg: float = SUCCESS_ROTATION_DEG,
+                  translation: float = SUCCESS_TRANSLATION) -> bool:
+    """Whether :func:`transform_errors` ``errors`` are below both thresholds."""
+    return bool(errors["rotation_error_deg"] < rotation_deg and errors["translation_error"] < translation)
 
 
 def transform_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
