@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> None:
         for points in (50_000, 200_000):
             voxel = voxel_size_for(tgt, points)
             for step in ICP_STEPS:
-                settings = IcpSettings(estimator=step, max_distance=3 * voxel, transform_tolerance=1e-6,
+                settings = IcpSettings(step=step, max_distance=3 * voxel, transform_tolerance=1e-6,
                                        max_iterations=100)
                 problem = IcpProblem(voxel_downsample(src, voxel), voxel_downsample(tgt, voxel), settings)
                 moved = transform_errors(problem.run(truth).T_target_source, truth)

@@ -39,6 +39,7 @@ from bench_register import errors, run_open3d, run_ours  # noqa: E402
 
 from vrnet_ext.cli.common import DefaultsHelpFormatter  # noqa: E402
 from vrnet_ext.data.real_pairs import SUCCESS_THRESHOLDS, read_manifest  # noqa: E402
+from vrnet_ext.names import DEFAULT_METHOD  # noqa: E402
 
 METHODS = ("default", "fpfh", "sc2", "vrnet", "fgr", "open3d-ransac", "open3d-fgr")
 
@@ -207,7 +208,7 @@ def main(argv: list[str] | None = None) -> None:
     rows = summarise(records, methods)
     meta = {"machine": f"{platform.machine()}, {os.cpu_count()} cpus", "date": time.strftime("%Y-%m-%d"),
             "seeds": args.seeds, "extra_rotation": args.extra_rotation, "pairs": len(todo),
-            "thresholds": SUCCESS_THRESHOLDS}
+            "thresholds": SUCCESS_THRESHOLDS, "default_method": DEFAULT_METHOD}
     stem = out_dir / args.name
     Path(f"{stem}.json").write_text(json.dumps({"meta": meta, "summary": rows, "runs": records}, indent=1))
     Path(f"{stem}.md").write_text(markdown(rows, meta))

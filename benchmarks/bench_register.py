@@ -14,7 +14,7 @@ checkers and its 100,000 iterations / 0.999 confidence), ICP on about 50,000 poi
 ICP voxels. Rows:
 
 * ``ours default + point_to_plane``: ``vrnet register`` with its default method;
-* ``ours fpfh + <estimator>``: ``vrnet register --method fpfh --estimator E``;
+* ``ours fpfh + <estimator>``: ``vrnet register --method fpfh --icp-step E``;
 * ``ours vrnet + point_to_plane``: the shipped scene model (``--method vrnet``);
 * ``open3d fpfh + <estimator>``: Open3D's ``registration_ransac_based_on_feature_matching`` then
   ``registration_icp`` (point-to-point, point-to-plane) or ``registration_generalized_icp``.
@@ -81,7 +81,7 @@ def run_ours(pair: dict, method: str | None, estimator: str, out: Path, seed: in
     """`vrnet register` in a fresh process (method None: its default)."""
     chosen = [] if method is None else ["--method", method]
     cmd = [sys.executable, "-m", "vrnet_ext.cli", "register", str(pair["source"]), str(pair["target"]), *chosen,
-           "--estimator", estimator, "--global-points", str(GLOBAL_POINTS), "--icp-points", str(ICP_POINTS),
+           "--icp-step", estimator, "--global-points", str(GLOBAL_POINTS), "--icp-points", str(ICP_POINTS),
            "--seed", str(seed), "--json", str(out)]
     start = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)

@@ -45,7 +45,6 @@ import sys
 import tempfile
 import textwrap
 import time
-from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -106,24 +105,18 @@ OPEN3D_SCENE = textwrap.dedent(f"""
 
 def truth_poses(data: Path, files: list[str]) -> np.ndarray:
     """(P, 4, 4) ground-truth ``T_first_scan``, chained through the manifest's pairs among ``files``."""
-    links: dict[str, list[tuple[str, np.ndarray]]] = {name: [] for name in files}
+    from vrnet_ext.geometry.transforms import chain
+
+    links = []
     with open(data / "MANIFEST.tsv", newline="") as f:
         for row in csv.DictReader(f, delimiter="\t"):
-            if row["source_file"] in links and row["target_file"] in links:
-                T = np.loadtxt(data / row["gt_file"])  # source into target
-                links[row["target_file"]].append((row["source_file"], T))
-                links[row["source_file"]].append((row["target_file"], np.linalg.inv(T)))
-    poses, queue = {files[0]: np.eye(4)}, deque([files[0]])
-    while queue:
-        node = queue.popleft()
-        for other, T in links[node]:
-            if other not in poses:
-                poses[other] = poses[node] @ T
-                queue.append(other)
-    missing = [name for name in files if name not in poses]
-    if missing:
-        raise SystemExit(f"bench_register_scene: no ground-truth chain reaches {missing}")
-    return np.stack([poses[name] for name in files])
+            if row["source_file"] in files and row["target_file"] in files:  # the gt maps source into target
+                links.append((files.index(row["target_file"]), files.index(row["source_file"]),
+                              np.loadtxt(data / row["gt_file"])))
+    poses, reached = chain(len(files), links)
+    if not reached.all():
+        raise SystemExit(f"bench_register_scene: no ground-truth chain reaches {[f for f, r in zip(files, reached) if not r]}")
+    return poses
 
 
 def voxels(paths: list[Path]) -> tuple[float, float]:

@@ -57,6 +57,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "inference_avx2_second_pass": "ModelNet40 inference speed on a CPU without bfloat16 products, the model taking its second pass where its RCPs disagree (`bench_inference.py --variants ext`)",
     "degeneracy": "How well real scans constrain ICP: the smallest eigenvalue share at the ground truth (`bench_degeneracy.py`)",
     "register_batch": "Many pairs: one process per pair, `register-batch`, `torchrun` with 2 processes (`bench_register_batch.py`)",
+    "default": "The default (`auto`) beside the methods it combines, on pairs none was tuned on (`bench_default.py`)",
     "register_scene": "Many scans of one scene against ground-truth poses: `register-scene` and Open3D's multiway registration (`bench_register_scene.py`)",
     "icp_from_truth": "Where ICP goes when it starts from the official ground truth (`bench_icp_from_truth.py`)",
     "global_fit": "Spatial consistency vs RANSAC, matching + fit on the same descriptors (`bench_global_fit.py`)",

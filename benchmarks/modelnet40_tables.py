@@ -138,7 +138,7 @@ def classical_estimates(data, method: str, icp_max_distance: float, fpfh_voxel: 
         started = time.perf_counter()
         try:
             if method == "icp":
-                settings = IcpSettings(estimator="point_to_point", max_distance=icp_max_distance,
+                settings = IcpSettings(step="point_to_point", max_distance=icp_max_distance,
                                        transform_tolerance=1e-6)
                 T = icp(src, tgt, np.eye(4), settings).T_target_source
             else:

@@ -11,17 +11,23 @@ import json
 from pathlib import Path
 
 SUBSETS = ("3DMatch", "3DLoMatch", "KITTI", "kitchen/LiDAR", "all")
-# "default" repeats whichever method was the default when the JSON was measured: the table names the
-# methods themselves, the current default marked; a JSON without an sc2 row measured the default as sc2.
-LABELS = {"default": "`vrnet register` (the default, `sc2`)", "fpfh": "`--method fpfh`", "sc2": "`--method sc2` (the default)",
-          "vrnet": "`--method vrnet`", "fgr": "`--method fgr`", "open3d-ransac": "Open3D RANSAC + ICP",
-          "open3d-fgr": "Open3D FGR + ICP"}
+# "default" repeats whichever method was the default when the JSON was measured (its meta names it; a JSON
+# without that name measured the default as sc2): the table names the methods themselves, the default marked.
+LABELS = {"fpfh": "`--method fpfh`", "sc2": "`--method sc2`", "vrnet": "`--method vrnet`", "fgr": "`--method fgr`",
+          "open3d-ransac": "Open3D RANSAC + ICP", "open3d-fgr": "Open3D FGR + ICP"}
+
+
+def label(method: str, default: str) -> str:
+    if method == "default":
+        return f"`vrnet register` (the default, `{default}`)"
+    return LABELS.get(method, method) + (" (the default)" if method == default else "")
 
 
 def render(record: dict) -> str:
     rows = {(r["method"], r["subset"]): r for r in record["summary"]}
     measured = list(dict.fromkeys(r["method"] for r in record["summary"]))
-    methods = [m for m in measured if m != "default" or "sc2" not in measured]
+    default = record.get("meta", {}).get("default_method", "sc2")
+    methods = [m for m in measured if m != "default" or default not in measured]
     lines = ["| method | " + " | ".join(f"{s} recall" for s in SUBSETS) + " | RE median (°) | s / pair |",
              "|---|" + "---:|" * (len(SUBSETS) + 2)]
     for method in methods:
@@ -30,7 +36,7 @@ def render(record: dict) -> str:
             r = rows.get((method, subset))
             cells.append(f"{100 * r['recall']:.0f} % ({r['successes']}/{r['runs']})" if r else "–")
         everything = rows[(method, "all")]
-        lines.append(f"| {LABELS.get(method, method)} | " + " | ".join(cells) +
+        lines.append(f"| {label(method, default)} | " + " | ".join(cells) +
                      f" | {everything['median_re_deg']:.2f} | {everything['median_process_s']:.2f} |")
     return "\n".join(lines)
 

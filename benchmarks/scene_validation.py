@@ -32,7 +32,7 @@ from outputs import write_outputs  # benchmarks/, the script's folder
 POINTS = 5000
 
 
-def estimators(checkpoints: list[str]) -> dict:
+def global_estimators(checkpoints: list[str]) -> dict:
     found = {"fpfh": FpfhRansac(), "sc2": SpatialConsistency()}
     for checkpoint in checkpoints:
         model, _ = load_model(checkpoint)
@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--markdown", default=None, help="write the table to this Markdown file (none: print only)")
     args = parser.parse_args(argv)
     _, validation = split(read_manifest(args.real_pairs))
-    methods = estimators(args.checkpoint)
+    methods = global_estimators(args.checkpoint)
     records = []
     for pair in validation:
         src, tgt, truth = read_points(pair.source), read_points(pair.target), read_transform(pair.gt)

@@ -306,3 +306,16 @@ def test_bench_register_scene_measures_the_kitti_scene_and_the_optimiser(tmp_pat
     assert record["scenes"]["kitti00"]["truth_fit"]["pairs"] == 4
     assert record["optimiser"]["wrong_dropped"] == record["optimiser"]["wrong_loops"]
     assert "kitti00 | ours" in (tmp_path / "scene.md").read_text()
+
+
+def test_bench_default_runs_every_method_on_a_cut_pair_and_draws_the_calibration(tmp_path):
+    from conftest import DATA_DIR
+
+    if not (DATA_DIR / "scenes" / "real_pairs" / "MANIFEST.tsv").exists():
+        pytest.skip(f"real pairs not found under {DATA_DIR / 'scenes'}")
+    run([str(ROOT / "benchmarks" / "bench_default.py"), "--data", str(DATA_DIR / "scenes" / "real_pairs"), "--seeds", "1",
+         "--sets", "cuts", "--cuts", "1", "--limit", "1", "--json", "default.json", "--markdown", "default.md",
+         "--plot", "doubt.png"], tmp_path)
+    record = json.loads((tmp_path / "default.json").read_text())
+    assert {r["method"] for r in record["runs"]} == {"auto", "sc2", "fpfh", "vrnet"}
+    assert all(r["set"] == "cuts" for r in record["runs"]) and (tmp_path / "doubt.png").stat().st_size > 0

@@ -137,7 +137,7 @@ def test_an_estimator_that_does_not_transfer_is_never_worse_than_fpfh():
     right = register(src, tgt, method=Learned(truth), global_points=3000, icp_settings=settings)
     assert right.start == "learned" and not right.warnings, right.warnings
     default = register(src, tgt, global_points=3000, icp_settings=settings)
-    assert default.method == default.start == "sc2"
+    assert default.method == "auto" and default.start == "sc2" and not default.selection
 
 
 def test_one_initial_estimate_at_a_time(tmp_path, capsys):
@@ -178,7 +178,7 @@ def test_global_estimators_return_registration_results_with_their_consensus():
     for estimator in (FpfhRansac(), SpatialConsistency()):
         estimate = estimator.estimate_pair(ScanPair.of(src, tgt, PointCounts(global_points=3000)), seed=0)
         assert isinstance(estimate, RegistrationResult) and estimate.method == estimator.name
-        assert estimate.consensus >= 3 and estimate.iterations == 0 and estimate.estimator == "none"
+        assert estimate.consensus >= 3 and estimate.iterations == 0 and estimate.icp_step == "none"
         assert estimate.points["source_global"] > 1000 and np.isfinite(estimate.T_target_source).all()
         result = register(src, tgt, method=estimator, global_points=3000)
         assert result.consensus == estimate.consensus and "source_global" in result.to_dict()["points"]
@@ -207,3 +207,44 @@ def test_fpfh_ransac_registers_a_low_overlap_3dlomatch_pair_for_most_seeds():
         errors = transform_errors(estimate, truth)
         registered += errors["rotation_error_deg"] < 15.0 and errors["translation_error"] < 0.30
     assert registered >= 4, f"{registered} of 5 seeds registered {LOW_OVERLAP_PAIR}"
+
+
+def test_the_default_brings_in_its_other_estimators_only_when_in_doubt(monkeypatch):
+    """``auto``: spatial consistency alone while its refinement fits; when it is doubtful (here made
+    wrong on purpose), FPFH + RANSAC and the scene model estimate on the same prepared scans, ICP
+    runs from each and the best fit wins, the result saying why; ``--method sc2`` never does."""
+    from vrnet_ext.registration import GlobalEstimator, RegistrationResult
+    from vrnet_ext.registration.global_estimators import Adaptive
+
+    src = closed_room()
+    truth = motion(75.0, [0.3, -0.2, 0.1])
+    tgt = apply(truth, closed_room(seed=1))
+    settings = IcpSettings(points=6000)
+    fine = register(src, tgt, global_points=3000, icp_settings=settings)
+    assert fine.start == "sc2" and not fine.selection and "initial (fpfh)" not in fine.seconds
+
+    class Wrong(GlobalEstimator):
+        name = "sc2"
+
+        def estimate_pair(self, pair, seed):
+            return RegistrationResult.global_estimate(motion(150.0, [2.0, 0.0, 0.0]), self.name)
+
+    member = Adaptive.member
+    monkeypatch.setattr(Adaptive, "member", lambda self, name, device=None: Wrong() if name == "sc2"
+                        else member(self, name, device))
+    rescued = register(src, tgt, global_points=3000, icp_settings=settings)
+    assert rescued.method == "auto" and rescued.start in ("fpfh", "vrnet"), rescued
+    assert transform_errors(rescued.T_target_source, truth)["rotation_error_deg"] < 1.0
+    assert rescued.selection.startswith("sc2 ") and "the best fit is" in rescued.selection, rescued.selection
+    assert {"initial (fpfh)", "initial (vrnet)"} <= set(rescued.seconds)
+    assert not any("does not fit these scans" in w for w in rescued.warnings), rescued.warnings
+    alone = register(src, tgt, method=Wrong(), global_points=3000, icp_settings=settings)
+    assert alone.start == "sc2" and "initial (fpfh)" not in alone.seconds and alone.warnings
+
+
+def test_the_default_takes_a_scene_model_only():
+    from vrnet_ext.model import VRNet, VRNetConfig
+    from vrnet_ext.registration import make_global_estimator
+
+    with pytest.raises(ValueError, match="method 'auto' takes a scene model"):
+        make_global_estimator("auto", VRNet(VRNetConfig()))

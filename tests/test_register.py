@@ -23,7 +23,7 @@ from vrnet_ext.geometry.transforms import apply, to_homogeneous
 
 def point_to_point(max_distance: float, **settings) -> IcpSettings:
     """ICP point to point within ``max_distance``, stopping at steps below 1e-6."""
-    return IcpSettings(estimator="point_to_point", max_distance=max_distance, transform_tolerance=1e-6, **settings)
+    return IcpSettings(step="point_to_point", max_distance=max_distance, transform_tolerance=1e-6, **settings)
 
 LIDAR = DATA_DIR / "scenes" / "lidar_pair"
 
@@ -204,8 +204,11 @@ def test_the_vrnet_executable_writes_everything_and_keeps_its_exit_status(tmp_pa
     missing = subprocess.run(vrnet + ["register", str(tmp_path / "src.ply"), str(tmp_path / "no.ply")],
                              capture_output=True, text=True, timeout=300)
     assert missing.returncode == 2 and "no.ply: no such file" in missing.stderr
-    usage = subprocess.run(vrnet + ["register", "--estimator", "bogus"], capture_output=True, text=True, timeout=300)
+    usage = subprocess.run(vrnet + ["register", "--icp-step", "bogus"], capture_output=True, text=True, timeout=300)
     assert usage.returncode == 2 and "invalid choice" in usage.stderr
+    renamed = subprocess.run(vrnet + ["register", str(tmp_path / "src.ply"), str(tmp_path / "no.ply"), "--estimator",
+                                      "gicp"], capture_output=True, text=True, timeout=300)
+    assert "--estimator is now --icp-step" in renamed.stderr and "no.ply: no such file" in renamed.stderr
     assert subprocess.run(vrnet + ["--help"], capture_output=True, text=True, timeout=300).returncode == 0
 
 
@@ -303,7 +306,7 @@ def test_python_register_gives_the_cli_result_from_numpy(tmp_path):
         assert main(["register", str(kitchen / source), str(kitchen / target), "--json", str(tmp_path / "r.json")]) == 0
         record = json.loads((tmp_path / "r.json").read_text())
         result = vrnet_ext.register(read_points(kitchen / source), read_points(kitchen / target))
-        assert result.method == record["method"] == "sc2"
+        assert result.method == record["method"] == "auto"
         difference = transform_errors(result.T_target_source, np.array(record["T_target_source"]))
         assert difference["rotation_error_deg"] < 0.01 and difference["translation_error"] < 1e-4, difference
 

@@ -28,6 +28,7 @@ MOVED = {  # old path -> new path
     "vrnet_ext.memory_plan": "vrnet_ext.registration.budget",
     "vrnet_ext.global_registration": "vrnet_ext.registration.ransac",
     "vrnet_ext.registration.methods": "vrnet_ext.names",
+    "vrnet_ext.registration.estimators": "vrnet_ext.registration.icp_steps",
 }
 
 

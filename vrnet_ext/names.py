@@ -22,11 +22,12 @@ DEFAULT_SPLIT = "UPC"
 DEFAULT_MODEL = "vrnet-pv-upc-rcp"  # the shipped ModelNet40 model of the paper's main cell
 DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-real"  # the shipped scene model (vrnet register --method vrnet)
 
-GLOBAL_ESTIMATORS = ("sc2", "fpfh", "vrnet", "fgr", "icp")  # vrnet_ext.registration.global_estimators
-# The best recall on the real pairs (benchmarks/bench_real_pairs.py; docs/user_guide.md), and on those
-# the scene model never saw.
-DEFAULT_METHOD = "sc2"
-ICP_STEPS = ("point_to_point", "point_to_plane", "gicp")  # vrnet_ext.registration.estimators
+GLOBAL_ESTIMATORS = ("auto", "sc2", "fpfh", "vrnet", "fgr", "icp")  # vrnet_ext.registration.global_estimators
+# "auto": the first of these; when its refinement is doubtful, the others too, and the best fit wins
+# (benchmarks/bench_default.py).
+AUTO_MEMBERS = ("sc2", "fpfh", "vrnet")
+DEFAULT_METHOD = "auto"
+ICP_STEPS = ("point_to_point", "point_to_plane", "gicp")  # vrnet_ext.registration.icp_steps
 DEFAULT_ICP_STEP = "point_to_plane"
 
 SUCCESS_ROTATION_DEG = 15.0  # a registration counts as correct below this rotation error (3DMatch's) ...

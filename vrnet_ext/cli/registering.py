@@ -17,7 +17,7 @@ def add_register(sub) -> None:
                     "FPFH matches filtered by spatial consistency, the default; --method fpfh: FPFH + RANSAC; "
                     "--method vrnet: the shipped scene model, FPFH descriptors under VRNet's head, or --checkpoint, "
                     "with ICP also started from sc2's estimate and the better fit kept; --method fgr: FPFH + Fast "
-                    "Global Registration; --method icp: none), refined by ICP (--estimator) on voxel-downsampled "
+                    "Global Registration; --method icp: none), refined by ICP (--icp-step) on voxel-downsampled "
                     "clouds. --max-memory sizes everything to a memory budget. Prints the 4x4 transform (source -> "
                     "target); --json, --out and --plot write the result, the moved source and a picture.",
         formatter_class=DefaultsHelpFormatter)
@@ -43,8 +43,9 @@ def add_registration_options(p) -> None:
     from vrnet_ext.registration.counts import PointCounts
 
     p.add_argument("--method", choices=GLOBAL_ESTIMATORS, default=argparse.SUPPRESS,
-                   help=f"global estimate (default: {DEFAULT_METHOD}, the best recall on the real pairs of "
-                        f"benchmarks/bench_real_pairs.py; vrnet when --checkpoint is given, fpfh with --fpfh)")
+                   help=f"global estimate (default: {DEFAULT_METHOD}: sc2, and fpfh and vrnet too when ICP from "
+                        f"sc2's estimate is doubtful, the best fit kept; vrnet when --checkpoint is given, fpfh with "
+                        f"--fpfh)")
     initial = p.add_mutually_exclusive_group()
     initial.add_argument("--checkpoint", default=None,
                          help="with --method vrnet: shipped model name or checkpoint (a scene model of `vrnet "
@@ -69,8 +70,9 @@ def add_registration_options(p) -> None:
                    help="ICP stops when a step moves the transform by less (radians; the scans' unit)")
     p.add_argument("--coarse-start", action=argparse.BooleanOptionalAction, default=True,
                    help="ICP from no motion first runs on 4x coarser voxels with a 4x longer reach")
-    p.add_argument("--estimator", choices=ICP_STEPS, default=DEFAULT_ICP_STEP,
+    p.add_argument("--icp-step", choices=ICP_STEPS, default=DEFAULT_ICP_STEP,
                    help="ICP step: point-to-point (Kabsch), point-to-plane, or plane-to-plane (GICP)")
+    p.add_argument("--estimator", dest="icp_step", choices=ICP_STEPS, action=RenamedOption, help=argparse.SUPPRESS)
     p.add_argument("--backend", choices=BACKENDS, default=DEFAULT_BACKEND,
                    help="ext: the compiled kernels; torch: the pure-PyTorch references")
     p.add_argument("--device", type=device_name, default="cpu", help="torch device to run on, e.g. cpu or cuda")
@@ -102,11 +104,12 @@ def _register_and_report(args) -> dict:
     record = result.to_dict()
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     record.update(source=str(args.source), target=str(args.target), peak_rss_mb=peak_mb,
-                  checkpoint=args.checkpoint or (DEFAULT_SCENE_MODEL if result.method == "vrnet" else None))
+                  checkpoint=args.checkpoint or (DEFAULT_SCENE_MODEL if result.method == "vrnet" or
+                                                  "initial (vrnet)" in result.seconds else None))
     unconverged = " (not converged)" if result.iterations and not result.converged else ""
     print(f"source {len(src)} points, target {len(tgt)} points; "
           f"initial estimate: {INITIAL_NAMES[result.start]}; "
-          f"ICP ({result.estimator}) iterations {result.iterations}{unconverged}, "
+          f"ICP ({result.icp_step}) iterations {result.iterations}{unconverged}, "
           f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse:.4g}; "
           f"{sum(result.seconds.values()):.1f} s, peak memory {peak_mb:.0f} MB")
     for warning in result.warnings:
@@ -141,7 +144,7 @@ def _register_and_report(args) -> dict:
 def plot_title(result, record: dict) -> str:
     """What a picture of a registration says above it: the method, the fit, the errors against the
     ground truth when there is one, and the first warning."""
-    lines = [f"{INITIAL_NAMES[result.start]} + ICP ({result.estimator}): fitness {result.fitness:.1%}, "
+    lines = [f"{INITIAL_NAMES[result.start]} + ICP ({result.icp_step}): fitness {result.fitness:.1%}, "
              f"inlier RMSE {result.inlier_rmse:.3g}"]
     if "errors" in record:
         errors = record["errors"]
@@ -180,7 +183,7 @@ def registration_arguments(args) -> dict:
         from vrnet_ext.model.pretrained import load_model
 
         model = load_model(args.checkpoint, args.device)[0]
-    icp_settings = IcpSettings(estimator=args.estimator, points=args.icp_points, voxel_size=args.voxel_size,
+    icp_settings = IcpSettings(step=args.icp_step, points=args.icp_points, voxel_size=args.voxel_size,
                                max_distance=args.max_distance, max_iterations=args.icp_iterations,
                                transform_tolerance=args.icp_tolerance, coarse_start=args.coarse_start)
     return dict(method=method, model=model, global_points=args.global_points, network_points=args.network_points,

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from vrnet_ext.geometry.atomic import atomic_output
+from vrnet_ext.geometry.transforms import chain
 
 MIN_POINTS = 3
 
@@ -398,25 +399,16 @@ def _chained_log(path: Path, rows: list[list[str]], scans: list[str | os.PathLik
         raise _fail(path, f"a 3DMatch log names fragments by index: name the scans cloud_bin_<index> ({unnamed[0]} "
                           f"is not)")
     index = {int(match.group(1)): k for k, match in enumerate(found)}
-    poses: dict[int, np.ndarray] = {0: np.eye(4)}
-    links: dict[int, list[tuple[int, np.ndarray]]] = {k: [] for k in range(len(scans))}
+    links = []
     for k in range(0, len(rows), 5):
         i, j = int(float(rows[k][0])), int(float(rows[k][1]))
-        if i in index and j in index:
-            T = _rigid(path, _log_pair(path, rows[k:k + 5], None))  # fragment j into fragment i's frame
-            links[index[i]].append((index[j], T))
-            links[index[j]].append((index[i], np.linalg.inv(T)))
-    queue = [0]
-    while queue:
-        node = queue.pop()
-        for other, T in links[node]:
-            if other not in poses:
-                poses[other] = poses[node] @ T
-                queue.append(other)
-    missing = [str(scans[k]) for k in range(len(scans)) if k not in poses]
-    if missing:
+        if i in index and j in index:  # fragment j into fragment i's frame
+            links.append((index[i], index[j], _rigid(path, _log_pair(path, rows[k:k + 5], None))))
+    poses, reached = chain(len(scans), links)
+    if not reached.all():
+        missing = [str(scan) for scan, linked in zip(scans, reached) if not linked]
         raise _fail(path, f"no chain of the log's pairs links {', '.join(missing)} to {scans[0]}")
-    return np.stack([poses[k] for k in range(len(scans))])
+    return poses
 
 
 _FRAGMENT = re.compile(r"cloud_bin_(\d+)$")  # how the 3DMatch benchmark names its fragments

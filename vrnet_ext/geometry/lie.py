@@ -12,13 +12,17 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 
-def skew(vector: np.ndarray) -> np.ndarray:
-    """(..., 3) a -> (..., 3, 3) [a]x, the matrix with [a]x b = a x b."""
-    a = np.asarray(vector, dtype=np.float64)
-    zero = np.zeros(a.shape[:-1])
-    return np.stack([np.stack([zero, -a[..., 2], a[..., 1]], -1),
-                     np.stack([a[..., 2], zero, -a[..., 0]], -1),
-                     np.stack([-a[..., 1], a[..., 0], zero], -1)], -2)
+def skew(vector):
+    """(..., 3) a -> (..., 3, 3) [a]x, the matrix with [a]x b = a x b (numpy arrays or torch tensors)."""
+    if type(vector).__module__.startswith("torch"):
+        import torch
+
+        stack = torch.stack
+    else:
+        vector, stack = np.asarray(vector, dtype=np.float64), np.stack
+    x, y, z = vector[..., 0], vector[..., 1], vector[..., 2]
+    zero = 0 * x
+    return stack([stack([zero, -z, y], -1), stack([z, zero, -x], -1), stack([-y, x, zero], -1)], -2)
 
 
 def motion(xi: np.ndarray) -> np.ndarray:

@@ -51,4 +51,29 @@ def in_shifted_frames(T, shift) -> np.ndarray:
     return translation(shift) @ np.asarray(T, dtype=np.float64) @ translation(-np.asarray(shift, dtype=np.float64))
 
 
-__all__ = ["apply", "compose", "from_normalised", "in_shifted_frames", "move", "to_homogeneous", "translation"]
+def chain(count: int, links: list[tuple[int, int, np.ndarray]], root: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The poses of ``count`` frames in the frame of ``root``, from relative motions: ``links`` holds
+    ``(target, source, T_target_source)`` triples (either direction is walked); each frame the links
+    reach gets ``T_root_frame`` along the first path a breadth-first search finds -> (poses
+    (count, 4, 4), the identity where not reached; reached (count,) bool)."""
+    steps: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(count)]
+    for target, source, T in links:
+        T = np.asarray(T, dtype=np.float64)
+        steps[target].append((source, T))
+        steps[source].append((target, np.linalg.inv(T)))
+    poses = np.tile(np.eye(4), (count, 1, 1))
+    reached = np.zeros(count, dtype=bool)
+    reached[root] = True
+    frontier = [root]
+    while frontier:
+        following = []
+        for frame in frontier:
+            for other, T in steps[frame]:
+                if not reached[other]:
+                    poses[other], reached[other] = poses[frame] @ T, True
+                    following.append(other)
+        frontier = following
+    return poses, reached
+
+
+__all__ = ["apply", "chain", "compose", "from_normalised", "in_shifted_frames", "move", "to_homogeneous", "translation"]

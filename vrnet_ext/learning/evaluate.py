@@ -26,7 +26,8 @@ def to_device(batch: dict, device: torch.device) -> dict:
 IRLS_STEPS = 3  # reweighting steps of the "+ IRLS" estimates of a model that has none of its own
 
 
-def estimators(src: torch.Tensor, out, backend: str, config) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+def procrustes_estimates(src: torch.Tensor, out, backend: str,
+                         config) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
     """Every Procrustes estimate one forward pass offers, for the walk's ablation.
 
     ``VCP``: Kabsch on source <-> VCPs (DCP-v2); ``RCP``: on source <-> RCPs, unweighted (the paper's
@@ -56,7 +57,7 @@ def evaluate(model: VRNet, dataset: Dataset, *, batch_size: int = 16, device: st
 
     The paper's columns and the isotropic errors describe the model's own estimate, or with
     ``use_rcp=False`` Kabsch on the VCPs (DCP-v2 behaviour, used to select a stage-1 model whose
-    correction walk is still untrained). Every estimate of :func:`estimators` is also reported as
+    correction walk is still untrained). Every estimate of :func:`procrustes_estimates` is also reported as
     ``RMSE(R) [name]`` and ``RE mean [name]``, and the mean distance of VCPs and RCPs from the true
     correspondents over the source points that have one in the target (``inliers``, gt_idx >= 0)
     and over those that do not (``outliers``, only where there are any): what the correction walk
@@ -68,7 +69,7 @@ def evaluate(model: VRNet, dataset: Dataset, *, batch_size: int = 16, device: st
     solver_backend = backend or model.config.backend
     loader = DataLoader(dataset, batch_size=batch_size, shuffle=False)
     preds_R, preds_t, gts_R, gts_t = [], [], [], []
-    by_estimator: dict[str, list[torch.Tensor]] = {}
+    by_estimate: dict[str, list[torch.Tensor]] = {}
     extra: dict[str, list[float]] = {k: [] for k in ("L0", "CD(src,VCP)", "CD(src,RCP)", "CD(src,tgt)",
                                                      "match@0.15(VCP)", "match@0.15(RCP)", "consistency",
                                                      "second pass")}
@@ -77,9 +78,9 @@ def evaluate(model: VRNet, dataset: Dataset, *, batch_size: int = 16, device: st
         batch = to_device(batch, device)
         src, tgt, R_gt, t_gt = batch["src"], batch["tgt"], batch["rotation"], batch["translation"]
         out = model(src, tgt, backend=backend, return_matching=True)  # L0 needs the matrix
-        solved = estimators(src, out, solver_backend, model.config)
+        solved = procrustes_estimates(src, out, solver_backend, model.config)
         for name, (R_est, _) in solved.items():
-            by_estimator.setdefault(name, []).append(R_est.cpu())
+            by_estimate.setdefault(name, []).append(R_est.cpu())
         R, t = (out.rotation, out.translation) if use_rcp else solved["VCP"]
         inliers = batch["gt_idx"] >= 0
         for name, pts in (("VCP", out.vcp), ("RCP", out.rcp)):
@@ -102,7 +103,7 @@ def evaluate(model: VRNet, dataset: Dataset, *, batch_size: int = 16, device: st
     result = summarize(torch.cat(preds_R).numpy(), gt_R.numpy(), torch.cat(preds_t).numpy(), torch.cat(gts_t).numpy())
     result.update({k: float(np.mean(v)) for k, v in extra.items()})
     result.update({k: total / count for k, (total, count) in point_errors.items() if count})
-    for name, rotations in by_estimator.items():
+    for name, rotations in by_estimate.items():
         R_est = torch.cat(rotations)
         euler_error = euler_zyx_deg(R_est) - euler_zyx_deg(gt_R)
         result[f"RMSE(R) [{name}]"] = float(np.sqrt((euler_error ** 2).mean()))

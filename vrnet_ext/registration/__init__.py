@@ -5,8 +5,8 @@
   :class:`GlobalEstimator`;
 - :mod:`~vrnet_ext.registration.ransac` and :mod:`~vrnet_ext.registration.fgr`: the feature
   matching and robust fits those use;
-- :mod:`~vrnet_ext.registration.estimators`: ICP's local steps (point-to-point, point-to-plane,
-  GICP) behind one interface, :class:`Estimator`;
+- :mod:`~vrnet_ext.registration.icp_steps`: ICP's local steps (point-to-point, point-to-plane,
+  GICP) behind one interface, :class:`IcpStep`;
 - :mod:`~vrnet_ext.registration.refinement`: ICP itself (:class:`IcpProblem` prepares a pair once for
   several starts), its settings (:class:`IcpSettings`) and
   :func:`fitness`, a score of any transform on a pair;
@@ -32,7 +32,7 @@ Conventions (frames, 4x4 transforms) are those of :mod:`vrnet_ext.geometry.trans
 from vrnet_ext._lazy import lazy_attributes
 
 _EXPORTS = {
-    **dict.fromkeys(("ESTIMATORS", "Estimator", "make_estimator"), "vrnet_ext.registration.estimators"),
+    **dict.fromkeys(("IcpStep", "make_icp_step"), "vrnet_ext.registration.icp_steps"),
     "PointCounts": "vrnet_ext.registration.counts",
     **dict.fromkeys(("DEFAULT_METHOD", "GLOBAL_ESTIMATORS", "ICP_STEPS"), "vrnet_ext.names"),
     **dict.fromkeys(("PreparedScan", "ScanPair"), "vrnet_ext.registration.prepared"),

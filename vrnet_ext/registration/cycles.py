@@ -11,11 +11,12 @@ initial poses (the optimiser then trusts the tree's edges, as Open3D trusts its 
 """
 from __future__ import annotations
 
-from collections import defaultdict, deque
+from collections import defaultdict
 
 import numpy as np
 
 from vrnet_ext.geometry.lie import twist
+from vrnet_ext.geometry.transforms import chain
 from vrnet_ext.registration.pose_graph import PoseEdge
 
 
@@ -75,24 +76,8 @@ def spanning_tree(count: int, edges: list[PoseEdge], support: np.ndarray,
         if a != b:
             parent[a] = b
             in_tree[i] = True
-    links: dict[int, list[int]] = defaultdict(list)
-    for i in np.flatnonzero(in_tree):
-        links[edges[i].source].append(i)
-        links[edges[i].target].append(i)
-    poses = np.tile(np.eye(4), (count, 1, 1))
-    placed = np.zeros(count, dtype=bool)
-    placed[reference] = True
-    queue = deque([reference])
-    while queue:
-        node = queue.popleft()
-        for i in links[node]:
-            edge = edges[i]
-            other = edge.source if edge.target == node else edge.target
-            if not placed[other]:
-                step = edge.T_target_source if edge.target == node else np.linalg.inv(edge.T_target_source)
-                poses[other] = poses[node] @ step
-                placed[other] = True
-                queue.append(other)
+    poses, placed = chain(count, [(edges[i].target, edges[i].source, edges[i].T_target_source)
+                                  for i in np.flatnonzero(in_tree)], reference)
     return in_tree, poses, placed
 
 

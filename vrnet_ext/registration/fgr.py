@@ -24,7 +24,8 @@ import torch
 
 from vrnet_ext.geometry.features import nearest_both_ways
 from vrnet_ext.ops.kabsch import robust_weights
-from vrnet_ext.registration.estimators import gauss_newton_step, skew
+from vrnet_ext.geometry.lie import skew
+from vrnet_ext.registration.icp_steps import gauss_newton_step
 from vrnet_ext.geometry.transforms import apply, from_normalised
 
 

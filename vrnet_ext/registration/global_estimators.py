@@ -12,8 +12,9 @@ estimator returns a
 Built in (:data:`GLOBAL_ESTIMATORS`): ``"vrnet"`` (a learned estimate: :class:`SceneNetwork` for a
 :class:`~vrnet_ext.model.scene.SceneVRNet`, :class:`ObjectNetwork` for a ModelNet40
 :class:`~vrnet_ext.model.VRNet`), ``"fpfh"`` (:class:`FpfhRansac`), ``"fgr"`` (:class:`Fgr`) and
-``"sc2"`` (:class:`SpatialConsistency`) and ``"icp"`` (:class:`NoMotion`: ICP alone, from the
-identity).
+``"sc2"`` (:class:`SpatialConsistency`), ``"icp"`` (:class:`NoMotion`: ICP alone, from the
+identity), and the default ``"auto"`` (:class:`Adaptive`: spatial consistency, and the others when its
+result is doubtful).
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.geometry.preprocessing import subsample
 from vrnet_ext.registration.fgr import fast_global_registration
-from vrnet_ext.names import GLOBAL_ESTIMATORS
+from vrnet_ext.names import AUTO_MEMBERS, DEFAULT_SCENE_MODEL, GLOBAL_ESTIMATORS
 from vrnet_ext.registration.counts import PointCounts
 from vrnet_ext.registration.prepared import ScanPair
 from vrnet_ext import ops
@@ -270,9 +271,53 @@ def network_estimator(model: VRNet | SceneVRNet, backend: str = "ext") -> Global
     return SceneNetwork(model, backend) if isinstance(model, SceneVRNet) else ObjectNetwork(model, backend)
 
 
+@dataclass
+class Adaptive(GlobalEstimator):
+    """The default (``"auto"``): the first of ``members`` (spatial consistency) estimates; when the
+    refinement from it is doubtful (:func:`vrnet_ext.registration.pipeline.register_prepared` says
+    when), the others estimate on the same prepared scans too, ICP runs from each, and the
+    refinement that fits best wins. ``model``: the scene model of the ``"vrnet"`` member (default:
+    the shipped one, loaded on first need, on the pair's device). Its cost for a memory budget is
+    the largest of its members'."""
+
+    model: SceneVRNet | None = None
+    backend: str = "ext"
+    name: ClassVar[str] = "auto"
+    members: ClassVar[tuple[str, ...]] = AUTO_MEMBERS
+    sized_by: ClassVar[tuple[str, ...]] = ("global_points",)
+
+    def __post_init__(self) -> None:
+        self._built: dict[str, GlobalEstimator] = {}
+
+    def member(self, name: str, device: torch.device | None = None) -> GlobalEstimator:
+        """The member estimator ``name``, built on first use (the scene model loaded on ``device``)."""
+        if name not in self._built:
+            if name == "vrnet" and self.model is None:
+                from vrnet_ext.model.pretrained import load_pretrained
+
+                self.model = load_pretrained(DEFAULT_SCENE_MODEL, device or torch.device("cpu"))
+            self._built[name] = make_global_estimator(name, self.model if name == "vrnet" else None, self.backend)
+        return self._built[name]
+
+    def peak_mb(self, largest_scan, counts):
+        costs = [SCENE_MB + SCENE_BYTES_PER_POINT * counts.global_points / MB if name == "vrnet" and self.model is None
+                 else self.member(name).peak_mb(largest_scan, counts) for name in self.members]
+        return max(cost for cost in costs if cost is not None)
+
+    def estimate_pair(self, pair, seed):
+        estimate = self.member(self.members[0], pair.device).estimate_pair(pair, seed)
+        estimate.method = self.name
+        return estimate
+
+    def fallbacks(self, pair) -> dict[str, GlobalEstimator]:
+        """The members that estimate when the first one's refinement is doubtful, by name."""
+        return {name: self.member(name, pair.device) for name in self.members[1:]}
+
+
 # The built-in estimators by name (their names, torch-free, in :data:`GLOBAL_ESTIMATORS`); "vrnet" is
 # built from a model and a backend, the others from nothing.
-BUILT_IN = {"sc2": SpatialConsistency, "fpfh": FpfhRansac, "vrnet": network_estimator, "fgr": Fgr, "icp": NoMotion}
+BUILT_IN = {"auto": Adaptive, "sc2": SpatialConsistency, "fpfh": FpfhRansac, "vrnet": network_estimator, "fgr": Fgr,
+            "icp": NoMotion}
 
 
 def make_global_estimator(method: str, model: VRNet | SceneVRNet | None = None,
@@ -281,6 +326,10 @@ def make_global_estimator(method: str, model: VRNet | SceneVRNet | None = None,
     needs ``model`` and runs it with ``backend``."""
     if method not in BUILT_IN:
         raise ValueError(f"method must be one of {GLOBAL_ESTIMATORS} or a GlobalEstimator, got {method!r}")
+    if method == "auto":
+        if model is not None and not isinstance(model, SceneVRNet):
+            raise ValueError("method 'auto' takes a scene model (SceneVRNet), not a ModelNet40 VRNet; use method 'vrnet'")
+        return Adaptive(model, backend)
     if method != "vrnet":
         if model is not None:
             raise ValueError(f"model is only used by method 'vrnet', not {method!r}")

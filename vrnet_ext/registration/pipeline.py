@@ -78,8 +78,11 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     ``"fpfh"``: the same features + RANSAC; ``"vrnet"``: a learned initial
     estimate from ``model`` (a :class:`SceneVRNet` on about ``global_points`` points per scan, or a
     ModelNet40 :class:`VRNet` on ``network_points`` subsampled points; default: the shipped scene
-    model); ``"fgr"``: FPFH + Fast Global Registration; ``"icp"``: ICP from no motion. None:
-    ``"vrnet"`` when a model is given, else ``"sc2"`` (the default of ``vrnet register`` too).
+    model); ``"fgr"``: FPFH + Fast Global Registration; ``"icp"``: ICP from no motion; ``"auto"``:
+    ``"sc2"``, and when ICP from it is doubtful (:func:`doubt`) ``"fpfh"`` and ``"vrnet"`` too, ICP
+    from each and the best fit kept (``selection`` says why; a scene ``model`` is used for its
+    ``"vrnet"``). None: ``"vrnet"`` when a model is given, else ``"auto"`` (the default of
+    ``vrnet register`` too).
     icp_settings: the refinement (:class:`IcpSettings`). When the estimator asks for it
     (``also_start_from``: the scene network also starts from ``"sc2"``'s estimate, a ModelNet40 network
     from no motion), ICP runs from each start and the refinement with the higher fitness wins
@@ -171,31 +174,46 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, run: RegistrationRun) ->
 def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResult:
     """The global estimate and ICP of :func:`register` on a pair already prepared (its clouds near
     the origin, its point counts fitted to any budget; ``run.max_memory`` is not looked at here):
-    many registrations between a set of scans share each scan's preparation this way."""
+    many registrations between a set of scans share each scan's preparation this way. With the
+    default estimator (``"auto"``), a doubtful refinement (:func:`doubt`) brings in the others."""
     src, tgt, warnings = pair.src.points, pair.tgt.points, []
     seconds: dict[str, float] = {}
     estimate, starts = _global_starts(pair, run, seconds)
-    name, step = getattr(run.estimator, "name", GlobalEstimator.name), run.icp.estimator
+    name, step = getattr(run.estimator, "name", GlobalEstimator.name), run.icp.step
+    own = next(iter(starts))
     points = {"source": len(src), "target": len(tgt), **estimate.points}
     unrefined = dict(T_target_source=estimate.T_target_source, initial=estimate.T_target_source, method=name,
-                     estimator=step, iterations=0, converged=False, inlier_rmse=float("nan"), correspondences=0,
-                     seconds=seconds, points=points, warnings=warnings, start=name, consensus=estimate.consensus)
+                     icp_step=step, iterations=0, converged=False, inlier_rmse=float("nan"), correspondences=0,
+                     seconds=seconds, points=points, warnings=warnings, start=own, consensus=estimate.consensus)
     if run.icp.max_iterations == 0:
         return RegistrationResult(fitness=float("nan"), **unrefined)
-    refined, failures, problem = _refine(pair, starts, run, seconds, points)
-    settings = problem.settings
+    problem = _icp_problem(pair, run, seconds, points)
+    refined, failures = _refine(problem, pair, starts, run, seconds)
+    selection = ""
+    if hasattr(run.estimator, "fallbacks"):
+        reason = doubt(refined.get(own))
+        if reason:
+            others = _fallback_starts(run.estimator.fallbacks(pair), pair, run, seconds)
+            more, more_failures = _refine(problem, pair, others, run, seconds)
+            refined.update(more)
+            failures += more_failures
+            selection = f"{own} {reason}; " if refined else ""
     if not refined:
         warnings.append(f"{'; '.join(failures)}; returning the unrefined initial estimate")
         return RegistrationResult(fitness=0.0, **unrefined)
     winner = max(refined, key=lambda start: (refined[start].fitness, -refined[start].inlier_rmse))
-    if name in refined and refined[name].fitness >= refined[winner].fitness - FITNESS_TIE:
-        winner = name  # the estimator's own start unless another fits clearly better
+    if own in refined and refined[own].fitness >= refined[winner].fitness - FITNESS_TIE:
+        winner = own  # the estimator's own start unless another fits clearly better
     best = refined[winner]
-    if winner != name:
-        from_own = f"fitness {refined[name].fitness:.1%}" if name in refined else "no pairs within reach"
-        warnings.append(f"{_label(name)} does not fit these scans (ICP from it: {from_own}; from "
+    if selection:
+        fits = ", ".join(f"{start} {result.fitness:.1%}" for start, result in refined.items())
+        selection += f"refined from each ({fits}): the best fit is {winner}'s"
+    elif winner != own:
+        from_own = f"fitness {refined[own].fitness:.1%}" if own in refined else "no pairs within reach"
+        warnings.append(f"{_label(own)} does not fit these scans (ICP from it: {from_own}; from "
                         f"{_label(winner)}: {best.fitness:.1%}); returning the refinement that started from "
                         f"{_label(winner)}")
+    settings = problem.settings
     if not best.converged:
         warnings.append(f"ICP did not converge within {settings.max_iterations} iterations (raise "
                         f"IcpSettings.max_iterations)")
@@ -204,10 +222,37 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
         warnings.append(degenerate)
     if best.fitness < LOW_FITNESS:
         warnings.append(_low_fitness_note(best.fitness, settings.max_distance, problem.spacing()))
-    return RegistrationResult(T_target_source=best.T_target_source, initial=best.initial, method=name, estimator=step,
+    return RegistrationResult(T_target_source=best.T_target_source, initial=best.initial, method=name, icp_step=step,
                               iterations=best.iterations, converged=best.converged, fitness=best.fitness,
                               inlier_rmse=best.inlier_rmse, correspondences=best.correspondences, seconds=seconds,
-                              points=points, warnings=warnings, start=winner, consensus=estimate.consensus)
+                              points=points, warnings=warnings, start=winner, consensus=estimate.consensus,
+                              selection=selection)
+
+
+def doubt(refined: RegistrationResult | None) -> str | None:
+    """Why the refinement from the default's first estimator is doubtful (the others then run), or
+    None: no pairs within reach, ICP not converged, or a fitness below ``LOW_FITNESS``."""
+    if refined is None:
+        return "found no pairs within reach"
+    if not refined.converged:
+        return "did not converge"
+    if refined.fitness < LOW_FITNESS:
+        return f"fits {refined.fitness:.1%} of the source"
+    return None
+
+
+def _fallback_starts(estimators: dict[str, GlobalEstimator], pair: ScanPair, run: RegistrationRun,
+                     seconds: dict[str, float]) -> dict[str, np.ndarray]:
+    """Each fallback estimator's estimate on the prepared pair, by name (one that fails gives none)."""
+    starts = {}
+    for other, estimator in estimators.items():
+        start = time.perf_counter()
+        try:
+            starts[other] = _as_estimate(other, estimator.estimate_pair(pair, run.seed)).T_target_source
+        except ValueError:
+            pass  # e.g. too few consistent matches: the others still run
+        seconds[f"initial ({other})"] = time.perf_counter() - start
+    return starts
 
 
 def _global_starts(pair: ScanPair, run: RegistrationRun, seconds: dict[str, float]) -> tuple[RegistrationResult,
@@ -219,7 +264,7 @@ def _global_starts(pair: ScanPair, run: RegistrationRun, seconds: dict[str, floa
     name = getattr(estimator, "name", GlobalEstimator.name)
     estimate = _as_estimate(name, _estimate(estimator, pair, run.seed))
     seconds["initial"] = time.perf_counter() - start
-    starts = {name: estimate.T_target_source}
+    starts = {getattr(estimator, "members", (name,))[0]: estimate.T_target_source}
     for other in getattr(estimator, "also_start_from", ()):
         start = time.perf_counter()
         starts[other] = _as_estimate(other, make_global_estimator(other, backend=run.backend)
@@ -235,33 +280,38 @@ def _estimate(estimator, pair: ScanPair, seed: int):
     return estimator.estimate(pair.src.points, pair.tgt.points, seed)
 
 
-def _refine(pair: ScanPair, starts: dict[str, np.ndarray], run: RegistrationRun, seconds: dict[str, float],
-            points: dict[str, int]) -> tuple[dict[str, RegistrationResult], list[str], IcpProblem]:
-    """ICP from every start on both scans voxel-downsampled (one :class:`IcpProblem` for all) ->
-    (refinements by start, failure messages, the problem, its settings' reach resolved); the ICP
-    point counts go into ``points``."""
+def _icp_problem(pair: ScanPair, run: RegistrationRun, seconds: dict[str, float],
+                 points: dict[str, int]) -> IcpProblem:
+    """Both scans voxel-downsampled for ICP and prepared once for every start, the reach resolved;
+    the ICP point counts go into ``points``."""
     start = time.perf_counter()
     voxel = run.icp.voxel_size if run.icp.voxel_size is not None else voxel_size_for(pair.tgt.points,
                                                                                       pair.counts.icp_points)
     src_icp, tgt_icp = pair.src.downsampled(voxel), pair.tgt.downsampled(voxel)
-    seconds["downsample"] = time.perf_counter() - start
     points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))
     reach = run.icp.max_distance if run.icp.max_distance is not None else 3.0 * voxel
-    settings = replace(run.icp, max_distance=reach)
+    problem = IcpProblem(src_icp, tgt_icp, replace(run.icp, voxel_size=voxel, max_distance=reach), run.device,
+                         run.backend)
+    seconds["downsample"] = time.perf_counter() - start
+    return problem
+
+
+def _refine(problem: IcpProblem, pair: ScanPair, starts: dict[str, np.ndarray], run: RegistrationRun,
+            seconds: dict[str, float]) -> tuple[dict[str, RegistrationResult], list[str]]:
+    """ICP from every start on the prepared problem -> (refinements by start, failure messages)."""
     start = time.perf_counter()
     refined, failures = {}, []
-    problem = IcpProblem(src_icp, tgt_icp, settings, run.device, run.backend)  # prepared once for every start
     for name, guess in starts.items():
         try:
             start_at = guess
-            if settings.coarse_start and np.array_equal(guess, np.eye(4)):
-                start_at = _coarse_start(pair, voxel, settings, run)
+            if problem.settings.coarse_start and np.array_equal(guess, np.eye(4)):
+                start_at = _coarse_start(pair, problem.settings.voxel_size, problem.settings, run)
             refined[name] = problem.run(start_at)
             refined[name].initial = guess
         except IcpFailure as failure:
             failures.append(f"{failure} (from {_label(name)})")
-    seconds["icp"] = time.perf_counter() - start
-    return refined, failures, problem
+    seconds["icp"] = seconds.get("icp", 0.0) + time.perf_counter() - start
+    return refined, failures
 
 
 def _coarse_start(pair: ScanPair, voxel: float, settings: IcpSettings, run: RegistrationRun) -> np.ndarray:

@@ -3,7 +3,7 @@ wrong pairwise edges found and dropped.
 
 Each edge is one pairwise registration ``T_target_source`` with its information matrix (the 6x6
 sum of ``J^T J`` over the ICP correspondences, :func:`vrnet_ext.geometry.lie.point_information`
-of their target points), as Choi et al. (2015) and Open3D's multiway registration build them.
+of the moved source points, in the target frame), as Choi et al. (2015) and Open3D's multiway registration build them.
 With poses ``X_i`` (``T_reference_scan``), an edge's error is the motion
 ``E = X_target^-1 X_source T_target_source^-1`` of the target frame; its twist ``r``
 (:mod:`vrnet_ext.geometry.lie`) moves the edge's correspondences by ``s = r^T information r`` in

@@ -1,6 +1,6 @@
 """ICP refinement at full scale: the nearest target point of each moved source point (``ops.knn``
-grid search), pairs beyond the reach get weight 0, then one step of a local estimator
-(:mod:`vrnet_ext.registration.estimators`). Memory is O(points) plus a bool occupancy grid of at
+grid search), pairs beyond the reach get weight 0, then one ICP step
+(:mod:`vrnet_ext.registration.icp_steps`). Memory is O(points) plus a bool occupancy grid of at
 most 2^24 cells (16 MB) for the reach test: scans of 100k+ points fit in a few hundred MB.
 """
 from __future__ import annotations
@@ -12,8 +12,8 @@ import torch
 
 from vrnet_ext import ops
 from vrnet_ext.registration.degeneracy import degeneracy_note
-from vrnet_ext.registration.estimators import make_estimator
-from vrnet_ext.names import DEFAULT_ICP_STEP
+from vrnet_ext.registration.icp_steps import make_icp_step
+from vrnet_ext.names import DEFAULT_ICP_STEP, ICP_STEPS
 from vrnet_ext.registration.counts import PointCounts
 from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import apply
@@ -106,7 +106,7 @@ class IcpProblem:
         self.settings, self.backend = settings, backend
         self.src = torch.as_tensor(src, dtype=torch.float64, device=device).unsqueeze(0)
         self.tgt = torch.as_tensor(tgt, dtype=torch.float64, device=device).unsqueeze(0)
-        self.step = make_estimator(settings.estimator)
+        self.step = make_icp_step(settings.step)
         self.step.prepare(self.src[0], self.tgt[0])
         self.reach = TargetReach(self.tgt, settings.max_distance)
         self._tgt_normals = getattr(self.step, "tgt_normals", None)  # point-to-plane's; others' made on demand
@@ -147,7 +147,7 @@ class IcpProblem:
         close = dist2[dist2 <= max_distance ** 2]
         rmse = float(close.mean().sqrt()) if len(close) else float("nan")
         return RegistrationResult(T_target_source=self._final[0], initial=np.asarray(initial, dtype=np.float64),
-                                  method="icp", estimator=settings.estimator, iterations=done, converged=converged,
+                                  method="icp", icp_step=settings.step, iterations=done, converged=converged,
                                   fitness=len(close) / src_t.shape[1], inlier_rmse=rmse, correspondences=len(close),
                                   points={"source": src_t.shape[1], "target": tgt_t.shape[1]})
 
@@ -177,8 +177,8 @@ class IcpProblem:
 def icp(src: np.ndarray, tgt: np.ndarray, initial: np.ndarray, settings: IcpSettings, *,
         device: torch.device = torch.device("cpu"), backend: str = "ext") -> RegistrationResult:
     """ICP: nearest target point of each moved source point, pairs farther than
-    ``settings.max_distance`` (required here) get weight 0, then one step of ``settings.estimator``
-    (:mod:`vrnet_ext.registration.estimators`: point_to_point, point_to_plane, gicp). Converged when
+    ``settings.max_distance`` (required here) get weight 0, then one step of ``settings.step``
+    (:mod:`vrnet_ext.registration.icp_steps`: point_to_point, point_to_plane, gicp). Converged when
     a step changes the transform by less than ``settings.transform_tolerance`` (rotation in radians,
     translation in the scans' unit), or when the fitness (a share) and the inlier RMSE (in the
     scans' unit) of the correspondences both change by less than ``settings.settled`` from one
@@ -215,7 +215,7 @@ def fitness(src: np.ndarray, tgt: np.ndarray, transform: np.ndarray, reach: floa
 class IcpSettings:
     """How :func:`register` refines its global estimate (each field is a ``vrnet register`` flag).
 
-    estimator: the step (:mod:`vrnet_ext.registration.estimators`); points: both scans are
+    step: the ICP step (:mod:`vrnet_ext.registration.icp_steps`); points: both scans are
     voxel-downsampled to about this many points (``voxel_size`` overrides); max_distance: the
     inlier reach (default 3 voxels); max_iterations: at most this many steps (0: no ICP); it stops
     earlier once a step moves the transform by less than ``transform_tolerance`` (radians and the
@@ -227,7 +227,7 @@ class IcpSettings:
     voxel with a reach ``COARSE_FACTOR`` times longer, so it pulls in from farther off.
     """
 
-    estimator: str = DEFAULT_ICP_STEP
+    step: str = DEFAULT_ICP_STEP
     points: int = PointCounts.icp_points
     voxel_size: float | None = None
     max_distance: float | None = None
@@ -237,7 +237,8 @@ class IcpSettings:
     coarse_start: bool = True
 
     def __post_init__(self) -> None:
-        make_estimator(self.estimator)  # ValueError naming the estimator
+        if self.step not in ICP_STEPS:
+            raise ValueError(f"IcpSettings.step must be one of {ICP_STEPS}, got {self.step!r}")
         if not isinstance(self.coarse_start, bool):
             raise ValueError(f"IcpSettings.coarse_start must be True or False, got {self.coarse_start!r}")
         for name in ("points", "max_iterations"):
@@ -250,3 +251,4 @@ class IcpSettings:
                 raise ValueError(f"IcpSettings.{name} must be a finite number > 0"
                                  f"{' (or None for the default)' if name in ('voxel_size', 'max_distance') else ''}, "
                                  f"got {value!r}")
+

@@ -1,6 +1,7 @@
 """One result type for every registration (:func:`vrnet_ext.registration.register`, one ICP run)."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -20,7 +21,7 @@ class RegistrationResult:
     T_target_source: np.ndarray
     initial: np.ndarray
     method: str             # the global estimate: "vrnet", "fpfh", "fgr" or "icp" (none)
-    estimator: str          # ICP's step: "point_to_point", "point_to_plane" or "gicp"
+    icp_step: str           # "point_to_point", "point_to_plane" or "gicp"
     iterations: int         # ICP iterations run (0: no refinement)
     converged: bool         # ICP stopped because the transform stopped changing
     fitness: float          # share of the (downsampled) source points with a target point within reach
@@ -32,14 +33,15 @@ class RegistrationResult:
     start: str = ""         # the estimate ICP started from: ``method``, or an estimate it also tried
     consensus: int = 0      # correspondences the global estimate agreed on (RANSAC / spatial-consistency
                             # inliers, pairs a network used; 0 when it has no such count)
+    selection: str = ""     # the default ("auto") only, when it tried its other estimators: why, and their fits
 
     @classmethod
     def global_estimate(cls, T_target_source, method: str, consensus: int = 0,
                         points: dict[str, int] | None = None) -> "RegistrationResult":
-        """A global estimate before any refinement: no ICP (estimator "none", 0 iterations), fitness and
+        """A global estimate before any refinement: no ICP (icp_step "none", 0 iterations), fitness and
         inlier RMSE not measured (NaN), ``initial`` the identity."""
         return cls(T_target_source=np.asarray(T_target_source, dtype=np.float64), initial=np.eye(4), method=method,
-                   estimator="none", iterations=0, converged=False, fitness=float("nan"), inlier_rmse=float("nan"),
+                   icp_step="none", iterations=0, converged=False, fitness=float("nan"), inlier_rmse=float("nan"),
                    correspondences=0, points=dict(points or {}), start=method, consensus=int(consensus))
 
     def to_dict(self) -> dict:
@@ -62,3 +64,12 @@ def transform_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float
     est, gt = torch.as_tensor(estimate[None]), torch.as_tensor(truth[None])
     return {"rotation_error_deg": float(rotation_error_deg(est[:, :3, :3], gt[:, :3, :3])),
             "translation_error": float(translation_error(est[:, :3, 3], gt[:, :3, 3]))}
+
+
+def _old_step_name(result: RegistrationResult) -> str:
+    warnings.warn("RegistrationResult.estimator is now RegistrationResult.icp_step; the old name goes in vrnet_ext 0.3",
+                  DeprecationWarning, stacklevel=2)
+    return result.icp_step
+
+
+RegistrationResult.estimator = property(_old_step_name)

@@ -2,7 +2,7 @@
 
 Transforms follow :mod:`vrnet_ext.geometry.transforms` (``T_target_source``, y = R x + t, float64 4x4).
 
-Each estimator is built once per pair (:meth:`prepare` computes what it needs of the fixed clouds:
+Each step is built once per pair (:meth:`prepare` computes what it needs of the fixed clouds:
 normals, covariances) and then asked, once per ICP iteration, for the next transform given the
 current one and the correspondences (source index, target index) within reach:
 
@@ -22,17 +22,10 @@ import torch
 
 from vrnet_ext import ops
 from vrnet_ext.geometry.transforms import apply
-from vrnet_ext.names import ICP_STEPS as ESTIMATORS
+from vrnet_ext.geometry.lie import skew
+from vrnet_ext.names import ICP_STEPS
 
 PLANE_FLATNESS = 1e-3  # GICP: the smallest covariance eigenvalue, relative to the others
-
-
-def skew(v: torch.Tensor) -> torch.Tensor:
-    """(P, 3) -> (P, 3, 3) cross-product matrices [v]_x."""
-    zero = torch.zeros_like(v[:, 0])
-    return torch.stack([torch.stack([zero, -v[:, 2], v[:, 1]], -1),
-                        torch.stack([v[:, 2], zero, -v[:, 0]], -1),
-                        torch.stack([-v[:, 1], v[:, 0], zero], -1)], -2)
 
 
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
@@ -88,7 +81,7 @@ def gauss_newton_step(J: torch.Tensor, residual: torch.Tensor, weights: torch.Te
     return se3_exp(xi) @ T
 
 
-class Estimator:
+class IcpStep:
     """Base: ``prepare(src, tgt)`` once, ``step(T, src_idx, tgt_idx, weights)`` per iteration."""
 
     name = "base"
@@ -101,7 +94,7 @@ class Estimator:
         raise NotImplementedError
 
 
-class PointToPoint(Estimator):
+class PointToPoint(IcpStep):
     """ICP's step by weighted Procrustes between the matched points (Besl-McKay)."""
 
     name = "point_to_point"
@@ -113,7 +106,7 @@ class PointToPoint(Estimator):
         return new
 
 
-class PointToPlane(Estimator):
+class PointToPlane(IcpStep):
     """ICP's Gauss-Newton step on distances along the target's normals (from ``neighbours`` points)."""
 
     name = "point_to_plane"
@@ -133,7 +126,7 @@ class PointToPlane(Estimator):
         return gauss_newton_step(J, residual, weights, T)
 
 
-class Gicp(Estimator):
+class Gicp(IcpStep):
     """Generalized ICP's Gauss-Newton step: residuals weighted by the inverse of both points' plane
     covariances (from ``neighbours`` points), the source's rotated into the target frame."""
 
@@ -157,12 +150,12 @@ class Gicp(Estimator):
         return gauss_newton_step(J, residual, weights, T, information)
 
 
-def make_estimator(name: str, neighbours: int = 20) -> Estimator:
-    """The estimator called ``name`` (one of ESTIMATORS)."""
+def make_icp_step(name: str, neighbours: int = 20) -> IcpStep:
+    """The ICP step called ``name`` (one of ICP_STEPS)."""
     if name == "point_to_point":
         return PointToPoint()
     if name == "point_to_plane":
         return PointToPlane(neighbours)
     if name == "gicp":
         return Gicp(neighbours)
-    raise ValueError(f"estimator must be one of {ESTIMATORS}, got {name!r}")
+    raise ValueError(f"step must be one of {ICP_STEPS}, got {name!r}")

@@ -7,8 +7,9 @@ from scipy.spatial.transform import Rotation
 
 from vrnet_ext.data.procedural import room_scan
 from vrnet_ext.ops.normals import neighbourhood
+from vrnet_ext.names import ICP_STEPS
 from vrnet_ext.registration import IcpSettings, icp, transform_errors
-from vrnet_ext.registration.estimators import (ESTIMATORS, PLANE_FLATNESS, gauss_newton_step, make_estimator,
+from vrnet_ext.registration.icp_steps import (PLANE_FLATNESS, gauss_newton_step, make_icp_step,
                                                plane_covariances, se3_exp, symmetric_inverse)
 
 
@@ -23,16 +24,16 @@ def room_pair():
 @pytest.mark.parametrize("estimator", ["point_to_plane", "gicp"])
 def test_plane_based_refinement_reaches_the_exact_motion(room_pair, estimator):
     src, tgt, truth = room_pair
-    result = icp(src, tgt, np.eye(4), IcpSettings(estimator=estimator, max_distance=0.3, max_iterations=100,
+    result = icp(src, tgt, np.eye(4), IcpSettings(step=estimator, max_distance=0.3, max_iterations=100,
                                                      transform_tolerance=1e-6))
     errors = transform_errors(result.T_target_source, truth)
     assert errors["rotation_error_deg"] <= 0.01 and errors["translation_error"] <= 0.0005, errors
-    assert result.converged and result.fitness > 0.95 and result.estimator == estimator
+    assert result.converged and result.fitness > 0.95 and result.icp_step == estimator
 
 
 def test_point_to_point_is_biased_by_the_sampling(room_pair):
     src, tgt, truth = room_pair
-    result = icp(src, tgt, np.eye(4), IcpSettings(estimator="point_to_point", max_distance=0.3, max_iterations=100,
+    result = icp(src, tgt, np.eye(4), IcpSettings(step="point_to_point", max_distance=0.3, max_iterations=100,
                                                      transform_tolerance=1e-6))
     errors = transform_errors(result.T_target_source, truth)
     assert errors["rotation_error_deg"] < 0.1 and errors["translation_error"] < 0.01, errors
@@ -76,20 +77,22 @@ def test_gauss_newton_with_information_equals_whitened_step():
     torch.testing.assert_close(gauss_newton_step(J, residual, weights, T, information), whitened)
 
 
-def test_unknown_estimator_names_the_argument():
-    with pytest.raises(ValueError, match="estimator must be one of"):
-        make_estimator("plane_to_point")
-    assert set(ESTIMATORS) == {"point_to_point", "point_to_plane", "gicp"}
+def test_unknown_step_names_the_argument():
+    with pytest.raises(ValueError, match="step must be one of"):
+        make_icp_step("plane_to_point")
+    assert set(ICP_STEPS) == {"point_to_point", "point_to_plane", "gicp"}
 
 
 def test_icp_settings_are_checked_when_made():
     from vrnet_ext.registration import IcpSettings, register
 
-    for kwargs, match in [({"estimator": "plane"}, "estimator must be one of"), ({"points": 0}, "IcpSettings.points"),
+    for kwargs, match in [({"step": "plane"}, "IcpSettings.step must be one of"), ({"points": 0}, "IcpSettings.points"),
                           ({"max_iterations": -1}, "IcpSettings.max_iterations"),
                           ({"max_distance": float("nan")}, "IcpSettings.max_distance"),
                           ({"voxel_size": 0.0}, "IcpSettings.voxel_size"), ({"settled": -1e-6}, "IcpSettings.settled")]:
         with pytest.raises(ValueError, match=match):
             IcpSettings(**kwargs)
+    with pytest.raises(TypeError, match="estimator"):  # renamed to step in 0.2
+        IcpSettings(estimator="gicp")
     with pytest.raises(TypeError, match="icp_settings must be an IcpSettings"):
         register(np.zeros((5, 3)), np.zeros((5, 3)), icp_settings={"points": 10})

@@ -1,0 +1,191 @@
+"""The default method (``auto``) beside each built-in method it combines, on pairs none of them was
+tuned on, in one run; and the calibration of its doubt.
+
+    python benchmarks/bench_default.py [--data ../shared/data/scenes/real_pairs] [--seeds 2]
+        [--extra-rotation 180] [--cuts 3] [--json default.json] [--markdown default.md] [--plot doubt.png]
+
+Sets (each pair once per seed; the seed also draws the turns):
+
+* ``real``: the 45 real pairs (3DMatch, 3DLoMatch, KITTI) as they are;
+* ``real turned``: the same with each source turned about its centroid by a random rotation of up
+  to ``--extra-rotation`` degrees (the ground truth follows);
+* ``cuts``: object-like pairs cut from the 10 redkitchen fragments: two balls of 0.8 m radius around
+  points 0.5 m apart, the second turned about its centre by 24, 48 or 72 degrees (``--cuts`` pairs
+  per fragment and angle), so overlap is partial and the motion large.
+
+Methods: ``auto`` (the default: ``sc2``, and when its refinement is doubtful ``fpfh`` and ``vrnet``
+too, the best fit kept), ``sc2``, ``fpfh``, ``vrnet``, each as ``register()`` runs it in this
+process with the same seed. Reported per set and method: recall (3DMatch's thresholds indoors,
+KITTI's outdoors), the median time per pair, how many wrong results carried no warning, and how many
+right ones carried one (false alarms). The picture: the share of ``sc2`` results that are right
+against the fitness of its refinement (the doubt threshold marked), the calibration of the test that
+brings in the other estimators.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from outputs import cpu_description, write_outputs  # benchmarks/, the script's folder
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = ROOT.parent / "shared" / "data" / "scenes" / "real_pairs"
+METHODS = ("auto", "sc2", "fpfh", "vrnet")
+CUT_RADIUS, CUT_SPACING, CUT_ANGLES = 0.8, 0.5, (24.0, 48.0, 72.0)
+
+
+def turned(points: np.ndarray, degrees: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``points`` turned about their centroid by ``degrees`` about a random axis -> (points, the 4x4 turn)."""
+    from scipy.spatial.transform import Rotation
+
+    from vrnet_ext.geometry.transforms import apply, to_homogeneous
+
+    axis = rng.normal(size=3)
+    R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.radians(degrees)).as_matrix()
+    centre = points.mean(axis=0)
+    turn = to_homogeneous(R, centre - R @ centre)
+    return apply(turn, points), turn
+
+
+def real_cases(data: Path, seed: int, extra: float):
+    """(set, name, source, target, truth, outdoor) of the real pairs, turned by up to ``extra`` degrees."""
+    from vrnet_ext.data.real_pairs import read_manifest
+    from vrnet_ext.geometry.io import read_points
+
+    rng = np.random.default_rng(seed)
+    for pair in read_manifest(data):
+        source, truth = read_points(pair.source), np.loadtxt(pair.gt)
+        if extra:
+            source, turn = turned(source, rng.uniform(0.0, extra), rng)
+            truth = truth @ np.linalg.inv(turn)
+        yield ("real turned" if extra else "real"), pair.pair_id, source, read_points(pair.target), truth, pair.outdoor
+
+
+def cut_cases(data: Path, seed: int, per_angle: int):
+    """(set, name, source, target, truth, outdoor) of pairs cut from the redkitchen fragments."""
+    from vrnet_ext.geometry.io import read_points
+
+    rng = np.random.default_rng(1000 + seed)
+    for path in sorted((data / "clouds").glob("3dm_rk_*.npy")):
+        fragment = read_points(path)
+        for angle in CUT_ANGLES:
+            for k in range(per_angle):
+                centre = fragment[rng.integers(len(fragment))]
+                direction = rng.normal(size=3)
+                other = centre + CUT_SPACING * direction / np.linalg.norm(direction)
+                target = fragment[np.linalg.norm(fragment - centre, axis=1) < CUT_RADIUS]
+                source = fragment[np.linalg.norm(fragment - other, axis=1) < CUT_RADIUS]
+                if min(len(source), len(target)) < 2000:
+                    continue
+                source, turn = turned(source, angle, rng)
+                yield "cuts", f"{path.stem} {angle:.0f} deg #{k}", source, target, np.linalg.inv(turn), False
+
+
+def record_of(result, truth: np.ndarray, outdoor: bool, seconds: float) -> dict:
+    from vrnet_ext.data.real_pairs import SUCCESS_THRESHOLDS
+    from vrnet_ext.registration.result import transform_errors
+
+    errors = transform_errors(result.T_target_source, truth)
+    max_re, max_te = SUCCESS_THRESHOLDS["outdoor" if outdoor else "indoor"]
+    return {"success": bool(errors["rotation_error_deg"] < max_re and errors["translation_error"] < max_te), **errors,
+            "fitness": result.fitness, "converged": result.converged, "warnings": result.warnings,
+            "start": result.start, "selection": result.selection, "seconds": seconds}
+
+
+def summary_rows(records: list[dict]) -> list[dict]:
+    rows = []
+    for subset in dict.fromkeys(r["set"] for r in records):
+        for method in METHODS:
+            chosen = [r for r in records if r["set"] == subset and r["method"] == method]
+            right = [r for r in chosen if r["success"]]
+            rows.append({"set": subset, "method": method, "pairs": len(chosen), "registered": len(right),
+                         "median_s": statistics.median(r["seconds"] for r in chosen),
+                         "wrong_without_warning": sum(not r["success"] and not r["warnings"] for r in chosen),
+                         "false_alarms": sum(bool(r["warnings"]) for r in right)})
+    return rows
+
+
+def plot(records: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from vrnet_ext.registration.pipeline import LOW_FITNESS
+
+    first = [r for r in records if r["method"] == "sc2"]
+    fitness = np.array([r["fitness"] for r in first])
+    success = np.array([r["success"] for r in first])
+    edges = np.array([0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6, 1.0])
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    jitter = np.random.default_rng(0).uniform(-0.03, 0.03, len(first))
+    ax.scatter(fitness, success + jitter, s=8, c=np.where(success, "tab:green", "tab:red"), alpha=0.5,
+               label="one pair (1 = right)")
+    for low, high in zip(edges[:-1], edges[1:]):
+        inside = (fitness >= low) & (fitness < high)
+        if inside.any():
+            ax.plot([low, high], [success[inside].mean()] * 2, color="black", linewidth=2)
+            ax.annotate(f"{inside.sum()}", ((low + high) / 2, success[inside].mean() + 0.03), ha="center", fontsize=7)
+    ax.plot([], [], color="black", linewidth=2, label="share right in the bin (n above)")
+    ax.axvline(LOW_FITNESS, color="tab:blue", linestyle="--", label=f"doubt below {LOW_FITNESS} (or ICP not converged)")
+    ax.set_xlabel("fitness of the refinement from sc2 (share of source points with a target point within reach)")
+    ax.set_ylabel("right (rotation and translation within thresholds)")
+    ax.set_ylim(-0.1, 1.15)
+    ax.legend(loc="lower right", fontsize=8)
+    ax.set_title("When the default brings in its other estimators: sc2's fit against being right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main(argv: list[str] | None = None) -> None:
+    from vrnet_ext.cli.common import DefaultsHelpFormatter
+    from vrnet_ext.registration import register
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser.add_argument("--data", default=str(DEFAULT_DATA), help="the real pairs' folder (MANIFEST.tsv, clouds/)")
+    parser.add_argument("--seeds", type=int, default=2, help="seeds per pair (each draws its own turns)")
+    parser.add_argument("--extra-rotation", type=float, default=180.0, help="largest turn of the 'real turned' set")
+    parser.add_argument("--cuts", type=int, default=3, help="pairs per fragment and angle of the 'cuts' set (0: none)")
+    parser.add_argument("--sets", nargs="+", default=["real", "real turned", "cuts"], help="sets to run")
+    parser.add_argument("--limit", type=int, default=None, help="at most this many pairs per set and seed")
+    parser.add_argument("--json", default=None, help="write the record to this JSON file (none: print only)")
+    parser.add_argument("--markdown", default=None, help="write the table to this Markdown file (none: print only)")
+    parser.add_argument("--plot", default=None, help="draw the calibration picture here (none: no picture)")
+    args = parser.parse_args(argv)
+    data, records = Path(args.data), []
+    for seed in range(args.seeds):
+        sources = {"real": real_cases(data, seed, 0.0), "real turned": real_cases(data, seed, args.extra_rotation),
+                   "cuts": cut_cases(data, seed, args.cuts)}
+        for subset in args.sets:
+            for count, (name_set, name, source, target, truth, outdoor) in enumerate(sources[subset]):
+                if args.limit is not None and count >= args.limit:
+                    break
+                for method in METHODS:  # interleaved: every method once per pair
+                    started = time.perf_counter()
+                    result = register(source, target, method=method, seed=seed)
+                    record = record_of(result, truth, outdoor, time.perf_counter() - started)
+                    records.append({"set": name_set, "pair": name, "seed": seed, "method": method, **record})
+                    print(f"{name_set} | {name} | seed {seed} | {method}: {'ok' if record['success'] else 'FAIL'} "
+                          f"fitness {record['fitness']:.3f} {record['seconds']:.2f} s", file=sys.stderr, flush=True)
+    rows = summary_rows(records)
+    lines = [f"The default (`auto`) beside the methods it combines ({cpu_description()}, {time.strftime('%Y-%m-%d')}; "
+             f"{args.seeds} seeds, turns up to {args.extra_rotation:g} deg).", "",
+             "| set | method | registered | median s / pair | wrong without a warning | false alarms |",
+             "|---|---|---:|---:|---:|---:|"]
+    lines += [f"| {r['set']} | {r['method']} | {r['registered']} / {r['pairs']} ({r['registered'] / r['pairs']:.1%}) | "
+              f"{r['median_s']:.2f} | {r['wrong_without_warning']} | {r['false_alarms']} |" for r in rows]
+    write_outputs("\n".join(lines), {"machine": cpu_description(), "date": time.strftime("%Y-%m-%d"),
+                                     "summary": rows, "runs": records}, args.markdown, args.json)
+    if args.plot:
+        plot(records, args.plot)
+        print(f"wrote {args.plot}")
+
+
+if __name__ == "__main__":
+    main()
