@@ -1,6 +1,7 @@
 """Synthetic clouds and motions that several test modules share (test modules never import each
 other)."""
 import numpy as np
+import torch
 from scipy.spatial.transform import Rotation
 
 from vrnet_ext.geometry.transforms import to_homogeneous
@@ -65,3 +66,16 @@ def room_views(count: int = 4, seed: int = 0, radius: float = 2.0) -> tuple[list
         views.append((inside - pose[:3, 3]) @ pose[:3, :3])  # T_room_view^-1 applied
         poses.append(pose)
     return views, np.stack(poses)
+
+
+def correspondences(K, outlier_ratio, seed=0, noise=0.005):
+    """(p, q, R, t, inlier): K float64 correspondences q = R p + t + noise, a share ``outlier_ratio`` of
+    them replaced by random points (``inlier`` marks the rest)."""
+    g = torch.Generator().manual_seed(seed)
+    p = torch.rand(K, 3, generator=g, dtype=torch.float64) * 2
+    R = torch.tensor(Rotation.from_rotvec([0.3, -1.2, 0.8]).as_matrix())
+    t = torch.tensor([0.5, -1.0, 0.3], dtype=torch.float64)
+    q = p @ R.T + t + torch.randn(K, 3, generator=g, dtype=torch.float64) * noise
+    outlier = torch.rand(K, generator=g) < outlier_ratio
+    q[outlier] = torch.rand(int(outlier.sum()), 3, generator=g, dtype=torch.float64) * 2
+    return p, q, R, t, ~outlier

@@ -55,3 +55,43 @@ def test_the_names_module_imports_nothing():
     code = "import sys, vrnet_ext.names; print(sorted(m for m in sys.modules if m.startswith(('torch', 'numpy'))))"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and done.stdout.strip() == "[]", done.stdout + done.stderr
+
+
+def test_every_yes_no_option_is_a_switch_and_the_old_styles_still_work_with_a_warning(capsys):
+    """One style for yes/no options in every command: --name / --no-name. The 0.1 forms (--name 0,
+    --fpfh, --fpfh-points) still parse, hidden, and say the new spelling."""
+    import argparse
+
+    import pytest
+
+    from vrnet_ext.cli import build_parser, build_train_config
+    from vrnet_ext.cli.common import Switch
+
+    commands = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)][0].choices
+    switches = 0
+    for name, command in commands.items():
+        for action in command._actions:
+            shown = action.help is not argparse.SUPPRESS
+            if shown and (action.nargs == 0 or isinstance(action, Switch)) and action.dest != "help":
+                assert isinstance(action, Switch) and len(action.option_strings) == 2, (name, action.option_strings)
+                switches += 1
+    assert switches >= 10, switches
+    parse = build_parser().parse_args
+    config = build_train_config(parse(["train", "--preset", "tiny", "--no-flush-denormal", "--walk-gate",
+                                       "--no-progress"]))
+    assert (config.runtime.flush_denormal, config.model["walk_gate"], config.runtime.progress) == (False, True, False)
+    assert "warning" not in capsys.readouterr().err
+    old = build_train_config(parse(["train", "--preset", "tiny", "--flush-denormal", "0", "--walk-gate", "1"]))
+    assert old.runtime == config.runtime.__class__(**{**vars(config.runtime), "progress": True})
+    assert old.model == config.model
+    err = capsys.readouterr().err
+    assert "--flush-denormal 0 is now --no-flush-denormal" in err and "--walk-gate 1 is now --walk-gate" in err
+    with pytest.raises(SystemExit):
+        parse(["train", "--flush-denormal", "maybe"])
+    assert "takes no value (--flush-denormal or --no-flush-denormal), got 'maybe'" in capsys.readouterr().err
+    assert parse(["register", "a.ply", "b.ply", "--fpfh-points", "500"]).global_points == 500
+    assert "--fpfh-points is now --global-points" in capsys.readouterr().err
+    for option in ("--fpfh-points", "--fpfh "):
+        with pytest.raises(SystemExit):
+            parse(["register", "--help"])
+        assert option not in capsys.readouterr().out

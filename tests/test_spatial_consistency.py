@@ -5,22 +5,11 @@ import os
 
 import pytest
 import torch
-from scipy.spatial.transform import Rotation
 
 from conftest import requires_ext, under_each_cpu_dispatch
+from synthetic import correspondences
 from vrnet_ext import ops
 from vrnet_ext.ops.spatial_consistency import spatial_consistency_reference
-
-
-def correspondences(K, outlier_ratio, seed=0, noise=0.005):
-    g = torch.Generator().manual_seed(seed)
-    p = torch.rand(K, 3, generator=g, dtype=torch.float64) * 2
-    R = torch.tensor(Rotation.from_rotvec([0.3, -1.2, 0.8]).as_matrix())
-    t = torch.tensor([0.5, -1.0, 0.3], dtype=torch.float64)
-    q = p @ R.T + t + torch.randn(K, 3, generator=g, dtype=torch.float64) * noise
-    outlier = torch.rand(K, generator=g) < outlier_ratio
-    q[outlier] = torch.rand(int(outlier.sum()), 3, generator=g, dtype=torch.float64) * 2
-    return p, q, R, t, ~outlier
 
 
 def rotation_error_deg(A, B):
@@ -133,7 +122,7 @@ def test_the_vector_and_the_portable_graph_give_the_same_fit(tmp_path):
     """Where the CPU has AVX-512 the graph is built by vector code; VRNET_CPU_DISPATCH=generic keeps
     the portable loop. Same transform, same inliers (K = 2,000 and 1,003: full words and a tail;
     the graph in float32 and, at tolerance 0.012, in float64)."""
-    script = ("import sys, torch; sys.path.insert(0, sys.argv[2]); from test_spatial_consistency import correspondences; "
+    script = ("import sys, torch; sys.path.insert(0, sys.argv[2]); from synthetic import correspondences; "
               "from vrnet_ext import ops; out = [ops.spatial_consistency(*correspondences(K, 0.9, seed=K)[:2], tolerance, "
               "0.03) for K in (2000, 1003) for tolerance in (0.03, 0.012)]; torch.save(out, sys.argv[1])")
     results = under_each_cpu_dispatch(script, tmp_path, os.path.dirname(__file__))

@@ -85,10 +85,10 @@ def test_cli_flags_override_the_preset():
     args = build_parser().parse_args(["train", "--preset", "small", "--flush-denormal", "0", "--batch-size", "3",
                                       "--classes", "1", "2", "--setting", "PV+RS", "--emb-dims", "64"])
     cfg = build_train_config(args)
-    assert cfg.flush_denormal is False and cfg.batch_size == 3 and cfg.classes == [1, 2]
-    assert cfg.setting == "PV+RS" and cfg.model["emb_dims"] == 64 and cfg.stage1_epochs == 3
+    assert cfg.runtime.flush_denormal is False and cfg.schedule.batch_size == 3 and cfg.data.classes == [1, 2]
+    assert cfg.data.setting == "PV+RS" and cfg.model["emb_dims"] == 64 and cfg.schedule.stage1_epochs == 3
     default = build_train_config(build_parser().parse_args(["train", "--preset", "small"]))
-    assert default.flush_denormal is True
+    assert default.runtime.flush_denormal is True
 
 
 def test_cli_errors_are_readable(tmp_path, capsys):
@@ -173,7 +173,7 @@ def test_resume_extends_a_finished_stage_with_this_runs_milestones(tmp_path):
     train(tiny(tmp_path, "run", stage1_epochs=1, stage2_epochs=3, max_train_items=8, batch_size=2,
                lr_milestones=[2], resume=str(last)))
     stage2 = [r for r in records(tmp_path / "run") if r["stage"] == 2]
-    lr = TrainConfig.from_preset("tiny").lr_stage2
+    lr = TrainConfig.from_preset("tiny").schedule.lr_stage2
     assert [r["epoch"] for r in stage2] == [1, 2, 3]
     # each epoch's record holds the rate it ran with: the milestone at 2 lowers it after two epochs
     assert [r["lr"] for r in stage2] == pytest.approx([lr, lr, lr * 0.1])
@@ -196,10 +196,10 @@ def test_freeze_confidence_trains_the_offsets_only():
     assert len(groups) == 1 and {id(p) for p in groups[0]["params"]} == {id(p) for p in model.walk.parameters()}
     with pytest.raises(ValueError, match="freeze_confidence needs walk_confidence_trunk"):
         TrainConfig.from_preset("tiny", freeze_confidence=True)
-    with pytest.raises(ValueError, match="loss_motion must be >= 0"):
+    with pytest.raises(ValueError, match="loss_motion must be a finite number >= 0"):
         TrainConfig.from_preset("tiny", loss_motion=-1.0)
     for bad in (-1.0, float("inf"), float("nan")):
-        with pytest.raises(ValueError, match="loss_motion_translation must be >= 0 and finite"):
+        with pytest.raises(ValueError, match="loss_motion_translation must be a finite number >= 0"):
             TrainConfig.from_preset("tiny", loss_motion_translation=bad)
 
 
@@ -320,16 +320,23 @@ def test_train_takes_any_pair_provider(tmp_path):
     assert "val_RMSE(R)" in json.loads((tmp_path / "run" / "metrics.jsonl").read_text().splitlines()[-1])
 
 
-def test_every_option_belongs_to_one_section():
+def test_the_config_is_typed_sections_stored_flat_and_read_back():
+    from dataclasses import fields
+
     from vrnet_ext.learning.config import SECTIONS
 
-    listed = [key for keys in SECTIONS.values() for key in keys]
-    options = [f for f in TrainConfig.__dataclass_fields__ if f not in ("preset", "model", "progress")]
-    assert sorted(listed) == sorted(options) and len(listed) == len(set(listed))
-    cfg = TrainConfig.from_preset("tiny")
-    assert cfg.section("schedule")["batch_size"] == cfg.batch_size
-    with pytest.raises(ValueError, match="section must be one of"):
-        cfg.section("optimiser")
+    names = [f.name for section in SECTIONS.values() for f in fields(section)]
+    assert len(names) == len(set(names)), "an option name in two sections"
+    cfg = TrainConfig.from_preset("tiny", batch_size=3, setting="PV", loss_l4=5.0, resume="x.pt", num_workers=1)
+    assert (cfg.schedule.batch_size, cfg.data.setting, cfg.loss.loss_l4, cfg.start.resume,
+            cfg.runtime.num_workers) == (3, "PV", 5.0, "x.pt", 1)
+    flat = cfg.to_dict()
+    assert set(flat) == set(names) | {"preset", "model"} and flat["batch_size"] == 3
+    assert TrainConfig.from_flat(flat) == cfg
+    with pytest.raises(ValueError, match=r"unknown training options: \['optimiser'\]"):
+        TrainConfig.from_preset("tiny", optimiser="sgd")
+    with pytest.raises(ValueError, match="batch_size must be an integer >= 1, got 0"):
+        TrainConfig.from_preset("tiny", batch_size=0)
 
 
 @pytest.mark.parametrize("native", [True, False])
@@ -421,16 +428,19 @@ def test_a_kill_at_any_write_then_resume_gives_the_files_of_an_uninterrupted_run
 
 
 def test_every_training_option_is_read_as_its_annotation_says():
-    """The parser's type of each `vrnet train` option comes from the TrainConfig annotation itself
+    """The parser's type of each `vrnet train` option comes from its section's annotation itself
     (int or float, also inside `X | None`), not from the annotation's text."""
     import argparse
     import typing
 
     from vrnet_ext.cli import build_parser
+    from vrnet_ext.learning.config import SECTIONS
 
     train_parser = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)][0].choices["train"]
     types = {action.dest: action.type for action in train_parser._actions}
-    for name, hint in typing.get_type_hints(TrainConfig).items():
+    hints = {name: hint for section in SECTIONS.values() for name, hint in typing.get_type_hints(section).items()}
+    assert len(hints) > 30
+    for name, hint in hints.items():
         plain = [arg for arg in typing.get_args(hint) if arg is not type(None)] or [hint]
         if name in types and plain[0] in (int, float) and len(plain) == 1:  # (str: also choices, type None)
             assert types[name] is plain[0], (name, hint, types[name])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import sys
 
-from vrnet_ext.cli.common import DefaultsHelpFormatter, positive_float, writable_path
+from vrnet_ext.cli.common import DefaultsHelpFormatter, Switch, positive_float, writable_path
 from vrnet_ext.cli.registering import add_registration_options, add_success_options, registration_arguments
 
 
@@ -25,7 +25,7 @@ def add_register_batch(sub) -> None:
     p.add_argument("--out", type=writable_path, required=True,
                    help="the JSON Lines file of records (resumed if it exists)")
     add_success_options(p, "a pair with ground truth")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--progress", action=Switch, default=True, help="progress bar")
     add_registration_options(p)
 
 
@@ -44,7 +44,7 @@ def run_register_batch(args) -> int:
         options = BatchOptions(register=registration_arguments(args), success_rotation_deg=args.success_rotation,
                                success_translation=args.success_translation)
         mine = register_batch(args.manifest, args.out, options, shard=Shard(rank, world),
-                              progress=not args.no_progress)
+                              progress=args.progress)
         if distributed:
             dist.barrier()
         if rank == 0:

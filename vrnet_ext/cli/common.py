@@ -28,6 +28,14 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
         shown = " ".join(map(str, default)) if isinstance(default, (list, tuple)) else str(default)
         return f"{text} (default: {shown.replace('%', '%%')})"
 
+    def _format_action_invocation(self, action: argparse.Action) -> str:
+        if isinstance(action, Switch):  # --name, --no-name: the old style's value is not shown
+            return ", ".join(action.option_strings)
+        return super()._format_action_invocation(action)
+
+    def _format_args(self, action: argparse.Action, default_metavar: str) -> str:
+        return "" if isinstance(action, Switch) else super()._format_args(action, default_metavar)
+
 
 def parse_bool(text: str) -> bool:
     value = text.strip().lower()
@@ -36,6 +44,30 @@ def parse_bool(text: str) -> bool:
     if value in ("0", "false", "no", "off"):
         return False
     raise argparse.ArgumentTypeError(f"expected 1/0/true/false, got {text!r}")
+
+
+class Switch(argparse.BooleanOptionalAction):
+    """Every yes/no option of the ``vrnet`` commands, in one style: ``--name`` turns it on,
+    ``--no-name`` off. With ``values=True`` (only for commands without positional arguments, which a
+    value could swallow) the style of 0.1, ``--name 1`` / ``--name 0``, still works and warns."""
+
+    def __init__(self, option_strings, dest, values: bool = False, **kwargs):
+        super().__init__(option_strings, dest, **kwargs)
+        if values:
+            self.nargs = "?"
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if values is None or option_string.startswith("--no-"):
+            super().__call__(parser, namespace, values, option_string)
+            return
+        try:
+            value = parse_bool(values)
+        except argparse.ArgumentTypeError:
+            parser.error(f"argument {option_string}: takes no value ({' or '.join(self.option_strings)}), "
+                         f"got {values!r}")
+        now = self.option_strings[0 if value else 1]
+        print(f"{parser.prog}: warning: {option_string} {values} is now {now}", file=sys.stderr)
+        setattr(namespace, self.dest, value)
 
 
 def int_at_least(low: int):

@@ -5,7 +5,7 @@ import argparse
 import resource
 import sys
 
-from vrnet_ext.cli.common import (DefaultsHelpFormatter, RenamedOption, as_flags, device_name, json_output,
+from vrnet_ext.cli.common import (DefaultsHelpFormatter, RenamedOption, Switch, as_flags, device_name, json_output,
                                   memory_size, nonnegative_int, picture_path, positive_float, positive_int,
                                   report_and_record, writable_path)
 
@@ -44,16 +44,16 @@ def add_registration_options(p) -> None:
 
     p.add_argument("--method", choices=GLOBAL_ESTIMATORS, default=argparse.SUPPRESS,
                    help=f"global estimate (default: {DEFAULT_METHOD}: sc2, and fpfh and vrnet too when ICP from "
-                        f"sc2's estimate is doubtful, the best fit kept; vrnet when --checkpoint is given, fpfh with "
-                        f"--fpfh)")
+                        f"sc2's estimate is doubtful, the best fit kept; vrnet when --checkpoint is given)")
     initial = p.add_mutually_exclusive_group()
     initial.add_argument("--checkpoint", default=None,
                          help="with --method vrnet: shipped model name or checkpoint (a scene model of `vrnet "
                               "train-scene`, or best.pt of `vrnet train`); default: the shipped scene model")
-    initial.add_argument("--fpfh", action="store_true", help="the same as --method fpfh")
-    p.add_argument("--global-points", "--fpfh-points", dest="global_points", type=positive_int,
-                   default=PointCounts.global_points,
+    initial.add_argument("--fpfh", action="store_true", help=argparse.SUPPRESS)  # 0.1's name of --method fpfh
+    p.add_argument("--global-points", type=positive_int, default=PointCounts.global_points,
                    help="about this many points per scan for the global estimate (scene model, FPFH)")
+    p.add_argument("--fpfh-points", dest="global_points", type=positive_int, action=RenamedOption,
+                   help=argparse.SUPPRESS)
     p.add_argument("--max-memory", type=memory_size, default=None,
                    help="peak memory budget of the whole run, e.g. 2GB or 512MB: sizes the point counts "
                         "and fails at once if the budget cannot be met")
@@ -68,7 +68,7 @@ def add_registration_options(p) -> None:
     p.add_argument("--icp-iterations", type=nonnegative_int, default=50, help="0: no ICP")
     p.add_argument("--icp-tolerance", type=positive_float, default=1e-4,
                    help="ICP stops when a step moves the transform by less (radians; the scans' unit)")
-    p.add_argument("--coarse-start", action=argparse.BooleanOptionalAction, default=True,
+    p.add_argument("--coarse-start", action=Switch, default=True,
                    help="ICP from no motion first runs on 4x coarser voxels with a 4x longer reach")
     p.add_argument("--icp-step", choices=ICP_STEPS, default=DEFAULT_ICP_STEP,
                    help="ICP step: point-to-point (Kabsch), point-to-plane, or plane-to-plane (GICP)")
@@ -175,6 +175,8 @@ def registration_arguments(args) -> dict:
         from vrnet_ext.registration.budget import require_headroom
 
         require_headroom(args.max_memory)
+    if args.fpfh:
+        print("vrnet: warning: --fpfh is now --method fpfh", file=sys.stderr)
     method = getattr(args, "method", None) or ("fpfh" if args.fpfh else "vrnet" if args.checkpoint else None)
     if args.fpfh and method != "fpfh" or args.checkpoint and method != "vrnet":
         raise ValueError(f"--method {method} does not take {'--fpfh' if args.fpfh else '--checkpoint'}")

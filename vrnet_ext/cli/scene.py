@@ -6,7 +6,7 @@ import resource
 import sys
 from pathlib import Path
 
-from vrnet_ext.cli.common import (DefaultsHelpFormatter, as_flags, json_output, nonnegative_int, picture_path,
+from vrnet_ext.cli.common import (DefaultsHelpFormatter, Switch, as_flags, json_output, nonnegative_int, picture_path,
                                   positive_int, report_and_record, writable_path)
 from vrnet_ext.cli.registering import add_registration_options, add_success_options, registration_arguments
 
@@ -47,7 +47,7 @@ def add_register_scene(sub) -> None:
                    help="more scans: register each with its next this many")
     p.add_argument("--loop-candidates", type=nonnegative_int, default=SCENE_LOOP_CANDIDATES,
                    help="more scans: and with up to this many others that the first poses put nearest")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--progress", action=Switch, default=True, help="progress bar")
     add_registration_options(p)
 
 
@@ -82,7 +82,7 @@ def _register_scene_and_report(args) -> dict:
     truth = read_poses(args.gt_poses, scans) if args.gt_poses else None
     options = SceneOptions(register=registration_arguments(args), all_pairs_up_to=args.all_pairs_up_to,
                            neighbours=args.neighbours, loop_candidates=args.loop_candidates)
-    result = register_scene(scans, options, cache=args.cache, progress=not args.no_progress)
+    result = register_scene(scans, options, cache=args.cache, progress=args.progress)
     record = result.to_dict()
     record["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     dropped = [edge for edge in result.edges if not edge.kept]

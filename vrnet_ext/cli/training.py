@@ -6,8 +6,8 @@ import typing
 from dataclasses import fields
 from pathlib import Path
 
-from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFormatter, existing_folder,
-                                  json_output, nonnegative_int, output_folder, parse_bool, positive_float,
+from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFormatter, Switch, existing_folder,
+                                  json_output, nonnegative_int, output_folder, positive_float,
                                   positive_int, report_to, train_device, unit_interval, view_points, writable_path,
                                   write_json)
 from vrnet_ext.data.protocol import FAR_POINTS
@@ -46,8 +46,7 @@ def solve_overrides(args) -> dict:
 
 
 def add_train(sub) -> None:
-    from vrnet_ext.learning.config import (FIELD_HELP, L4_FORMS, PRECISIONS, PRESETS, SECTIONS, TrainConfig,
-                                           preset_values)
+    from vrnet_ext.learning.config import PRESETS, SECTIONS
 
     p = sub.add_parser("train", help="two-stage training on ModelNet40 (DDP under torchrun)",
                        description="Two-stage VRNet training. Start from a preset; any flag overrides it. "
@@ -55,13 +54,42 @@ def add_train(sub) -> None:
                        formatter_class=DefaultsHelpFormatter)
     p.add_argument("--preset", choices=sorted(PRESETS), default="small",
                    help="paper: batch 28, 100+100 epochs (GPU); cpu: the small model on the full training split at the paper's 768-point views (the shipped model; hours per session on a CPU); small: minutes on a CPU; tiny: seconds (smoke test)")
-    hints = typing.get_type_hints(TrainConfig)
-    groups = {name: p.add_argument_group(f"{name} options") for name in SECTIONS}
-    group_of = {key: groups[name] for name, keys in SECTIONS.items() for key in keys}
-    for f in fields(TrainConfig):
-        if f.name in ("preset", "model", "progress"):
-            continue
-        add = group_of[f.name].add_argument
+    for name, section in SECTIONS.items():
+        _add_section(p.add_argument_group(f"{name} options"), section)
+    model = p.add_argument_group("model options (stored in the checkpoint)")
+    unset = "the preset's, else VRNetConfig's"
+    preset_default = f" (default: {unset})"
+    model.add_argument("--emb-dims", type=int, default=None, help="model embedding size c" + preset_default)
+    model.add_argument("--k", type=int, default=None, help="DGCNN neighbours" + preset_default)
+    model.add_argument("--iterations", type=int, default=None, help="ICP-like passes at evaluation" + preset_default)
+    model.add_argument("--walk-gate", action=Switch, values=True, default=None,
+                       help="the walk's offsets are gated per point (right VCPs stay exact); off: the paper's walk"
+                            + preset_default)
+    model.add_argument("--walk-confidence", action=Switch, values=True, default=None,
+                       help="the walk also predicts per-point confidences that weight the Procrustes; "
+                            "off: unweighted" + preset_default)
+    model.add_argument("--walk-match-stats", action=Switch, values=True, default=None,
+                       help="the walk also sees each point's largest matching weight and matching entropy"
+                            + preset_default)
+    model.add_argument("--walk-confidence-trunk", action=Switch, values=True, default=None,
+                       help="the confidence has its own MLP (the offsets' loss L4 does not shape it)"
+                            + preset_default)
+    add_solve_options(model, unset)
+
+
+def _add_section(group, section) -> None:
+    """One flag per field of a training options section (``--name-with-dashes``), each read as its type
+    and described with every preset's value."""
+    from vrnet_ext.learning.config import FIELD_HELP, L4_FORMS, PRECISIONS, preset_values
+
+    special = {"classes": {"type": int, "nargs": "+"}, "lr_milestones": {"type": int, "nargs": "+"},
+               "setting": {"choices": SETTINGS + (MIXED,)}, "split": {"choices": SPLITS},
+               "data_dir": {"type": str}, "out_dir": {"type": output_folder}, "device": {"type": train_device},
+               "precision": {"choices": PRECISIONS}, "backend": {"choices": BACKENDS},
+               "loss_l4_form": {"choices": L4_FORMS}, "far_points": {"choices": FAR_POINTS}}
+    hints = typing.get_type_hints(section)
+    for f in fields(section):
+        add = group.add_argument
         flag = "--" + f.name.replace("_", "-")
         kind = hints[f.name]
         values = preset_values(f.name)
@@ -69,50 +97,9 @@ def add_train(sub) -> None:
         default = (f"default: {next(iter(shown))}" if len(shown) == 1
                    else "default: " + ", ".join(f"{k} {v}" for k, v in values.items()))
         description = FIELD_HELP.get(f.name, f.name) + ("" if shown == {"None"} else f" ({default})")
-        if f.name in ("classes", "lr_milestones"):
-            add(flag, type=int, nargs="+", default=None, help=description)
-        elif f.name == "setting":
-            add(flag, choices=SETTINGS + (MIXED,), default=None, help=description)
-        elif f.name == "split":
-            add(flag, choices=SPLITS, default=None, help=description)
-        elif f.name == "data_dir":
-            add(flag, default=None, help=DATA_DIR_HELP)
-        elif f.name == "out_dir":
-            add(flag, type=output_folder, default=None, help=description)
-        elif f.name == "device":
-            add(flag, type=train_device, default=None, help=description)
-        elif f.name == "precision":
-            add(flag, choices=PRECISIONS, default=None, help=description)
-        elif f.name == "backend":
-            add(flag, choices=BACKENDS, default=None, help=description)
-        elif f.name == "loss_l4_form":
-            add(flag, choices=L4_FORMS, default=None, help=description)
-        elif f.name == "far_points":
-            add(flag, choices=FAR_POINTS, default=None, help=description)
-        elif kind is bool:
-            add(flag, type=parse_bool, default=None, help=description)
-        else:
-            add(flag, type=_value_type(kind), default=None, help=description)
-    model = p.add_argument_group("model options (stored in the checkpoint)")
-    unset = "the preset's, else VRNetConfig's"
-    preset_default = f" (default: {unset})"
-    model.add_argument("--emb-dims", type=int, default=None, help="model embedding size c" + preset_default)
-    model.add_argument("--k", type=int, default=None, help="DGCNN neighbours" + preset_default)
-    model.add_argument("--iterations", type=int, default=None, help="ICP-like passes at evaluation" + preset_default)
-    model.add_argument("--walk-gate", type=parse_bool, default=None,
-                       help="1: the walk's offsets are gated per point (right VCPs stay exact); 0: the paper's walk"
-                            + preset_default)
-    model.add_argument("--walk-confidence", type=parse_bool, default=None,
-                       help="1: the walk also predicts per-point confidences that weight the Procrustes; "
-                            "0: unweighted" + preset_default)
-    model.add_argument("--walk-match-stats", type=parse_bool, default=None,
-                       help="1: the walk also sees each point's largest matching weight and matching entropy"
-                            + preset_default)
-    model.add_argument("--walk-confidence-trunk", type=parse_bool, default=None,
-                       help="1: the confidence has its own MLP (the offsets' loss L4 does not shape it)"
-                            + preset_default)
-    add_solve_options(model, unset)
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+        reading = special.get(f.name) or ({"action": Switch, "values": True} if kind is bool
+                                          else {"type": _value_type(kind)})
+        add(flag, default=None, help=DATA_DIR_HELP if f.name == "data_dir" else description, **reading)
 
 
 def build_train_config(args):
@@ -121,12 +108,12 @@ def build_train_config(args):
 
     model_keys = ("emb_dims", "k", "iterations", "walk_gate", "walk_confidence", "walk_match_stats",
                   "walk_confidence_trunk") + SOLVE_KEYS
-    overrides = {k: v for k, v in vars(args).items() if k not in ("command", "preset", "no_progress") + model_keys}
+    overrides = {k: v for k, v in vars(args).items() if k not in ("command", "preset") + model_keys}
     model = dict(PRESETS[args.preset]["model"])
     for key in model_keys:
         if getattr(args, key) is not None:
             model[key] = getattr(args, key)
-    return TrainConfig.from_preset(args.preset, model=model, progress=not args.no_progress, **overrides)
+    return TrainConfig.from_preset(args.preset, model=model, **overrides)
 
 
 def run_train(args) -> int:
@@ -134,7 +121,7 @@ def run_train(args) -> int:
 
     cfg = build_train_config(args)
     record = train(cfg)
-    out_dir = Path(cfg.out_dir)
+    out_dir = Path(cfg.runtime.out_dir)
     if record.get("stopped"):  # saved and resumable, but not finished: the shell's status of that signal
         return 128 + record.get("signal", 0) if record.get("signal") else 1
     if record:
@@ -144,10 +131,12 @@ def run_train(args) -> int:
     written = [roles.get(name, name) for name in ("last.pt", "best.pt", "best_stage1.pt", "best_stage2.pt",
                                                   "metrics.jsonl", "metrics.csv", "curves.png")
                if (out_dir / name).exists()]
-    if not record and cfg.resume:  # every epoch was already done in the checkpoint: nothing trained
-        print(f"{cfg.resume} holds a finished run ({cfg.stage1_epochs} + {cfg.stage2_epochs} epochs): nothing to "
+    if not record and cfg.start.resume:  # every epoch was already done in the checkpoint: nothing trained
+        schedule = cfg.schedule
+        print(f"{cfg.start.resume} holds a finished run ({schedule.stage1_epochs} + {schedule.stage2_epochs} epochs): "
+              f"nothing to "
               f"train (give more --stage2-epochs to continue it)")
-        print(f"evaluate with: vrnet eval --checkpoint {Path(cfg.resume).with_name('best.pt')}")
+        print(f"evaluate with: vrnet eval --checkpoint {Path(cfg.start.resume).with_name('best.pt')}")
         return 0
     print(f"wrote {out_dir}/: {', '.join(written)}")
     print(f"evaluate with: vrnet eval --checkpoint {out_dir / 'best.pt'}")
@@ -194,7 +183,7 @@ def add_eval(sub) -> None:
                    help="the Transformer's products: auto = bfloat16 on a CPU with native bf16 (AVX512-BF16 / AMX), "
                         "else float32 (default: auto)")
     p.add_argument("--device", default="cpu", help="torch device to run on, e.g. cpu or cuda")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--progress", action=Switch, default=True, help="progress bars")
     p.add_argument("--json", type=json_output, default=None,
                    help="output JSON path, - for standard output (default: eval_SETTING_SPLIT.json beside a "
                         "checkpoint file, or in the working folder for a shipped model)")
@@ -239,7 +228,7 @@ def _evaluate_and_report(args) -> tuple[dict, Path | str]:
                            max_items=args.max_items, spec=spec)
     model.to(args.device)
     result = evaluate(model, data, batch_size=args.batch_size, device=args.device, backend=args.backend,
-                      progress=not args.no_progress)
+                      progress=args.progress)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
     result.update(setting=setting, split=split, far_points=args.far_points, checkpoint=str(args.checkpoint),
                   iterations=model.config.iterations, **{k: getattr(model.config, k) for k in SOLVE_KEYS},
@@ -414,7 +403,7 @@ def add_train_scene(sub) -> None:
                    help=f"about this many points per training view (at most {MAX_VIEW_POINTS})")
     p.add_argument("--lr", type=positive_float, default=2e-3, help="Adam learning rate")
     p.add_argument("--seed", type=int, default=0, help="seed of the views and rotations")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--progress", action=Switch, default=True, help="progress bars")
 
 
 def run_train_scene(args) -> int:
@@ -437,7 +426,7 @@ def run_train_scene(args) -> int:
         if clash:
             raise ValueError(f"scans: file names {sorted(clash)} clash with pair ids of --real-pairs")
         scans.update(provider.scans())
-    path = train_scene_model(scans, args.out, cfg, progress=not args.no_progress,
+    path = train_scene_model(scans, args.out, cfg, progress=args.progress,
                              **({} if provider is None else {"pairs": provider}))
     print(f"wrote {path}")
     return 0

@@ -5,7 +5,7 @@ Free of torch, so that ``vrnet train --help`` answers at once; :mod:`vrnet_ext.l
 from __future__ import annotations
 
 import math
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import MISSING, asdict, dataclass, field, fields
 
 from vrnet_ext.model.config import VRNetConfig
 from vrnet_ext.names import DEFAULT_BACKEND, DEFAULT_SETTING, DEFAULT_SPLIT
@@ -79,43 +79,74 @@ FIELD_HELP = {
               "extends a finished stage, and this run's --lr-milestones apply)",
     "features_from": "start from the feature extractor of this checkpoint (e.g. stage 2 on another run's features)",
     "walk_from": "start the correction walk from this checkpoint's walk (a shared-trunk walk is split in two "
-                 "when this run has --walk-confidence-trunk 1)",
+                 "when this run has --walk-confidence-trunk)",
     "freeze_confidence": "stage 2 leaves the walk's confidence MLP as it is (weights and BatchNorm statistics; "
-                         "needs --walk-confidence-trunk 1): train the offsets on a trained walk's confidences "
+                         "needs --walk-confidence-trunk): train the offsets on a trained walk's confidences "
                          "(with --walk-from)",
-    "flush_denormal": "flush denormal floats to zero (1/0; much faster soft matching on x86)",
+    "progress": "progress bars",
+    "flush_denormal": "flush denormal floats to zero (much faster soft matching on x86)",
 }
 
 
 def preset_values(name: str) -> dict[str, object]:
     """Every preset's value of one training option (``preset -> value``)."""
+    section = SECTIONS[SECTION_OF[name]]
     default = {f.name: (f.default if f.default_factory is MISSING else f.default_factory())
-               for f in fields(TrainConfig)}[name]
+               for f in fields(section)}[name]
     return {preset: values.get(name, default) for preset, values in PRESETS.items()}
 
 
-# The options in sections (``vrnet train --help`` shows them so; ``TrainConfig.section`` reads one).
-SECTIONS = {
-    "data": ("data_dir", "setting", "split", "num_points", "num_subsampled", "far_points", "classes",
-             "max_train_items", "max_val_items", "val_fraction", "train_max_angle", "seed"),
-    "schedule": ("batch_size", "stage1_epochs", "stage2_epochs", "lr_stage1", "lr_stage2", "lr_features_stage2",
-                 "weight_decay", "lr_milestones", "lr_gamma"),
-    "loss": ("loss_l4", "loss_l4_form", "loss_motion", "loss_motion_translation"),
-    "start": ("resume", "features_from", "walk_from", "freeze_confidence"),
-    "runtime": ("out_dir", "device", "backend", "num_workers", "precision", "flush_denormal", "checkpoint_minutes"),
-}
+def _finite(options, names: tuple[str, ...], positive: bool) -> None:
+    """Refuses any of ``options``' fields ``names`` that is not a finite number > 0 (``positive``) or >= 0."""
+    for name in names:
+        value = getattr(options, name)
+        if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)
+                                           and (value > 0 if positive else value >= 0)):
+            raise ValueError(f"{name} must be a finite number {'>' if positive else '>='} 0, got {value!r}")
+
+
+def _integers(options, smallest: dict[str, int]) -> None:
+    """Refuses any of ``options``' fields (name -> smallest allowed) that is not an integer that large."""
+    for name, least in smallest.items():
+        value = getattr(options, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
 
 
 @dataclass
-class TrainConfig:
-    """Everything a run needs; every field is a ``vrnet train`` flag."""
+class DataOptions:
+    """Which pairs a run trains and validates on (``vrnet train``'s data options)."""
 
-    preset: str = "paper"
     data_dir: str | None = None
-    out_dir: str = "runs/vrnet"
     setting: str = DEFAULT_SETTING
     split: str = DEFAULT_SPLIT
-    model: dict = field(default_factory=lambda: VRNetConfig().to_dict())
+    num_points: int = 1024
+    num_subsampled: int = 768
+    far_points: str = "prnet"
+    classes: list[int] | None = None
+    max_train_items: int | None = None
+    max_val_items: int | None = None
+    val_fraction: float = 0.1
+    train_max_angle: float = 45.0
+    seed: int = 1234
+
+    def __post_init__(self) -> None:
+        _finite(self, ("val_fraction",), positive=False)
+        _integers(self, {"num_points": 1, "num_subsampled": 1, "seed": 0})
+        if not (isinstance(self.train_max_angle, (int, float)) and 0 < self.train_max_angle <= 180):
+            raise ValueError(f"train_max_angle must be in (0, 180] degrees, got {self.train_max_angle!r}")
+        if self.num_points > MODELNET_POINTS:
+            raise ValueError(f"num_points must be at most {MODELNET_POINTS} (the ModelNet40 files hold "
+                             f"{MODELNET_POINTS} points per shape), got {self.num_points}")
+        if self.num_subsampled > self.num_points:
+            raise ValueError(f"num_subsampled ({self.num_subsampled}) must be at most num_points "
+                             f"({self.num_points})")
+
+
+@dataclass
+class ScheduleOptions:
+    """How long and how fast each stage trains (``vrnet train``'s schedule options)."""
+
     batch_size: int = 28
     stage1_epochs: int = 100
     stage2_epochs: int = 100
@@ -125,85 +156,115 @@ class TrainConfig:
     weight_decay: float = 1e-4
     lr_milestones: list[int] = field(default_factory=lambda: [75])
     lr_gamma: float = 0.1
-    num_points: int = 1024
-    num_subsampled: int = 768
-    classes: list[int] | None = None
-    max_train_items: int | None = None
-    max_val_items: int | None = None
-    val_fraction: float = 0.1
-    train_max_angle: float = 45.0
-    seed: int = 1234
-    device: str = "auto"
-    backend: str = DEFAULT_BACKEND
-    num_workers: int = 0
+
+    def __post_init__(self) -> None:
+        _finite(self, ("lr_stage1", "lr_stage2", "lr_gamma"), positive=True)
+        _finite(self, ("weight_decay", "lr_features_stage2"), positive=False)
+        _integers(self, {"stage1_epochs": 0, "stage2_epochs": 0, "batch_size": 1})
+        if any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in self.lr_milestones):
+            raise ValueError(f"lr_milestones must be epochs >= 1, got {self.lr_milestones}")
+
+
+@dataclass
+class LossOptions:
+    """The hybrid loss's weights and forms (``vrnet train``'s loss options)."""
+
     loss_l4: float = 100.0
     loss_l4_form: str = "rmse"
     loss_motion: float = 0.0
     loss_motion_translation: float = 1.0
-    far_points: str = "prnet"
-    precision: str = "auto"
-    checkpoint_minutes: float = 10.0
+
+    def __post_init__(self) -> None:
+        _finite(self, ("loss_l4", "loss_motion", "loss_motion_translation"), positive=False)
+        if self.loss_l4_form not in L4_FORMS:
+            raise ValueError(f"loss_l4_form must be one of {L4_FORMS}, got {self.loss_l4_form!r}")
+
+
+@dataclass
+class StartOptions:
+    """What a run starts from (``vrnet train``'s start options): a checkpoint to resume, warm starts."""
+
     resume: str | None = None
     features_from: str | None = None
     walk_from: str | None = None
     freeze_confidence: bool = False
+
+
+@dataclass
+class RuntimeOptions:
+    """Where and how a run executes (``vrnet train``'s runtime options); none changes what is learned
+    except ``precision``."""
+
+    out_dir: str = "runs/vrnet"
+    device: str = "auto"
+    backend: str = DEFAULT_BACKEND
+    num_workers: int = 0
+    precision: str = "auto"
     flush_denormal: bool = True
+    checkpoint_minutes: float = 10.0
     progress: bool = True
 
-    def section(self, name: str) -> dict:
-        """The options of one of :data:`SECTIONS` (``"data"``, ``"schedule"``, ``"loss"``, ``"start"``,
-        ``"runtime"``) as a dict."""
-        if name not in SECTIONS:
-            raise ValueError(f"section must be one of {sorted(SECTIONS)}, got {name!r}")
-        return {key: getattr(self, key) for key in SECTIONS[name]}
+    def __post_init__(self) -> None:
+        _integers(self, {"num_workers": 0})
+        _finite(self, ("checkpoint_minutes",), positive=True)
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+
+
+# The options in sections: ``vrnet train --help`` shows them so, and a TrainConfig holds one of each.
+SECTIONS = {"data": DataOptions, "schedule": ScheduleOptions, "loss": LossOptions, "start": StartOptions,
+            "runtime": RuntimeOptions}
+SECTION_OF = {f.name: name for name, section in SECTIONS.items() for f in fields(section)}
+
+
+@dataclass
+class TrainConfig:
+    """Everything a run needs: the preset it started from, the model's options (a
+    :class:`~vrnet_ext.model.config.VRNetConfig` as a dict) and one object per section of
+    :data:`SECTIONS`. Every section field is a ``vrnet train`` flag; checkpoints store
+    :meth:`to_dict`'s flat form."""
+
+    preset: str = "paper"
+    model: dict = field(default_factory=lambda: VRNetConfig().to_dict())
+    data: DataOptions = field(default_factory=DataOptions)
+    schedule: ScheduleOptions = field(default_factory=ScheduleOptions)
+    loss: LossOptions = field(default_factory=LossOptions)
+    start: StartOptions = field(default_factory=StartOptions)
+    runtime: RuntimeOptions = field(default_factory=RuntimeOptions)
+
+    @classmethod
+    def from_flat(cls, values: dict) -> "TrainConfig":
+        """A config from one flat dict of option names (``preset``, ``model`` and section fields), as
+        :meth:`to_dict` writes; unknown names are refused."""
+        unknown = set(values) - set(SECTION_OF) - {"preset", "model"}
+        if unknown:
+            raise ValueError(f"unknown training options: {sorted(unknown)}")
+        sections = {name: section(**{key: value for key, value in values.items() if SECTION_OF.get(key) == name})
+                    for name, section in SECTIONS.items()}
+        top = {key: values[key] for key in ("preset", "model") if key in values}
+        return cls(**top, **sections)
 
     @classmethod
     def from_preset(cls, preset: str, **overrides) -> "TrainConfig":
+        """A preset's config with ``overrides`` (flat option names; None leaves the preset's value)."""
         if preset not in PRESETS:
             raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
         values = dict(PRESETS[preset], preset=preset)
         values.update({k: v for k, v in overrides.items() if v is not None})
-        known = {f.name for f in fields(cls)}
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown training options: {sorted(unknown)}")
-        return cls(**values)
+        return cls.from_flat(values)
+
+    def to_dict(self) -> dict:
+        """The flat form (``preset``, ``model`` and every section's fields side by side), as checkpoints
+        and ``config.json`` store it."""
+        flat = {"preset": self.preset, "model": dict(self.model)}
+        for name in SECTIONS:
+            flat.update(asdict(getattr(self, name)))
+        return flat
 
     def __post_init__(self) -> None:
-        for name in ("lr_stage1", "lr_stage2", "lr_gamma"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-        for name in ("weight_decay", "loss_l4", "val_fraction", "lr_features_stage2"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        for name, smallest in (("stage1_epochs", 0), ("stage2_epochs", 0), ("batch_size", 1), ("num_points", 1),
-                               ("num_subsampled", 1), ("seed", 0), ("num_workers", 0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < smallest:
-                raise ValueError(f"{name} must be an integer >= {smallest}, got {value!r}")
-        if not (isinstance(self.train_max_angle, (int, float)) and 0 < self.train_max_angle <= 180):
-            raise ValueError(f"train_max_angle must be in (0, 180] degrees, got {self.train_max_angle!r}")
-        if self.num_points > MODELNET_POINTS:
-            raise ValueError(f"num_points must be at most {MODELNET_POINTS} (the ModelNet40 files hold "
-                             f"{MODELNET_POINTS} points per shape), got {self.num_points}")
-        if self.num_subsampled > self.num_points:
-            raise ValueError(f"num_subsampled ({self.num_subsampled}) must be at most num_points "
-                             f"({self.num_points})")
-        if any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in self.lr_milestones):
-            raise ValueError(f"lr_milestones must be epochs >= 1, got {self.lr_milestones}")
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
-        if self.loss_l4_form not in L4_FORMS:
-            raise ValueError(f"loss_l4_form must be one of {L4_FORMS}, got {self.loss_l4_form!r}")
-        if not self.checkpoint_minutes > 0:
-            raise ValueError(f"checkpoint_minutes must be > 0, got {self.checkpoint_minutes}")
-        for name in ("loss_motion", "loss_motion_translation"):
-            if not 0 <= getattr(self, name) < float("inf"):
-                raise ValueError(f"{name} must be >= 0 and finite, got {getattr(self, name)}")
-        if self.freeze_confidence and not self.model.get("walk_confidence_trunk"):
+        if self.start.freeze_confidence and not self.model.get("walk_confidence_trunk"):
             raise ValueError("freeze_confidence needs walk_confidence_trunk (a confidence MLP of its own)")
 
 
-__all__ = ["FIELD_HELP", "L4_FORMS", "PRECISIONS", "PRESETS", "TrainConfig", "preset_values"]
+__all__ = ["FIELD_HELP", "L4_FORMS", "PRECISIONS", "PRESETS", "SECTIONS", "DataOptions", "LossOptions",
+           "RuntimeOptions", "ScheduleOptions", "StartOptions", "TrainConfig", "preset_values"]

@@ -35,7 +35,7 @@ import threading
 import time
 import warnings
 from collections import Counter
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -90,13 +90,14 @@ class _Run:
 
 
 def _datasets(cfg: TrainConfig):
-    spec = dict(num_points=cfg.num_points, num_subsampled=cfg.num_subsampled, far_points=cfg.far_points)
-    common = dict(root=cfg.data_dir, setting=cfg.setting, split=cfg.split, val_fraction=cfg.val_fraction,
-                  classes=cfg.classes)
+    data = cfg.data
+    spec = dict(num_points=data.num_points, num_subsampled=data.num_subsampled, far_points=data.far_points)
+    common = dict(root=data.data_dir, setting=data.setting, split=data.split, val_fraction=data.val_fraction,
+                  classes=data.classes)
     # Validation pairs are the dataset's fixed ones: runs of different seeds are selected on the same pairs.
-    train = ModelNet40Pairs(partition="train", max_items=cfg.max_train_items,
-                            spec=PairSpec(**spec, max_angle_deg=cfg.train_max_angle), seed=cfg.seed, **common)
-    val = ModelNet40Pairs(partition="val", max_items=cfg.max_val_items, spec=PairSpec(**spec), **common)
+    train = ModelNet40Pairs(partition="train", max_items=data.max_train_items,
+                            spec=PairSpec(**spec, max_angle_deg=data.train_max_angle), seed=data.seed, **common)
+    val = ModelNet40Pairs(partition="val", max_items=data.max_val_items, spec=PairSpec(**spec), **common)
     return train, val
 
 
@@ -150,7 +151,7 @@ def _checkpoint(setup: "_Setup", stage: "_Stage", epoch: int, progress: "_Progre
     (:class:`vrnet_ext.learning.lineage.Lineage`); ``partial``: ``{"epoch", "batches", "totals"}`` of
     an epoch in progress (mid-epoch checkpoints only)."""
     return {"model": setup.model.state_dict(), "optimizer": stage.optimizer.state_dict(),
-            "scheduler": stage.scheduler.state_dict(), "config": json.loads(json.dumps(asdict(setup.cfg))),
+            "scheduler": stage.scheduler.state_dict(), "config": json.loads(json.dumps(setup.cfg.to_dict())),
             "stage": stage.number, "epoch": epoch, "step": progress.step, "best": stage.best,
             "best_rmse": progress.best_rmse, "train_seconds": progress.train_seconds,
             "lineage": setup.lineage.to_dict(), "partial": partial}
@@ -165,8 +166,8 @@ def _run_lineage(cfg: TrainConfig, state: dict | None) -> Lineage:
     """The chain of warm starts before this run: as recorded in the checkpoint resumed from, else
     read from ``--features-from`` (else ``--walk-from``) now."""
     if state is not None and "lineage" in state:
-        return Lineage.from_dict(state["lineage"], cfg.resume)
-    return lineage_before(cfg.features_from or cfg.walk_from, "features_from / walk_from")
+        return Lineage.from_dict(state["lineage"], cfg.start.resume)
+    return lineage_before(cfg.start.features_from or cfg.start.walk_from, "features_from / walk_from")
 
 
 def _resolved_precision(precision: str, device: torch.device, state: dict | None) -> str:
@@ -273,38 +274,39 @@ def train(cfg: TrainConfig, datasets: tuple[Dataset, Dataset] | None = None) -> 
     ``rotation`` (3, 3), ``translation`` (3,), ``gt_idx`` (N,): :func:`vrnet_ext.data.make_pair`);
     a ``set_epoch(epoch)`` method, when present, is called before each epoch.
     """
-    run = _Run(cfg.device)
-    if cfg.flush_denormal:
+    run = _Run(cfg.runtime.device)
+    if cfg.runtime.flush_denormal:
         set_flush_denormal(True)
-    state = read_checkpoint(cfg.resume, run.device) if cfg.resume else None
-    cfg = replace(cfg, precision=_resolved_precision(cfg.precision, run.device, state))
-    out_dir = Path(cfg.out_dir)
+    state = read_checkpoint(cfg.start.resume, run.device) if cfg.start.resume else None
+    cfg = replace(cfg, runtime=replace(cfg.runtime, precision=_resolved_precision(cfg.runtime.precision, run.device,
+                                                                                   state)))
+    out_dir = Path(cfg.runtime.out_dir)
     if run.main:
         out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "config.json").write_text(json.dumps(asdict(cfg), indent=1))
+        (out_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
         _tidy(out_dir, state)
-    torch.manual_seed(cfg.seed)
-    model_cfg = VRNetConfig.from_dict(dict(cfg.model, backend=cfg.backend))
+    torch.manual_seed(cfg.data.seed)
+    model_cfg = VRNetConfig.from_dict(dict(cfg.model, backend=cfg.runtime.backend))
     model = VRNet(model_cfg).to(run.device)
     train_set, val_set = datasets if datasets is not None else _datasets(cfg)
-    sampler = DistributedSampler(train_set, num_replicas=run.world, rank=run.rank, shuffle=True, seed=cfg.seed,
+    sampler = DistributedSampler(train_set, num_replicas=run.world, rank=run.rank, shuffle=True, seed=cfg.data.seed,
                                  drop_last=True)
-    if len(sampler) < cfg.batch_size:
-        raise ValueError(f"batch_size {cfg.batch_size} x {run.world} process(es) exceeds the "
+    if len(sampler) < cfg.schedule.batch_size:
+        raise ValueError(f"batch_size {cfg.schedule.batch_size} x {run.world} process(es) exceeds the "
                          f"{len(train_set)} training pairs")
-    if cfg.features_from and not cfg.resume:
-        init_features_from(model, cfg.features_from)
-    if cfg.walk_from and not cfg.resume:
-        init_walk_from(model, cfg.walk_from)
+    if cfg.start.features_from and not cfg.start.resume:
+        init_features_from(model, cfg.start.features_from)
+    if cfg.start.walk_from and not cfg.start.resume:
+        init_walk_from(model, cfg.start.walk_from)
     if state is not None:
-        _check_resumable(state, model_cfg, cfg.resume)
+        _check_resumable(state, model_cfg, cfg.start.resume)
         model.load_state_dict(state["model"])
-    loss_weights = HybridLossWeights(l4=cfg.loss_l4, l4_form=cfg.loss_l4_form, motion=cfg.loss_motion,
-                                     motion_translation=cfg.loss_motion_translation)
+    loss_weights = HybridLossWeights(l4=cfg.loss.loss_l4, l4_form=cfg.loss.loss_l4_form, motion=cfg.loss.loss_motion,
+                                     motion_translation=cfg.loss.loss_motion_translation)
     progress = _Progress()
     if state:
         progress = _Progress(state["step"], state.get("best_rmse", float("inf")), state.get("train_seconds", 0.0))
-    autocast = torch.autocast(run.device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
+    autocast = torch.autocast(run.device.type, dtype=torch.bfloat16, enabled=cfg.runtime.precision == "bf16")
     stop = _StopRequest(enabled=run.world == 1)
     setup = _Setup(cfg, run, model, train_set, val_set, sampler, loss_weights, autocast, stop, out_dir,
                    _run_lineage(cfg, state))
@@ -383,25 +385,27 @@ def _train_stages(setup: _Setup, state: dict | None, progress: _Progress) -> dic
 def _start_stage(setup: _Setup, number: int, state: dict | None) -> _Stage | None:
     """Stage ``number``'s trainable parameters, optimiser and schedule, resumed from ``state`` when it
     holds this stage; None when ``state`` holds this stage complete or a later one."""
-    cfg = setup.cfg
-    epochs, lr = (cfg.stage1_epochs, cfg.lr_stage1) if number == 1 else (cfg.stage2_epochs, cfg.lr_stage2)
+    cfg, schedule = setup.cfg, setup.cfg.schedule
+    epochs, lr = ((schedule.stage1_epochs, schedule.lr_stage1) if number == 1
+                  else (schedule.stage2_epochs, schedule.lr_stage2))
     if state is not None and (state["stage"] > number or (state["stage"] == number and state["epoch"] + 1 >= epochs)):
         return None
-    features_lr = cfg.lr_features_stage2 if number == 2 else 0.0
-    groups = set_stage(setup.model, number, cfg.freeze_confidence, features_lr)
-    optimizer = torch.optim.Adam(groups, lr=lr, weight_decay=cfg.weight_decay)
+    features_lr = schedule.lr_features_stage2 if number == 2 else 0.0
+    groups = set_stage(setup.model, number, cfg.start.freeze_confidence, features_lr)
+    optimizer = torch.optim.Adam(groups, lr=lr, weight_decay=schedule.weight_decay)
     stage = _Stage(number, epochs, features_lr, optimizer,
-                   torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.lr_milestones, cfg.lr_gamma))
+                   torch.optim.lr_scheduler.MultiStepLR(optimizer, schedule.lr_milestones, schedule.lr_gamma))
     if state is not None and state["stage"] == number:
         if len(state["optimizer"]["param_groups"]) != len(groups):
             saved = state["config"].get("lr_features_stage2", 0.0)
-            raise ValueError(f"resume: {cfg.resume} was trained with lr_features_stage2 {saved}, this run "
-                             f"with {cfg.lr_features_stage2}: pass the same value (zero or not) to continue it")
+            raise ValueError(f"resume: {cfg.start.resume} was trained with lr_features_stage2 {saved}, this run "
+                             f"with {schedule.lr_features_stage2}: pass the same value (zero or not) to continue "
+                             f"it")
         optimizer.load_state_dict(state["optimizer"])
         stage.scheduler.load_state_dict(state["scheduler"])
         # This run's schedule, not the saved one: extending a run (a larger --stage2-epochs)
         # may add a milestone after the epochs already done.
-        stage.scheduler.milestones, stage.scheduler.gamma = Counter(cfg.lr_milestones), cfg.lr_gamma
+        stage.scheduler.milestones, stage.scheduler.gamma = Counter(cfg.schedule.lr_milestones), cfg.schedule.lr_gamma
         stage.first_epoch, stage.best, stage.partial = state["epoch"] + 1, state["best"], state.get("partial")
     return stage
 
@@ -411,28 +415,28 @@ def _train_epoch(setup: _Setup, stage: _Stage, epoch: int, wrapped, progress: _P
     ``last.pt`` every ``checkpoint_minutes`` and on a stop request -> ``{"totals", "batches",
     "epoch_started", "started"}``, or the record of a stopped run (``"stopped": True``)."""
     cfg, run, model = setup.cfg, setup.run, setup.model
-    global_epoch = epoch if stage.number == 1 else cfg.stage1_epochs + epoch
+    global_epoch = epoch if stage.number == 1 else cfg.schedule.stage1_epochs + epoch
     if hasattr(setup.train_set, "set_epoch"):
         setup.train_set.set_epoch(global_epoch)
     setup.sampler.set_epoch(global_epoch)
-    stage_train_mode(model, stage.number, cfg.freeze_confidence, stage.features_lr)
+    stage_train_mode(model, stage.number, cfg.start.freeze_confidence, stage.features_lr)
     epoch_started = started = saved_at = time.time()
     totals, batches = {}, 0
     if stage.partial is not None and stage.partial["epoch"] == epoch:
         totals, batches = dict(stage.partial["totals"]), stage.partial["batches"]
     stage.partial = None
-    indices = list(setup.sampler)[batches * cfg.batch_size:]  # the same order as before the checkpoint
-    loader = DataLoader(setup.train_set, batch_size=cfg.batch_size, sampler=indices, num_workers=cfg.num_workers,
-                        drop_last=True)
+    indices = list(setup.sampler)[batches * cfg.schedule.batch_size:]  # the same order as before the checkpoint
+    loader = DataLoader(setup.train_set, batch_size=cfg.schedule.batch_size, sampler=indices,
+                        num_workers=cfg.runtime.num_workers, drop_last=True)
     bar = tqdm(loader, desc=f"stage {stage.number} epoch {epoch + 1}/{stage.epochs}", initial=batches,
-               total=batches + len(loader), disable=not (cfg.progress and run.main))
+               total=batches + len(loader), disable=not (cfg.runtime.progress and run.main))
     for batch in bar:
         parts = _step(setup, stage.number, stage.optimizer, to_device(batch, run.device), wrapped, progress)
         batches += 1
         for k, v in parts.items():
             totals[k] = totals.get(k, 0.0) + v
         bar.set_postfix(loss=f"{parts['loss']:.4f}")
-        if run.main and (setup.stop.requested or time.time() - saved_at > 60 * cfg.checkpoint_minutes):
+        if run.main and (setup.stop.requested or time.time() - saved_at > 60 * cfg.runtime.checkpoint_minutes):
             now = time.time()
             progress.train_seconds += now - started
             started = saved_at = now
@@ -457,9 +461,9 @@ def _step(setup: _Setup, stage: int, optimizer: torch.optim.Optimizer, batch: di
             loss = correspondence_loss(out.matching, batch["gt_idx"])
             parts = {"L0": float(loss.detach())}
         else:
-            generator = torch.Generator().manual_seed(cfg.seed * 1_000_003 + progress.step)
+            generator = torch.Generator().manual_seed(cfg.data.seed * 1_000_003 + progress.step)
             loss, parts = hybrid_loss(out, batch["src"], batch["rotation"], batch["translation"],
-                                      setup.loss_weights, generator=generator, backend=cfg.backend)
+                                      setup.loss_weights, generator=generator, backend=cfg.runtime.backend)
     if not torch.isfinite(loss):
         raise FloatingPointError(f"non-finite loss at stage {stage}, step {progress.step}: {parts}")
     optimizer.zero_grad(set_to_none=True)
@@ -483,8 +487,8 @@ def _end_epoch(setup: _Setup, stage: _Stage, epoch: int, done: dict, progress: _
     record["replica_max_abs_diff"] = _replica_spread(model, run)
     if not run.main:
         return record
-    val = evaluate(model, setup.val_set, batch_size=cfg.batch_size, device=run.device, progress=cfg.progress,
-                   use_rcp=stage.number == 2)
+    val = evaluate(model, setup.val_set, batch_size=cfg.schedule.batch_size, device=run.device,
+                   progress=cfg.runtime.progress, use_rcp=stage.number == 2)
     record.update({f"val_{k}": v for k, v in val.items()})
     score = val["L0"] if stage.number == 1 else val["RMSE(R)"]
     improved, improved_rmse = score < stage.best, val["RMSE(R)"] < progress.best_rmse
