@@ -2,7 +2,7 @@
 tuned on, in one run; and the calibration of its doubt.
 
     python benchmarks/bench_default.py [--data ../shared/data/scenes/real_pairs] [--seeds 2]
-        [--extra-rotation 180] [--cuts 3] [--json default.json] [--markdown default.md] [--plot doubt.png]
+        [--extra-rotation 180] [--cuts 3] [--sets real 'real turned' cuts crops] [--json default.json] [--markdown default.md] [--plot doubt.png]
 
 Sets (each pair once per seed; the seed also draws the turns):
 
@@ -11,7 +11,10 @@ Sets (each pair once per seed; the seed also draws the turns):
   to ``--extra-rotation`` degrees (the ground truth follows);
 * ``cuts``: object-like pairs cut from the 10 redkitchen fragments: two balls of 0.8 m radius around
   points 0.5 m apart, the second turned about its centre by 24, 48 or 72 degrees (``--cuts`` pairs
-  per fragment and angle), so overlap is partial and the motion large.
+  per fragment and angle), so overlap is partial and the motion large;
+* ``crops``: the indoor real pairs with the source cut by a plane so that 30, 20 or 10 % of it
+  overlaps the target (within 2.5 cm under the ground truth; pairs that overlap less already are
+  left out), the low-overlap regime.
 
 Methods: ``auto`` (the default: ``sc2``, and when its refinement is doubtful ``fpfh`` and ``vrnet``
 too, the best fit kept), ``sc2``, ``fpfh``, ``vrnet``, each as ``register()`` runs it in this
@@ -87,6 +90,44 @@ def cut_cases(data: Path, seed: int, per_angle: int):
                 yield "cuts", f"{path.stem} {angle:.0f} deg #{k}", source, target, np.linalg.inv(turn), False
 
 
+CROP_OVERLAPS = (0.3, 0.2, 0.1)  # the "crops" set: the share of the source's points that overlap the target
+OVERLAP_RADIUS = 0.025  # a source point overlaps where a target point is this close under the truth (the manifest's)
+
+
+def cropped(source: np.ndarray, target: np.ndarray, truth: np.ndarray, overlap: float) -> np.ndarray | None:
+    """The source cut by a plane so that about ``overlap`` of what is left lies on the target
+    (within :data:`OVERLAP_RADIUS` under the truth): the plane is normal to the direction from the
+    source's centre to its overlapping part's, moved until the share fits. None where the source
+    overlaps less already or too few points would be left."""
+    from scipy.spatial import cKDTree
+
+    from vrnet_ext.geometry.transforms import apply
+
+    distance, _ = cKDTree(target).query(apply(truth, source), distance_upper_bound=OVERLAP_RADIUS)
+    overlapping = np.isfinite(distance)
+    if overlapping.mean() <= overlap or overlapping.sum() < 100:
+        return None
+    direction = source[overlapping].mean(axis=0) - source.mean(axis=0)
+    along = source @ (direction / np.linalg.norm(direction))
+    order = np.argsort(along)
+    share = np.cumsum(overlapping[order]) / np.arange(1, len(order) + 1)  # overlap share of the k lowest
+    fits = np.flatnonzero((share <= overlap) & (np.arange(1, len(order) + 1) >= 2000))
+    if len(fits) == 0:
+        return None
+    return source[order[:fits[-1] + 1]]
+
+
+def crop_cases(data: Path, seed: int):
+    """(set, name, source, target, truth, outdoor) of the indoor real pairs cut to lower overlaps."""
+    for subset, name, source, target, truth, outdoor in real_cases(data, seed, 0.0):
+        if outdoor:
+            continue
+        for overlap in CROP_OVERLAPS:
+            cut = cropped(source, target, truth, overlap)
+            if cut is not None:
+                yield "crops", f"{name} {overlap:.0%}", cut, target, truth, outdoor
+
+
 def record_of(result, truth: np.ndarray, outdoor: bool, seconds: float) -> dict:
     from vrnet_ext.data.real_pairs import SUCCESS_THRESHOLDS
     from vrnet_ext.registration.result import transform_errors
@@ -95,7 +136,8 @@ def record_of(result, truth: np.ndarray, outdoor: bool, seconds: float) -> dict:
     max_re, max_te = SUCCESS_THRESHOLDS["outdoor" if outdoor else "indoor"]
     return {"success": bool(errors["rotation_error_deg"] < max_re and errors["translation_error"] < max_te), **errors,
             "fitness": result.fitness, "converged": result.converged, "warnings": result.warnings,
-            "start": result.start, "selection": result.selection, "seconds": seconds}
+            "start": result.start, "selection": result.selection, "seconds": seconds,
+            "transform": np.asarray(result.T_target_source).tolist()}
 
 
 def summary_rows(records: list[dict]) -> list[dict]:
@@ -152,7 +194,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, default=2, help="seeds per pair (each draws its own turns)")
     parser.add_argument("--extra-rotation", type=float, default=180.0, help="largest turn of the 'real turned' set")
     parser.add_argument("--cuts", type=int, default=3, help="pairs per fragment and angle of the 'cuts' set (0: none)")
-    parser.add_argument("--sets", nargs="+", default=["real", "real turned", "cuts"], help="sets to run")
+    parser.add_argument("--sets", nargs="+", default=["real", "real turned", "cuts", "crops"],
+                        choices=["real", "real turned", "cuts", "crops"], help="sets to run")
     parser.add_argument("--limit", type=int, default=None, help="at most this many pairs per set and seed")
     parser.add_argument("--json", default=None, help="write the record to this JSON file (none: print only)")
     parser.add_argument("--markdown", default=None, help="write the table to this Markdown file (none: print only)")
@@ -161,7 +204,7 @@ def main(argv: list[str] | None = None) -> None:
     data, records = Path(args.data), []
     for seed in range(args.seeds):
         sources = {"real": real_cases(data, seed, 0.0), "real turned": real_cases(data, seed, args.extra_rotation),
-                   "cuts": cut_cases(data, seed, args.cuts)}
+                   "cuts": cut_cases(data, seed, args.cuts), "crops": crop_cases(data, seed)}
         for subset in args.sets:
             for count, (name_set, name, source, target, truth, outdoor) in enumerate(sources[subset]):
                 if args.limit is not None and count >= args.limit:

@@ -1,7 +1,7 @@
 """How well the `--max-memory` planner predicts the peak it plans for.
 
     python benchmarks/bench_memory_plan.py [--data ../shared/data/scenes] [--pairs kitchen LiDAR]
-                                           [--methods sc2 fpfh fgr icp vrnet vrnet-large]
+                                           [--methods auto sc2 fpfh fgr icp vrnet vrnet-large]
                                            [--json plan.json] [--markdown plan.md]
 
 For every pair (the 3DMatch kitchen pair 4 -> 0 at full resolution and the LiDAR pair) and method, at
@@ -18,14 +18,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import subprocess
 import sys
 from pathlib import Path
 
+from outputs import cpu_description  # benchmarks/, the script's folder
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "scenes"
-METHODS = ("sc2", "fpfh", "fgr", "icp", "vrnet", "vrnet-large")
+METHODS = ("auto", "sc2", "fpfh", "fgr", "icp", "vrnet", "vrnet-large")
 LARGE_SCENE_MODEL = dict(hidden=1024, emb_dims=1024, neighbours=64, walk_hidden=1024)  # the limits' largest
 
 CHILD = r"""
@@ -33,7 +34,7 @@ import json, resource, sys
 import torch
 torch.set_num_threads(2)
 from vrnet_ext.geometry.io import read_points
-from vrnet_ext.registration.budget import plan_registration
+from vrnet_ext.registration.budget import plan_registration, resident_mb, transient_mb
 from vrnet_ext.registration import IcpSettings, PointCounts, register
 from vrnet_ext.registration.global_estimators import make_global_estimator
 from vrnet_ext.model.pretrained import DEFAULT_SCENE_MODEL, load_pretrained
@@ -46,8 +47,10 @@ model = load_pretrained(DEFAULT_SCENE_MODEL) if method == "vrnet" else None
 if method == "vrnet-large":  # random weights: the memory, not the result, is measured
     method, model = "vrnet", SceneVRNet(SceneConfig(**json.loads(large))).eval()
 estimator = make_global_estimator(method, model)
-plan = plan_registration(1 << 50, estimator, len(src), len(tgt),
-                         PointCounts(global_points=global_points, icp_points=icp_points))
+counts = PointCounts(global_points=global_points, icp_points=icp_points)
+held = resident_mb()
+plan = plan_registration(1 << 50, estimator, len(src), len(tgt), counts)
+transient = transient_mb(estimator, max(len(src), len(tgt)), counts)
 outcome = "registered"
 try:
     register(src, tgt, method=method, model=model, global_points=global_points,
@@ -55,7 +58,8 @@ try:
 except ValueError as error:  # random weights find no consensus; their forward pass has run by then
     outcome = str(error)
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-print(json.dumps({"predicted_mb": plan.predicted_peak_mb, "peak_mb": peak, "outcome": outcome}))
+print(json.dumps({"predicted_mb": plan.predicted_peak_mb, "peak_mb": peak, "held_mb": held, "transient_mb": transient,
+                  "outcome": outcome}))
 """
 
 
@@ -77,14 +81,19 @@ def measure(pair: dict, method: str, global_points: int, icp_points: int) -> dic
 
 
 def markdown(rows: list[dict], meta: dict) -> str:
-    lines = [f"Measured {meta['date']} on {meta['machine']}, torch {meta['torch']}.", "",
-             "| pair | method | counts | predicted MB | measured peak MB | predicted / measured |",
-             "|---|---|---|---:|---:|---:|"]
+    lines = [f"Measured {meta['date']} on {meta['machine']}, torch {meta['torch']}. Held: what the process holds when "
+             f"it plans (Python, torch, the scans); growth: measured peak - held; transient: the planner's largest "
+             f"stage before its safety factor. `auto` is planned for its first member (sc2): the others run only "
+             f"when sc2 is doubtful, and under a budget only where they fit what is left.", "",
+             "| pair | method | counts | held MB | growth MB | transient MB | predicted MB | measured peak MB "
+             "| predicted / measured |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['pair']} | {r['method']} | {r['counts']} | – | – | error: {r['error']} |")
+            lines.append(f"| {r['pair']} | {r['method']} | {r['counts']} | – | – | – | – | – | error: {r['error']} |")
         else:
-            lines.append(f"| {r['pair']} | {r['method']} | {r['counts']} | {r['predicted_mb']:.0f} | "
+            lines.append(f"| {r['pair']} | {r['method']} | {r['counts']} | {r['held_mb']:.0f} | "
+                         f"{r['peak_mb'] - r['held_mb']:.0f} | {r['transient_mb']:.0f} | {r['predicted_mb']:.0f} | "
                          f"{r['peak_mb']:.0f} | {r['ratio']:.2f} |")
     return "\n".join(lines) + "\n"
 
@@ -120,7 +129,7 @@ def main(argv: list[str] | None = None) -> None:
                        "icp_points": icp_points, **measure(pair, method, global_points, icp_points)}
                 print(json.dumps(row), flush=True)
                 rows.append(row)
-    meta = {"date": datetime.date.today().isoformat(), "machine": platform.machine(), "torch": torch.__version__}
+    meta = {"date": datetime.date.today().isoformat(), "machine": cpu_description(), "torch": torch.__version__}
     args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     args.markdown.write_text(markdown(rows, meta))
     print(f"wrote {args.json} and {args.markdown}")

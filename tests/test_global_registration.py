@@ -161,7 +161,7 @@ def test_real_3dmatch_pair_from_fpfh(tmp_path):
     start = lines.index("pair 0 10")
     truth = np.array([[float(v) for v in line.split()] for line in lines[start + 1:start + 5]])
     np.savetxt(tmp_path / "gt.txt", truth)
-    args = ["register", str(KITCHEN / "cloud_bin_10.ply"), str(KITCHEN / "cloud_bin_0.ply"), "--fpfh",
+    args = ["register", str(KITCHEN / "cloud_bin_10.ply"), str(KITCHEN / "cloud_bin_0.ply"), "--method", "fpfh",
             "--gt", str(tmp_path / "gt.txt"), "--json", str(tmp_path / "r.json")]
     assert main(args) == 0
     import json
@@ -235,9 +235,22 @@ def test_the_default_brings_in_its_other_estimators_only_when_in_doubt(monkeypat
     rescued = register(src, tgt, global_points=3000, icp_settings=settings)
     assert rescued.method == "auto" and rescued.start in ("fpfh", "vrnet"), rescued
     assert transform_errors(rescued.T_target_source, truth)["rotation_error_deg"] < 1.0
-    assert rescued.selection.startswith("sc2 ") and "the best fit is" in rescued.selection, rescued.selection
+    assert rescued.selection.startswith("sc2 ") and "refined from each" in rescued.selection, rescued.selection
+    # fpfh and the scene model both find the motion: the winner is confirmed, no disagreement
+    assert "ended too" in rescued.selection and not any("agree" in w for w in rescued.warnings), rescued
     assert {"initial (fpfh)", "initial (vrnet)"} <= set(rescued.seconds)
     assert not any("does not fit these scans" in w for w in rescued.warnings), rescued.warnings
+
+    class Failing(GlobalEstimator):
+        def estimate_pair(self, pair, seed):
+            raise ValueError("found nothing")
+
+    fallbacks = Adaptive.fallbacks
+    monkeypatch.setattr(Adaptive, "fallbacks", lambda self, pair, budget=None: ({"fpfh": Failing()}, []))
+    unconfirmed = register(src, tgt, global_points=3000, icp_settings=settings)  # the wrong start alone
+    assert "no two ended together" in unconfirmed.selection, unconfirmed.selection
+    assert any(w.startswith("no two estimators agree") for w in unconfirmed.warnings), unconfirmed.warnings
+    monkeypatch.setattr(Adaptive, "fallbacks", fallbacks)
     alone = register(src, tgt, method=Wrong(), global_points=3000, icp_settings=settings)
     assert alone.start == "sc2" and "initial (fpfh)" not in alone.seconds and alone.warnings
 

@@ -96,3 +96,29 @@ def test_icp_settings_are_checked_when_made():
         IcpSettings(estimator="gicp")
     with pytest.raises(TypeError, match="icp_settings must be an IcpSettings"):
         register(np.zeros((5, 3)), np.zeros((5, 3)), icp_settings={"points": 10})
+
+
+def test_the_normal_equations_sum_in_one_order_whatever_the_thread_count(tmp_path):
+    """ICP's J^T W J over 3 to 200,000 rows: the float64 matrix product to rounding, and the same bits
+    with 1 thread and with 2 (one long BLAS product splits its sum by thread count)."""
+    import subprocess
+    import sys
+
+    from vrnet_ext.registration.icp_steps import GRAM_ROWS, fixed_order_product
+
+    script = ("import sys, torch; torch.set_num_threads(int(sys.argv[2])); "
+              "from vrnet_ext.registration.icp_steps import fixed_order_product; "
+              "g = torch.Generator().manual_seed(0); "
+              "pairs = [(torch.randn(n, 6, generator=g, dtype=torch.float64), torch.randn(n, k, generator=g, "
+              "dtype=torch.float64)) for n, k in ((3, 6), (GRAM, 6), (GRAM + 1, 6), (5_000, 6), (200_000, 6))]; "
+              "torch.save([fixed_order_product(a, b) for a, b in pairs], sys.argv[1])").replace("GRAM", str(GRAM_ROWS))
+    results = []
+    for threads in (1, 2):
+        path = tmp_path / f"{threads}.pt"
+        subprocess.run([sys.executable, "-c", script, str(path), str(threads)], check=True, timeout=120)
+        results.append(torch.load(path))
+    assert all(torch.equal(one, two) for one, two in zip(*results))
+    g = torch.Generator().manual_seed(1)
+    for rows in (1, GRAM_ROWS - 1, 3 * GRAM_ROWS + 5):
+        left, right = (torch.randn(rows, 6, generator=g, dtype=torch.float64) for _ in range(2))
+        torch.testing.assert_close(fixed_order_product(left, right), left.T @ right, rtol=1e-12, atol=1e-12)

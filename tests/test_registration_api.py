@@ -104,3 +104,22 @@ def test_results_are_built_by_keyword_and_counts_name_their_argument(turned_room
     for name, bad in (("global_points", 2), ("network_points", 0), ("global_points", 1.5)):
         with pytest.raises(ValueError, match=f"{name} must be an integer"):
             register(*turned_room, **{name: bad})
+
+
+def test_the_default_is_planned_for_its_first_member_and_tries_the_others_only_within_the_budget(turned_room):
+    """``auto`` under ``max_memory``: the plan is spatial consistency's (the others run only when it is
+    doubtful); a fallback whose predicted peak passes the budget is left out, with a note naming it."""
+    from vrnet_ext.registration.budget import MB
+    from vrnet_ext.registration.global_estimators import Adaptive, SpatialConsistency
+
+    counts = PointCounts()
+    assert Adaptive().peak_mb(100_000, counts) == SpatialConsistency().peak_mb(100_000, counts)
+    pair = ScanPair.of(*turned_room)
+    every, notes = Adaptive().fallbacks(pair)
+    assert set(every) == {"fpfh", "vrnet"} and notes == []
+    auto = Adaptive()
+    auto.member("vrnet")  # loaded before the budget is read, as in a run that plans first
+    tight = int((resident_mb() + 150) * MB)  # room for FPFH + RANSAC, not for the scene network
+    kept, notes = auto.fallbacks(pair, tight)
+    assert set(kept) == {"fpfh"}, (kept, notes)
+    assert len(notes) == 1 and notes[0].startswith("vrnet was not tried: it needs about"), notes

@@ -88,8 +88,8 @@ class RegistrationPlan:
     notes: list[str] = field(default_factory=list)
 
 
-def _stage_mb(estimator: CostedEstimator | None, largest_scan: int, counts: PointCounts) -> float:
-    """Largest transient of the run's stages (MB), safety factor included: the voxel grid, ICP and
+def transient_mb(estimator: CostedEstimator | None, largest_scan: int, counts: PointCounts) -> float:
+    """Largest transient of the run's stages (MB, before the safety factor): the voxel grid, ICP and
     the global estimator's own cost (:meth:`GlobalEstimator.peak_mb`; None or unknown: not counted)."""
     counts = replace(counts, global_points=min(counts.global_points, largest_scan),  # no scan grows
                      icp_points=min(counts.icp_points, largest_scan))
@@ -99,7 +99,16 @@ def _stage_mb(estimator: CostedEstimator | None, largest_scan: int, counts: Poin
     own = None if cost is None else cost(largest_scan, counts)
     if own is not None:
         stages.append(own)
-    return SAFETY * max(stages)
+    return max(stages)
+
+
+def predicted_peak_mb(estimator: CostedEstimator | None, largest_scan: int, counts: PointCounts,
+                      held_mb: float | None = None) -> float:
+    """The peak resident memory (MB) this process is expected to reach if it registers with
+    ``estimator`` at ``counts`` holding ``held_mb`` (default: what it holds now): the margin and the
+    largest stage with the safety factor on top."""
+    held = resident_mb() if held_mb is None else held_mb
+    return held + MARGIN_MB + SAFETY * transient_mb(estimator, largest_scan, counts)
 
 
 def plan_registration(budget_bytes: int, estimator: CostedEstimator | None, source_points: int,
@@ -115,7 +124,7 @@ def plan_registration(budget_bytes: int, estimator: CostedEstimator | None, sour
     counts = requested
 
     def predicted(at: PointCounts) -> float:
-        return now_mb + MARGIN_MB + _stage_mb(estimator, largest, at)
+        return predicted_peak_mb(estimator, largest, at, now_mb)
 
     while predicted(counts) > budget_mb:
         lower = {name: max(FLOORS[name], int(getattr(counts, name) * 0.8)) for name in shrinkable

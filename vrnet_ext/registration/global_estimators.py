@@ -277,13 +277,14 @@ class Adaptive(GlobalEstimator):
     refinement from it is doubtful (:func:`vrnet_ext.registration.pipeline.register_prepared` says
     when), the others estimate on the same prepared scans too, ICP runs from each, and the
     refinement that fits best wins. ``model``: the scene model of the ``"vrnet"`` member (default:
-    the shipped one, loaded on first need, on the pair's device). Its cost for a memory budget is
-    the largest of its members'."""
+    the shipped one, loaded on first need, on the pair's device). A memory budget is planned for the
+    first member; the others run only where they fit it."""
 
     model: SceneVRNet | None = None
     backend: str = "ext"
     name: ClassVar[str] = "auto"
     members: ClassVar[tuple[str, ...]] = AUTO_MEMBERS
+    arbiter: ClassVar[str] = "vrnet"  # whose refinement is kept when no two members' refinements agree
     sized_by: ClassVar[tuple[str, ...]] = ("global_points",)
 
     def __post_init__(self) -> None:
@@ -300,18 +301,31 @@ class Adaptive(GlobalEstimator):
         return self._built[name]
 
     def peak_mb(self, largest_scan, counts):
-        costs = [SCENE_MB + SCENE_BYTES_PER_POINT * counts.global_points / MB if name == "vrnet" and self.model is None
-                 else self.member(name).peak_mb(largest_scan, counts) for name in self.members]
-        return max(cost for cost in costs if cost is not None)
+        """The first member's cost: the others run only when it is doubtful, and under a memory budget
+        only where they fit it (:meth:`fallbacks`)."""
+        return self.member(self.members[0]).peak_mb(largest_scan, counts)
 
     def estimate_pair(self, pair, seed):
         estimate = self.member(self.members[0], pair.device).estimate_pair(pair, seed)
         estimate.method = self.name
         return estimate
 
-    def fallbacks(self, pair) -> dict[str, GlobalEstimator]:
-        """The members that estimate when the first one's refinement is doubtful, by name."""
-        return {name: self.member(name, pair.device) for name in self.members[1:]}
+    def fallbacks(self, pair: ScanPair, budget_bytes: int | None = None) -> tuple[dict[str, GlobalEstimator],
+                                                                                 list[str]]:
+        """The members that estimate when the first one's refinement is doubtful, by name; under a
+        memory budget only those whose predicted peak fits it, with a note for each one left out."""
+        from vrnet_ext.registration.budget import predicted_peak_mb
+
+        largest, kept, notes = max(len(pair.src.points), len(pair.tgt.points)), {}, []
+        for name in self.members[1:]:
+            member = self.member(name, pair.device)
+            peak = None if budget_bytes is None else predicted_peak_mb(member, largest, pair.counts)
+            if peak is not None and peak > budget_bytes / MB:
+                notes.append(f"{name} was not tried: it needs about {peak:.0f} MB, more than max_memory "
+                             f"{budget_bytes / MB:.0f} MB")
+            else:
+                kept[name] = member
+        return kept, notes
 
 
 # The built-in estimators by name (their names, torch-free, in :data:`GLOBAL_ESTIMATORS`); "vrnet" is

@@ -19,6 +19,7 @@ Jacobian at the moved point p is [-[p]_x | I].
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from vrnet_ext import ops
 from vrnet_ext.geometry.transforms import apply
@@ -69,14 +70,30 @@ def symmetric_inverse(M: torch.Tensor) -> torch.Tensor:
     return inverse / (a * A + b * B + c * C)[:, None, None]
 
 
+GRAM_ROWS = 256  # rows per partial product of the normal equations (fixed_order_product)
+
+
+def fixed_order_product(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
+    """left (R, a), right (R, b) -> left^T right (a, b) for b > 1, summed over blocks of
+    :data:`GRAM_ROWS` rows in one order whatever the thread count: one long matrix product is split
+    across threads by the BLAS library (Intel's MKL splits the sum over rows beyond ~2,000), and its
+    last bits would change with the number of threads (a matrix-vector product, b = 1, splits even
+    short sums: use torch's sum there)."""
+    pad = (-left.shape[0]) % GRAM_ROWS
+    if pad:
+        left, right = F.pad(left, (0, 0, 0, pad)), F.pad(right, (0, 0, 0, pad))
+    blocks = left.shape[0] // GRAM_ROWS
+    return torch.bmm(left.reshape(blocks, GRAM_ROWS, -1).transpose(1, 2), right.reshape(blocks, GRAM_ROWS, -1)).sum(0)
+
+
 def gauss_newton_step(J: torch.Tensor, residual: torch.Tensor, weights: torch.Tensor, T: torch.Tensor,
                       information: torch.Tensor | None = None) -> torch.Tensor:
     """J (P, m, 6), residual (P, m), weights (P,), optional information matrices (P, m, m) (identity
     when None) -> exp(xi) T, xi minimising sum_p w_p (r_p + J_p xi)^T Info_p (r_p + J_p xi)."""
     weighted = J * weights[:, None, None]
     informed = J if information is None else information @ J  # Info J, (P, m, 6)
-    H = weighted.reshape(-1, 6).T @ informed.reshape(-1, 6)
-    b = (informed * (residual * weights[:, None])[..., None]).reshape(-1, 6).sum(0)
+    H = fixed_order_product(weighted.reshape(-1, 6), informed.reshape(-1, 6))
+    b = (informed * (residual * weights[:, None])[..., None]).reshape(-1, 6).sum(0)  # torch's sums keep one order
     xi = -torch.linalg.solve(H + 1e-12 * torch.eye(6, dtype=H.dtype, device=H.device), b)
     return se3_exp(xi) @ T
 

@@ -173,9 +173,9 @@ def _register_centred(src: np.ndarray, tgt: np.ndarray, run: RegistrationRun) ->
 
 def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResult:
     """The global estimate and ICP of :func:`register` on a pair already prepared (its clouds near
-    the origin, its point counts fitted to any budget; ``run.max_memory`` is not looked at here):
-    many registrations between a set of scans share each scan's preparation this way. With the
-    default estimator (``"auto"``), a doubtful refinement (:func:`doubt`) brings in the others."""
+    the origin, its point counts fitted to any budget): many registrations between a set of scans
+    share each scan's preparation this way. With the default estimator (``"auto"``), a doubtful
+    refinement (:func:`doubt`) brings in the others, those that fit ``run.max_memory``."""
     src, tgt, warnings = pair.src.points, pair.tgt.points, []
     seconds: dict[str, float] = {}
     estimate, starts = _global_starts(pair, run, seconds)
@@ -193,7 +193,9 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
     if hasattr(run.estimator, "fallbacks"):
         reason = doubt(refined.get(own))
         if reason:
-            others = _fallback_starts(run.estimator.fallbacks(pair), pair, run, seconds)
+            fallbacks, left_out = run.estimator.fallbacks(pair, run.max_memory)
+            warnings += left_out
+            others = _fallback_starts(fallbacks, pair, run, seconds)
             more, more_failures = _refine(problem, pair, others, run, seconds)
             refined.update(more)
             failures += more_failures
@@ -201,14 +203,15 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
     if not refined:
         warnings.append(f"{'; '.join(failures)}; returning the unrefined initial estimate")
         return RegistrationResult(fitness=0.0, **unrefined)
-    winner = max(refined, key=lambda start: (refined[start].fitness, -refined[start].inlier_rmse))
-    if own in refined and refined[own].fitness >= refined[winner].fitness - FITNESS_TIE:
-        winner = own  # the estimator's own start unless another fits clearly better
-    best = refined[winner]
+    winner = _best_fit(refined, own)
     if selection:
-        fits = ", ".join(f"{start} {result.fitness:.1%}" for start, result in refined.items())
-        selection += f"refined from each ({fits}): the best fit is {winner}'s"
-    elif winner != own:
+        winner, why, agreed = _agreed(problem, refined, own, getattr(run.estimator, "arbiter", None))
+        selection += why
+        if not agreed:
+            warnings.append(f"no two estimators agree (ICP from {', '.join(refined)} ended apart): the result may "
+                            f"be wrong")
+    best = refined[winner]
+    if not selection and winner != own:
         from_own = f"fitness {refined[own].fitness:.1%}" if own in refined else "no pairs within reach"
         warnings.append(f"{_label(own)} does not fit these scans (ICP from it: {from_own}; from "
                         f"{_label(winner)}: {best.fitness:.1%}); returning the refinement that started from "
@@ -227,6 +230,43 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
                               inlier_rmse=best.inlier_rmse, correspondences=best.correspondences, seconds=seconds,
                               points=points, warnings=warnings, start=winner, consensus=estimate.consensus,
                               selection=selection)
+
+
+def _best_fit(refined: dict[str, RegistrationResult], own: str) -> str:
+    """The start whose refinement fits best; the estimator's own (``own``) unless another fits clearly
+    better (by more than :data:`FITNESS_TIE`)."""
+    winner = max(refined, key=lambda start: (refined[start].fitness, -refined[start].inlier_rmse))
+    if own in refined and refined[own].fitness >= refined[winner].fitness - FITNESS_TIE:
+        return own
+    return winner
+
+
+def _agreed(problem: IcpProblem, refined: dict[str, RegistrationResult], own: str,
+            arbiter: str | None) -> tuple[str, str, bool]:
+    """The refinement to keep when several estimators ran, why, and whether two starts agreed on it:
+    the best fit among those where the most other starts ended too (:func:`_same_alignment`); when no
+    two agree, ``arbiter``'s (the default's scene model: fitness favours alignments that slide a small
+    overlap onto a large surface), else the best fit."""
+    fits = ", ".join(f"{start} {result.fitness:.1%}" for start, result in refined.items())
+    support = {start: [other for other in refined if other != start
+                       and _same_alignment(problem, refined[other], refined[start])] for start in refined}
+    most = max(len(others) for others in support.values())
+    if most > 0:
+        winner = _best_fit({start: refined[start] for start in refined if len(support[start]) == most}, own)
+        return winner, f"refined from each ({fits}): {winner}'s, where {' and '.join(support[winner])} ended too", True
+    if arbiter in refined:
+        return arbiter, f"refined from each ({fits}): no two ended together; {arbiter}'s, the arbiter's", False
+    winner = _best_fit(refined, own)
+    return winner, f"refined from each ({fits}): no two ended together; the best fit, {winner}'s", False
+
+
+def _same_alignment(problem: IcpProblem, a: RegistrationResult, b: RegistrationResult) -> bool:
+    """Whether two refinements place the source within ICP's reach of each other (the RMS distance
+    between the source's ICP points moved by either)."""
+    points = problem.src[0]
+    difference = torch.as_tensor(a.T_target_source - b.T_target_source, dtype=points.dtype, device=points.device)
+    apart = points @ difference[:3, :3].T + difference[:3, 3]
+    return float(apart.square().sum(dim=1).mean().sqrt()) < problem.settings.max_distance
 
 
 def doubt(refined: RegistrationResult | None) -> str | None:
