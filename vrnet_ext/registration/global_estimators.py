@@ -275,8 +275,9 @@ def network_estimator(model: VRNet | SceneVRNet, backend: str = "ext") -> Global
 class Adaptive(GlobalEstimator):
     """The default (``"auto"``): the first of ``members`` (spatial consistency) estimates; when the
     refinement from it is doubtful (:func:`vrnet_ext.registration.pipeline.register_prepared` says
-    when), the others estimate on the same prepared scans too, ICP runs from each, and the
-    refinement that fits best wins. ``model``: the scene model of the ``"vrnet"`` member (default:
+    when), the others estimate on the same prepared scans too, ICP runs from each, and the best fit
+    among the refinements another one confirms wins, else the ``arbiter``'s (the pipeline's
+    ``_agreed``). ``model``: the scene model of the ``"vrnet"`` member (default:
     the shipped one, loaded on first need, on the pair's device). A memory budget is planned for the
     first member; the others run only where they fit it."""
 

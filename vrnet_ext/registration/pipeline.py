@@ -80,8 +80,8 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     ModelNet40 :class:`VRNet` on ``network_points`` subsampled points; default: the shipped scene
     model); ``"fgr"``: FPFH + Fast Global Registration; ``"icp"``: ICP from no motion; ``"auto"``:
     ``"sc2"``, and when ICP from it is doubtful (:func:`doubt`) ``"fpfh"`` and ``"vrnet"`` too, ICP
-    from each and the best fit kept (``selection`` says why; a scene ``model`` is used for its
-    ``"vrnet"``). None: ``"vrnet"`` when a model is given, else ``"auto"`` (the default of
+    from each and the best fit that another confirms kept, else ``"vrnet"``'s (``selection`` says
+    why; a scene ``model`` is used for its ``"vrnet"``). None: ``"vrnet"`` when a model is given, else ``"auto"`` (the default of
     ``vrnet register`` too).
     icp_settings: the refinement (:class:`IcpSettings`). When the estimator asks for it
     (``also_start_from``: the scene network also starts from ``"sc2"``'s estimate, a ModelNet40 network
@@ -208,8 +208,9 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
         winner, why, agreed = _agreed(problem, refined, own, getattr(run.estimator, "arbiter", None))
         selection += why
         if not agreed:
-            warnings.append(f"no two estimators agree (ICP from {', '.join(refined)} ended apart): the result may "
-                            f"be wrong")
+            apart = (f"ICP from {', '.join(refined)} ended apart" if len(refined) > 1
+                     else f"only {winner}'s estimate could be refined")
+            warnings.append(f"no two estimators agree ({apart}): the result may be wrong")
     best = refined[winner]
     if not selection and winner != own:
         from_own = f"fitness {refined[own].fitness:.1%}" if own in refined else "no pairs within reach"
