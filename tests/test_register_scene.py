@@ -123,3 +123,26 @@ def test_the_command_writes_poses_cloud_and_map(views, tmp_path, capsys):
     (tmp_path / "bad_poses.txt").write_text("1 2 3\n")
     assert main(["register-scene", *map(str, paths), "--gt-poses", str(tmp_path / "bad_poses.txt")]) == 2
     assert "expected 4 poses" in capsys.readouterr().err
+
+
+def test_the_map_pass_pulls_a_scan_back_onto_the_others(views):
+    """The last pass (``SceneOptions.map_icp``): a scan 2 degrees and 3 cm off while the others sit at
+    their true poses is moved back by ICP against them; the reference never moves; off, nothing runs."""
+    from synthetic import motion
+
+    import vrnet_ext.registration.multiway as multiway
+
+    scene = multiway._read_scans(views[0], None, SceneOptions())
+    truth = np.linalg.inv(views[1][0]) @ views[1]  # T_first_scan
+    placed = np.ones(len(truth), dtype=bool)
+    off = truth.copy()
+    off[2] = motion(2.0, [0.03, -0.01, 0.0], seed=3) @ truth[2]
+    refined = multiway._refine_against_map(scene, off, placed, reference=0)
+    scan_errors = scene_errors(multiway.SceneResult(
+        names=scene.names, poses=refined, initial_poses=off, placed=placed, edges=[], fused=np.zeros((0, 3)),
+        voxel=scene.voxel, reach=scene.reach, warnings=[], seconds={}), views[1])
+    assert scan_errors["optimised"]["max_rotation_deg"] < 0.3 and scan_errors["optimised"]["max_translation"] < 0.01
+    assert scan_errors["initial"]["max_rotation_deg"] > 1.9
+    np.testing.assert_array_equal(refined[0], truth[0])
+    assert "map_icp" in register_scene(views[0][:2]).seconds
+    assert "map_icp" not in register_scene(views[0][:2], SceneOptions(map_icp=False)).seconds

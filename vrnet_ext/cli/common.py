@@ -22,6 +22,8 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
         default = action.default
+        if isinstance(action, Switch) and isinstance(default, bool) and "default:" not in text:
+            return f"{text} (default: {action.option_strings[0 if default else 1]})"
         if ("default:" in text or default is None or default is argparse.SUPPRESS or action.nargs == 0
                 or default in ("", [])):
             return text

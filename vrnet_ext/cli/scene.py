@@ -47,6 +47,8 @@ def add_register_scene(sub) -> None:
                    help="more scans: register each with its next this many")
     p.add_argument("--loop-candidates", type=nonnegative_int, default=SCENE_LOOP_CANDIDATES,
                    help="more scans: and with up to this many others that the first poses put nearest")
+    p.add_argument("--map-icp", action=Switch, default=True,
+                   help="after the pose graph, refine each scan by ICP against all the others")
     p.add_argument("--progress", action=Switch, default=True, help="progress bar")
     add_registration_options(p)
 
@@ -81,7 +83,7 @@ def _register_scene_and_report(args) -> dict:
         raise ValueError("give at least 2 scans (as arguments or with --list)")
     truth = read_poses(args.gt_poses, scans) if args.gt_poses else None
     options = SceneOptions(register=registration_arguments(args), all_pairs_up_to=args.all_pairs_up_to,
-                           neighbours=args.neighbours, loop_candidates=args.loop_candidates)
+                           neighbours=args.neighbours, loop_candidates=args.loop_candidates, map_icp=args.map_icp)
     result = register_scene(scans, options, cache=args.cache, progress=args.progress)
     record = result.to_dict()
     record["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

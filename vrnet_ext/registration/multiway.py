@@ -29,7 +29,7 @@ from vrnet_ext.registration.cycles import spanning_tree, triangle_support
 from vrnet_ext.registration.pipeline import RegistrationRun, register_prepared
 from vrnet_ext.registration.pose_graph import PoseEdge, PoseGraphSettings, bridges, optimize_pose_graph
 from vrnet_ext.registration.prepared import PreparedScan, ScanPair
-from vrnet_ext.registration.refinement import pairs_within_reach
+from vrnet_ext.registration.refinement import IcpFailure, icp, pairs_within_reach
 
 MIN_SCAN_POINTS = 100  # fewer points than this cannot be registered reliably: such a scan is skipped
 REACH_VOXELS = 3.0  # the ICP reach and the pose graph's, in ICP voxels (as register()'s default reach)
@@ -43,12 +43,15 @@ class SceneOptions:
     edges are chosen once for the whole scene (the median of the scans' own) unless
     ``icp_settings.voxel_size`` fixes the ICP one. Candidate pairs: every pair when there are at most
     ``all_pairs_up_to`` scans; else each scan with its next ``neighbours`` in the given order, then
-    with up to ``loop_candidates`` scans that those first poses put nearest (loop closures)."""
+    with up to ``loop_candidates`` scans that those first poses put nearest (loop closures).
+    ``map_icp``: after the pose graph, each placed scan is refined by ICP against all the others as
+    the optimised poses place them (Open3D's tutorial's last step; :func:`_refine_against_map`)."""
 
     register: dict[str, Any] = field(default_factory=dict)
     all_pairs_up_to: int = SCENE_ALL_PAIRS_UP_TO
     neighbours: int = SCENE_NEIGHBOURS
     loop_candidates: int = SCENE_LOOP_CANDIDATES
+    map_icp: bool = True
 
     def __post_init__(self) -> None:
         for name in ("all_pairs_up_to", "neighbours", "loop_candidates"):
@@ -357,6 +360,10 @@ def register_scene(scans: Sequence, options: SceneOptions = SceneOptions(), *, n
     started = time.perf_counter()
     result = _optimise(scene, edges, reference, count)
     seconds["pose_graph"] = time.perf_counter() - started
+    if options.map_icp and result.placed.sum() > 1:
+        started = time.perf_counter()
+        result.poses = _refine_against_map(scene, result.poses, result.placed, reference)
+        seconds["map_icp"] = time.perf_counter() - started
     started = time.perf_counter()
     result.fused = _fuse(scene, result.poses, result.placed)
     seconds["fuse"] = time.perf_counter() - started
@@ -404,6 +411,26 @@ def _optimise(scene: _Scene, edges: list[SceneEdge], reference: int, count: int)
         warnings.append(f"not placed (no registration links them to {scene.names[reference]}): {', '.join(missing)}")
     return SceneResult(names=scene.names, poses=poses, initial_poses=initial, placed=placed, edges=edges,
                        fused=np.zeros((0, 3)), voxel=scene.voxel, reach=scene.reach, warnings=warnings, seconds={})
+
+
+def _refine_against_map(scene: _Scene, poses: np.ndarray, placed: np.ndarray, reference: int) -> np.ndarray:
+    """Each placed scan but the reference refined by ICP (the scene's settings and reach) against
+    all the other placed scans at the ICP voxel, moved by ``poses``, starting from its own pose: the
+    pairwise registrations' small disagreements, which the pose graph can only share out, are
+    settled on every overlap at once. A scan whose ICP finds no pairs within reach keeps its pose."""
+    clouds = {i: scene.scans[i].downsampled(scene.voxel) for i in np.flatnonzero(placed)}
+    moved = {i: apply(poses[i], cloud) for i, cloud in clouds.items()}
+    refined = poses.copy()
+    for i, cloud in clouds.items():
+        if i == reference:
+            continue
+        others = np.concatenate([points for j, points in moved.items() if j != i])
+        try:
+            refined[i] = icp(cloud, others, poses[i], scene.run.icp, device=scene.run.device,
+                             backend=scene.run.backend).T_target_source
+        except IcpFailure:
+            pass
+    return refined
 
 
 def _fuse(scene: _Scene, poses: np.ndarray, placed: np.ndarray) -> np.ndarray:
