@@ -90,9 +90,10 @@ def _add_section(group, section) -> None:
     hints = typing.get_type_hints(section)
     for f in fields(section):
         add = group.add_argument
-        flag = "--" + f.name.replace("_", "-")
         kind = hints[f.name]
-        values = preset_values(f.name)
+        flag = "--" + f.name.replace("_", "-")
+        spelled = {True: flag, False: "--no-" + flag[2:]}  # a switch's value as its spelling
+        values = {preset: spelled[v] if isinstance(v, bool) else v for preset, v in preset_values(f.name).items()}
         shown = {str(v) for v in values.values()}
         default = (f"default: {next(iter(shown))}" if len(shown) == 1
                    else "default: " + ", ".join(f"{k} {v}" for k, v in values.items()))

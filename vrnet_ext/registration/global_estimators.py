@@ -29,6 +29,7 @@ from vrnet_ext.model.scene import SceneVRNet
 from vrnet_ext.geometry.preprocessing import subsample
 from vrnet_ext.registration.fgr import fast_global_registration
 from vrnet_ext.names import AUTO_MEMBERS, DEFAULT_SCENE_MODEL, GLOBAL_ESTIMATORS
+from vrnet_ext.registration.budget import MB, predicted_peak_mb
 from vrnet_ext.registration.counts import PointCounts
 from vrnet_ext.registration.prepared import ScanPair
 from vrnet_ext import ops
@@ -37,7 +38,6 @@ from vrnet_ext.registration.ransac import SCORING_MB as RANSAC_SCORING_MB, featu
 from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import from_normalised, to_homogeneous
 
-MB = 2 ** 20
 # Peak growth of each estimator, in MB: intercept + bytes per point / MB, fitted to whole-process peaks
 # (benchmarks/bench_memory_plan.py; :mod:`vrnet_ext.registration.budget` adds its safety factor).
 FPFH_MB, FPFH_BYTES_PER_POINT = 33.0, 5500.0  # normals, FPFH (100 neighbours), matching, RANSAC / SC2
@@ -315,8 +315,6 @@ class Adaptive(GlobalEstimator):
                                                                                  list[str]]:
         """The members that estimate when the first one's refinement is doubtful, by name; under a
         memory budget only those whose predicted peak fits it, with a note for each one left out."""
-        from vrnet_ext.registration.budget import predicted_peak_mb
-
         largest, kept, notes = max(len(pair.src.points), len(pair.tgt.points)), {}, []
         for name in self.members[1:]:
             member = self.member(name, pair.device)
