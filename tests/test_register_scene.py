@@ -1,6 +1,7 @@
 """register_scene / vrnet register-scene on synthetic rooms cut into overlapping views with known
 poses: the poses, the pair cache, bad scans, far-off coordinates, the command's outputs."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -125,24 +126,29 @@ def test_the_command_writes_poses_cloud_and_map(views, tmp_path, capsys):
     assert "expected 4 poses" in capsys.readouterr().err
 
 
-def test_the_map_pass_pulls_a_scan_back_onto_the_others(views):
+def test_the_map_pass_pulls_a_scan_back_onto_the_scans_it_was_registered_with(views):
     """The last pass (``SceneOptions.map_icp``): a scan 2 degrees and 3 cm off while the others sit at
-    their true poses is moved back by ICP against them; the reference never moves; off, nothing runs."""
+    their true poses is moved back by ICP against the scans it was registered with; the reference and
+    a scan registered with none never move; off, nothing runs."""
     from synthetic import motion
 
     import vrnet_ext.registration.multiway as multiway
 
     scene = multiway._read_scans(views[0], None, SceneOptions())
     truth = np.linalg.inv(views[1][0]) @ views[1]  # T_first_scan
-    placed = np.ones(len(truth), dtype=bool)
     off = truth.copy()
     off[2] = motion(2.0, [0.03, -0.01, 0.0], seed=3) @ truth[2]
-    refined = multiway._refine_against_map(scene, off, placed, reference=0)
-    scan_errors = scene_errors(multiway.SceneResult(
-        names=scene.names, poses=refined, initial_poses=off, placed=placed, edges=[], fused=np.zeros((0, 3)),
-        voxel=scene.voxel, reach=scene.reach, warnings=[], seconds={}), views[1])
-    assert scan_errors["optimised"]["max_rotation_deg"] < 0.3 and scan_errors["optimised"]["max_translation"] < 0.01
-    assert scan_errors["initial"]["max_rotation_deg"] > 1.9
+    off[3] = motion(2.0, [0.03, -0.01, 0.0], seed=4) @ truth[3]
+    edges = [multiway.SceneEdge(source=2, target=j, T_target_source=np.eye(4), fitness=1.0, inlier_rmse=0.0,
+                                correspondences=1, warnings=[], seconds=0.0, information=np.eye(6), kept=j == 0)
+             for j in (0, 1)]
+    placed = np.ones(len(truth), dtype=bool)
+    result = multiway.SceneResult(names=scene.names, poses=off, initial_poses=off, placed=placed, edges=edges,
+                                  fused=np.zeros((0, 3)), voxel=scene.voxel, reach=scene.reach, warnings=[], seconds={})
+    refined = multiway._refine_against_map(scene, result, reference=0)
+    errors = scene_errors(replace(result, poses=refined), views[1])["scans"]
+    assert errors[2]["rotation_error_deg"] < 0.3 and errors[2]["translation_error"] < 0.01, errors[2]
     np.testing.assert_array_equal(refined[0], truth[0])
+    np.testing.assert_array_equal(refined[3], off[3])  # registered with none: not refined
     assert "map_icp" in register_scene(views[0][:2]).seconds
     assert "map_icp" not in register_scene(views[0][:2], SceneOptions(map_icp=False)).seconds

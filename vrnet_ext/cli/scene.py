@@ -48,7 +48,7 @@ def add_register_scene(sub) -> None:
     p.add_argument("--loop-candidates", type=nonnegative_int, default=SCENE_LOOP_CANDIDATES,
                    help="more scans: and with up to this many others that the first poses put nearest")
     p.add_argument("--map-icp", action=Switch, default=True,
-                   help="after the pose graph, refine each scan by ICP against all the others")
+                   help="after the pose graph, refine each scan by ICP against the scans it was registered with")
     p.add_argument("--progress", action=Switch, default=True, help="progress bar")
     add_registration_options(p)
 

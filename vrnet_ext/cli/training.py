@@ -135,8 +135,7 @@ def run_train(args) -> int:
     if not record and cfg.start.resume:  # every epoch was already done in the checkpoint: nothing trained
         schedule = cfg.schedule
         print(f"{cfg.start.resume} holds a finished run ({schedule.stage1_epochs} + {schedule.stage2_epochs} epochs): "
-              f"nothing to "
-              f"train (give more --stage2-epochs to continue it)")
+              f"nothing to train (give more --stage2-epochs to continue it)")
         print(f"evaluate with: vrnet eval --checkpoint {Path(cfg.start.resume).with_name('best.pt')}")
         return 0
     print(f"wrote {out_dir}/: {', '.join(written)}")

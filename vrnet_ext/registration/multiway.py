@@ -44,8 +44,8 @@ class SceneOptions:
     ``icp_settings.voxel_size`` fixes the ICP one. Candidate pairs: every pair when there are at most
     ``all_pairs_up_to`` scans; else each scan with its next ``neighbours`` in the given order, then
     with up to ``loop_candidates`` scans that those first poses put nearest (loop closures).
-    ``map_icp``: after the pose graph, each placed scan is refined by ICP against all the others as
-    the optimised poses place them (Open3D's tutorial's last step; :func:`_refine_against_map`)."""
+    ``map_icp``: after the pose graph, each placed scan is refined by ICP against the scans it was
+    registered with, as the optimised poses place them (:func:`_refine_against_map`)."""
 
     register: dict[str, Any] = field(default_factory=dict)
     all_pairs_up_to: int = SCENE_ALL_PAIRS_UP_TO
@@ -70,7 +70,7 @@ class SceneEdge:
     ``T_target_source`` (4, 4), the pairwise fitness, inlier RMSE and correspondences, the loops of
     three it closes consistently (``support``), whether the initial spanning tree used it
     (``in_tree``), and after the optimisation its ``weight``, whether it was ``kept``, and how far
-    the final poses move its correspondences (``displacement``, RMS, the scans' unit)."""
+    the pose graph's poses move its correspondences (``displacement``, RMS, the scans' unit)."""
 
     source: int
     target: int
@@ -362,7 +362,7 @@ def register_scene(scans: Sequence, options: SceneOptions = SceneOptions(), *, n
     seconds["pose_graph"] = time.perf_counter() - started
     if options.map_icp and result.placed.sum() > 1:
         started = time.perf_counter()
-        result.poses = _refine_against_map(scene, result.poses, result.placed, reference)
+        result.poses = _refine_against_map(scene, result, reference)
         seconds["map_icp"] = time.perf_counter() - started
     started = time.perf_counter()
     result.fused = _fuse(scene, result.poses, result.placed)
@@ -413,21 +413,28 @@ def _optimise(scene: _Scene, edges: list[SceneEdge], reference: int, count: int)
                        fused=np.zeros((0, 3)), voxel=scene.voxel, reach=scene.reach, warnings=warnings, seconds={})
 
 
-def _refine_against_map(scene: _Scene, poses: np.ndarray, placed: np.ndarray, reference: int) -> np.ndarray:
-    """Each placed scan but the reference refined by ICP (the scene's settings and reach) against
-    all the other placed scans at the ICP voxel, moved by ``poses``, starting from its own pose: the
-    pairwise registrations' small disagreements, which the pose graph can only share out, are
-    settled on every overlap at once. A scan whose ICP finds no pairs within reach keeps its pose."""
-    clouds = {i: scene.scans[i].downsampled(scene.voxel) for i in np.flatnonzero(placed)}
-    moved = {i: apply(poses[i], cloud) for i, cloud in clouds.items()}
-    refined = poses.copy()
-    for i, cloud in clouds.items():
-        if i == reference:
+def _refine_against_map(scene: _Scene, result: SceneResult, reference: int) -> np.ndarray:
+    """Each placed scan but the reference refined by ICP (the scene's settings and reach), from its
+    pose, against the placed scans it was registered with (kept or dropped: a right pair the pose
+    graph outvoted still overlaps; a wrong one's scan lies elsewhere and finds no pairs within reach),
+    moved by the optimised poses and merged on the ICP voxel grid: the pairwise registrations' small
+    disagreements, which the pose graph can only share out, are settled on all of a scan's overlaps
+    at once. For up to ``all_pairs_up_to`` scans those are all the others; beyond, the candidate pairs
+    bound the work. A scan whose ICP finds no pairs within reach keeps its pose."""
+    poses, placed, refined = result.poses, result.placed, result.poses.copy()
+    linked: dict[int, set[int]] = {}
+    for edge in result.edges:
+        if placed[edge.source] and placed[edge.target]:
+            linked.setdefault(edge.source, set()).add(edge.target)
+            linked.setdefault(edge.target, set()).add(edge.source)
+    for i in np.flatnonzero(placed):
+        if i == reference or not linked.get(i):
             continue
-        others = np.concatenate([points for j, points in moved.items() if j != i])
+        others = voxel_downsample(np.concatenate([apply(poses[j], scene.scans[j].downsampled(scene.voxel))
+                                                  for j in sorted(linked[i])]), scene.voxel)
         try:
-            refined[i] = icp(cloud, others, poses[i], scene.run.icp, device=scene.run.device,
-                             backend=scene.run.backend).T_target_source
+            refined[i] = icp(scene.scans[i].downsampled(scene.voxel), others, poses[i], scene.run.icp,
+                             device=scene.run.device, backend=scene.run.backend).T_target_source
         except IcpFailure:
             pass
     return refined
