@@ -35,13 +35,15 @@ from outputs import write_outputs
 from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data.protocol import SETTINGS, VIEW_PROTOCOL
 from vrnet_ext.model.pretrained import model_for, training_seconds
+from vrnet_ext.names import DEFAULT_ROTATION_RANGE
 
 COLUMNS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)")
 PARTIAL_VIEWS = ("PV", "PV+RS")  # the settings whose pairs depend on how views are cut
 # A measurement that names no solve was taken when the reweighting's kernel and scale were fixed;
 # one that names no second pass, before there was one.
 UNRECORDED_SOLVE = {"irls_kernel": "cauchy", "irls_scale": 3.0}
-UNRECORDED_SECOND_PASS = {"second_pass_below": 0.0, "consistency_radius": 0.02}
+UNRECORDED_SECOND_PASS = {"second_pass_below": 0.0, "rotation_search_below": 0.0, "consistency_radius": 0.02}
+# A measurement that names no rotations was taken on the protocol's.
 
 
 def target(setting: str, split: str) -> tuple[tuple[float, ...], str]:
@@ -53,12 +55,12 @@ def target(setting: str, split: str) -> tuple[tuple[float, ...], str]:
     return vrnet, "VRNet"
 
 
-def measurements(results: Path, method: str = "vrnet",
-                 second_pass_below: float | None = None) -> dict[tuple[str, str, str], dict]:
+def measurements(results: Path, method: str = "vrnet", one_pass: bool = False) -> dict[tuple[str, str, str], dict]:
     """(model, setting, split) -> the row of ``method`` ("vrnet": the model's estimate; "vrnet2": two
-    passes) of its newest measurement, with the file it came from. A measurement must name the solve
-    the model's file holds, with ``second_pass_below`` in place of the file's where given (0: the
-    rows of one pass); the two-pass rows never take a further pass, whatever the file says."""
+    passes) of its newest measurement on the protocol's rotations, with the file it came from. A
+    measurement must name the solve the model's file holds, with neither a second pass nor a
+    rotation search where ``one_pass``; the two-pass rows never take a further pass or a search,
+    whatever the file says."""
     found: dict[tuple[str, str, str], dict] = {}
     current: dict[str, tuple[str | None, dict | None]] = {}
     for path in sorted(results.glob("*/modelnet40_tables*.json")):  # date folders sort in time order
@@ -70,15 +72,17 @@ def measurements(results: Path, method: str = "vrnet",
                     current[cell["model"]] = (None, None)
             weights, solve = current[cell["model"]]
             recorded = {**UNRECORDED_SECOND_PASS, **cell.get("solve", UNRECORDED_SOLVE)}
-            if solve is not None and second_pass_below is not None:
-                solve = dict(solve, second_pass_below=second_pass_below)
+            if solve is not None and one_pass:
+                solve = dict(solve, second_pass_below=0.0, rotation_search_below=0.0)
             if method != "vrnet":  # the two-pass row never takes a further pass
                 recorded = {k: v for k, v in recorded.items() if k not in UNRECORDED_SECOND_PASS}
-            elif solve is not None and solve["second_pass_below"] == 0:  # no second pass: its radius is moot
-                recorded.pop("consistency_radius")
+            elif solve is not None and solve["second_pass_below"] == solve["rotation_search_below"] == 0:
+                recorded.pop("consistency_radius")  # no second pass and no search: the radius is moot
             stale = (("weights" in cell and cell["weights"] != weights)
                      or (solve is not None and any(recorded[k] != solve[k] for k in recorded))
-                     or (cell["setting"] in PARTIAL_VIEWS and cell.get("views") != VIEW_PROTOCOL))
+                     or (cell["setting"] in PARTIAL_VIEWS and cell.get("views") != VIEW_PROTOCOL)
+                     or cell.get("rotations", DEFAULT_ROTATION_RANGE) != DEFAULT_ROTATION_RANGE
+                     or cell.get("swapped", False))
             verified = "weights" in cell and "solve" in cell
             key = (cell["model"], cell["setting"], cell["split"])
             if method not in cell["methods"] or stale or (not verified and found.get(key, {}).get("verified")):
@@ -95,7 +99,7 @@ def measurements(results: Path, method: str = "vrnet",
 
 def summarise(results: Path) -> list[dict]:
     measured, two_passes = measurements(results), measurements(results, "vrnet2")
-    one_pass = measurements(results, second_pass_below=0.0)
+    one_pass = measurements(results, one_pass=True)
     rows = []
     for setting in SETTINGS:
         for split in SPLITS:

@@ -1,17 +1,21 @@
 """The paper's ModelNet40 tables (I: consistent clouds, II: PV / RS / PV+RS) for our methods, in one run.
 
     python benchmarks/modelnet40_tables.py [--models vrnet-pv-upc-rcp ...] [--data-dir DIR] [--max-items N]
-                                            [--methods vrnet vcp icp fpfh] [--json tables.json] [--markdown tables.md]
+                                            [--methods vrnet vcp icp fpfh] [--rotation-range protocol] [--swap]
+                                            [--json tables.json] [--markdown tables.md]
 
 For every model (a shipped name or a checkpoint path; default: every shipped model) the setting and
 split it was trained for (every setting of its split for a model trained on ``mixed`` settings, or
 those of ``--settings``) define the test pairs: ``ModelNet40Pairs(partition="test")`` with seed
-1234, the same deterministic pairs for every method. Methods:
+1234, the same deterministic pairs for every method, their rotations drawn as ``--rotation-range``
+says (the paper's ``protocol``: each Euler angle in [0, 45] degrees; ``symmetric``: in [-45, 45];
+``so3``: uniform over all rotations; ``rotations`` in the JSON). Methods:
 
 * ``vrnet``: the model's own estimate (RCPs, weighted when the model has a confidence head, with the
-  robust solve and the second pass its file names, or the solve flags given: ``solve`` in the JSON);
+  robust solve, the rotation search and the second pass its file names, or the solve flags given:
+  ``solve`` in the JSON);
 * ``vcp``: Kabsch on the VCPs of one forward pass (the network without its walk: DCP-v2's
-  estimator on our features), never a second pass;
+  estimator on our features), never a second pass or a search;
 * ``vrnet2`` (not run by default): the network twice per pair, the second pass registering the
   source moved by the first estimate (the paper's "VRNet with iteration", no further pass; its main
   tables are one pass, so this row is never the one compared with them);
@@ -20,7 +24,9 @@ those of ``--settings``) define the test pairs: ``ModelNet40Pairs(partition="tes
 * ``fpfh``: FPFH + RANSAC (``registration.ransac.fpfh_ransac``) with a ``--fpfh-voxel`` of 0.05: normals
   from 30 neighbours, features within 0.25, inliers within 0.075 (Open3D's tutorial ratios).
 
-Failures of ICP / RANSAC (too few pairs or inliers) count as the identity. Errors are the paper's
+``--swap`` registers every pair the other way round (the target onto the source, whose motion is
+the inverse; ``swapped`` in the JSON). Failures of ICP / RANSAC (too few pairs or inliers) count as
+the identity. Errors are the paper's
 (RMSE / MAE of the 'zyx' Euler angles in degrees, of the translation) plus the mean isotropic
 rotation error; the time per pair is wall time over the pairs (the network batched by
 ``--batch-size``). The paper's numbers are printed beside ours. Writes Markdown and JSON.
@@ -36,11 +42,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
 from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter
-from vrnet_ext.cli.training import add_solve_options, solve_overrides
+from vrnet_ext.cli.training import ROTATION_RANGE_HELP, add_solve_options, solve_overrides
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.data.modelnet import SPLITS
 from vrnet_ext.data.protocol import MIXED, SETTINGS, VIEW_PROTOCOL
@@ -51,6 +57,7 @@ from vrnet_ext.model import VRNetConfig
 from vrnet_ext.ops import kabsch
 from vrnet_ext.model.checkpoints import read_checkpoint
 from vrnet_ext.model.pretrained import available, cells, load_vrnet, weights_path
+from vrnet_ext.names import DEFAULT_ROTATION_RANGE, ROTATION_RANGES
 from vrnet_ext.registration import IcpFailure, IcpSettings, icp
 from outputs import cpu_description  # benchmarks/, the script's folder
 
@@ -95,22 +102,42 @@ PAPER = {(setting, split): {method: (row[k], row[3 + k], row[6 + k] * scale, row
          for setting, (scale, rows) in PAPER_TABLES.items() for k, split in enumerate(SPLITS)}
 
 
+class Swapped(Dataset):
+    """A dataset of pairs the other way round: src and tgt exchanged, the motion inverted."""
+
+    def __init__(self, pairs: Dataset) -> None:
+        self.pairs = pairs
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, index: int) -> dict:
+        item = self.pairs[index]
+        inverse = item["rotation"].T
+        return {"src": item["tgt"], "tgt": item["src"], "rotation": inverse.contiguous(),
+                "translation": -(inverse @ item["translation"])}
+
+
 def network_estimates(model, data, batch_size: int, methods) -> dict:
     """{method: (R (S, 3, 3), t (S, 3), seconds, share of pairs whose estimate came from a second
-    pass)} for the network's methods: "vrnet" as the model is configured; "vcp" from one pass
-    without a second (sharing the forward of "vrnet" when that has none); "vrnet2" runs the network
-    twice per pair (the paper's iteration mode, no further pass)."""
+    pass, share whose estimate came from a turned start of the rotation search)} for the network's
+    methods: "vrnet" as the model is configured; "vcp" from one pass without a second or a search
+    (sharing the forward of "vrnet" when that has neither); "vrnet2" runs the network twice per pair
+    (the paper's iteration mode, no further pass or search)."""
     loader = DataLoader(data, batch_size=batch_size, shuffle=False)
     estimates = {}
-    configured, second_pass_below = model.config.iterations, model.config.second_pass_below
-    groups = [(configured, second_pass_below, ("vrnet", "vcp") if second_pass_below == 0 else ("vrnet",)),
-              (configured, 0.0, () if second_pass_below == 0 else ("vcp",)), (2, 0.0, ("vrnet2",))]
-    for passes, below, names in groups:
+    config = model.config
+    configured = (config.iterations, config.second_pass_below, config.rotation_search_below)
+    one_pass = configured[1:] == (0.0, 0.0)
+    groups = [(configured, ("vrnet", "vcp") if one_pass else ("vrnet",)),
+              ((configured[0], 0.0, 0.0), () if one_pass else ("vcp",)), ((2, 0.0, 0.0), ("vrnet2",))]
+    for (passes, below, search_below), names in groups:
         names = [m for m in names if m in methods]
         if not names:
             continue
-        rotations, translations, seconds, second_passes = {m: [] for m in names}, {m: [] for m in names}, 0.0, 0
-        model.config.iterations, model.config.second_pass_below = passes, below
+        rotations, translations = {m: [] for m in names}, {m: [] for m in names}
+        seconds, second_passes, turned = 0.0, 0, 0
+        config.iterations, config.second_pass_below, config.rotation_search_below = passes, below, search_below
         try:
             with torch.no_grad():
                 for batch in tqdm(loader, desc=f"network ({passes} pass{'es' if passes > 1 else ''})", leave=False):
@@ -118,14 +145,15 @@ def network_estimates(model, data, batch_size: int, methods) -> dict:
                     out = model(batch["src"], batch["tgt"])
                     seconds += time.perf_counter() - started
                     second_passes += int(out.second_pass.sum())
+                    turned += int((out.start_rotation != torch.eye(3)).any(dim=(1, 2)).sum())
                     for name in names:
                         R, t = kabsch(batch["src"], out.vcp) if name == "vcp" else (out.rotation, out.translation)
                         rotations[name].append(R.double().numpy())
                         translations[name].append(t.double().numpy())
         finally:
-            model.config.iterations, model.config.second_pass_below = configured, second_pass_below
+            config.iterations, config.second_pass_below, config.rotation_search_below = configured
         estimates.update({m: (np.concatenate(rotations[m]), np.concatenate(translations[m]), seconds,
-                              second_passes / len(data)) for m in names})
+                              second_passes / len(data), turned / len(data)) for m in names})
     return estimates
 
 
@@ -196,9 +224,11 @@ def evaluate_model(name: str, args) -> list[dict]:
 
 def evaluate_cell(name: str, model, config: dict, setting: str, split: str, args) -> dict:
     spec = PairSpec(setting=setting, num_points=config.get("num_points", 1024),
-                    num_subsampled=config.get("num_subsampled", 768))
+                    num_subsampled=config.get("num_subsampled", 768), rotation_range=args.rotation_range)
     data = ModelNet40Pairs(args.data_dir, partition="test", setting=setting, split=split, max_items=args.max_items,
                            seed=1234, spec=spec)
+    if args.swap:
+        data = Swapped(data)
     gt_R = np.stack([data[i]["rotation"].double().numpy() for i in range(len(data))])
     gt_t = np.stack([data[i]["translation"].double().numpy() for i in range(len(data))])
     rows = {}
@@ -206,19 +236,19 @@ def evaluate_cell(name: str, model, config: dict, setting: str, split: str, args
     for method in args.methods:
         failures = 0
         if method in estimates:
-            R, t, seconds, second_pass_share = estimates[method]
+            R, t, seconds, second_pass_share, turned_share = estimates[method]
         else:
             R, t, seconds, failures = classical_estimates(data, method, args.icp_max_distance, args.fpfh_voxel)
         row = summarize(R, gt_R, t, gt_t)
         row.update(seconds_per_pair=seconds / len(data), failures=failures)
         if method == "vrnet":
-            row["second_pass_share"] = second_pass_share
+            row.update(second_pass_share=second_pass_share, turned_share=turned_share)
         rows[method] = row
         print(f"{name} {setting}/{split} {method}: RMSE(R) {row['RMSE(R)']:.3f}, MAE(R) {row['MAE(R)']:.3f}, "
               f"RMSE(t) {row['RMSE(t)']:.4f}, {row['seconds_per_pair'] * 1e3:.1f} ms/pair", flush=True)
     return {"model": name, "weights": weights_digest(name), "solve": solve_of(model.config), "setting": setting,
             "split": split, "pairs": len(data),
-            "views": VIEW_PROTOCOL, "methods": rows,
+            "views": VIEW_PROTOCOL, "rotations": args.rotation_range, "swapped": args.swap, "methods": rows,
             "paper": {k: dict(zip(COLUMNS[:4], v)) for k, v in PAPER.get((setting, split), {}).items()}}
 
 
@@ -234,7 +264,9 @@ def card_test(cell: dict) -> dict:
 def markdown(results: list[dict], machine: str) -> str:
     lines = [f"Measured {time.strftime('%Y-%m-%d')} on {machine}.", ""]
     for result in results:
-        lines += [f"**{result['setting']} / {result['split']}** (model `{result['model']}`, {result['pairs']} test pairs)",
+        lines += [f"**{result['setting']} / {result['split']}** (model `{result['model']}`, {result['pairs']} test pairs, "
+                  f"rotations: {result.get('rotations', DEFAULT_ROTATION_RANGE)}"
+                  + (", swapped: target onto source)" if result.get("swapped") else ")"),
                   "", "| method | " + " | ".join(COLUMNS) + " | s / pair |",
                   "|---|" + "---:|" * (len(COLUMNS) + 1)]
         for method, row in result["methods"].items():
@@ -259,6 +291,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch-size", type=int, default=16, help="pairs per network forward")
     parser.add_argument("--icp-max-distance", type=float, default=1.0, help="ICP's correspondence reach")
     parser.add_argument("--fpfh-voxel", type=float, default=0.05, help="FPFH + RANSAC's voxel edge")
+    parser.add_argument("--rotation-range", choices=ROTATION_RANGES, default=DEFAULT_ROTATION_RANGE,
+                        help=ROTATION_RANGE_HELP)
+    parser.add_argument("--swap", action="store_true", help="register each pair the other way round (target onto source)")
     add_solve_options(parser, "the model's")
     parser.add_argument("--json", default="modelnet40_tables.json", help="where the JSON goes")
     parser.add_argument("--markdown", default="modelnet40_tables.md", help="where the Markdown goes")

@@ -167,7 +167,8 @@ def test_modelnet40_summary_takes_each_cells_serving_model_and_its_newest_measur
 
 def test_modelnet40_summary_skips_partial_view_measurements_of_other_views(tmp_path):
     """A PV cell measured on pairs cut another way (no ``views``, or other ones) is stale, however new;
-    a CO cell does not depend on views."""
+    a CO cell does not depend on views; a cell measured on other rotations than the protocol's is
+    never the paper's comparison."""
     from vrnet_ext.data.protocol import VIEW_PROTOCOL
     from vrnet_ext.model.pretrained import model_for
 
@@ -175,8 +176,9 @@ def test_modelnet40_summary_skips_partial_view_measurements_of_other_views(tmp_p
     from modelnet40_tables import solve_options
 
     errors = {"RMSE(R)": 0.3, "MAE(R)": 0.05, "RMSE(t)": 2e-3, "MAE(t)": 3e-4}
-    for day, scale, views in (("2026-01-00", 1.0, VIEW_PROTOCOL), ("2026-01-01", 2.0, None),
-                              ("2026-01-02", 3.0, "another cut")):
+    for day, scale, views, rotations in (("2026-01-00", 1.0, VIEW_PROTOCOL, None), ("2026-01-01", 2.0, None, None),
+                                         ("2026-01-02", 3.0, "another cut", "protocol"),
+                                         ("2026-01-03", 0.1, VIEW_PROTOCOL, "so3")):
         (tmp_path / "results" / day).mkdir(parents=True)
         results = [{"model": model_for(setting, "UPC"), "setting": setting, "split": "UPC", "pairs": 10,
                     "solve": solve_options(model_for(setting, "UPC")),
@@ -184,12 +186,63 @@ def test_modelnet40_summary_skips_partial_view_measurements_of_other_views(tmp_p
         for cell in results:
             if views:
                 cell["views"] = views
+            if rotations:
+                cell["rotations"] = rotations
         (tmp_path / "results" / day / "modelnet40_tables_x.json").write_text(json.dumps({"results": results}))
     run([str(ROOT / "benchmarks" / "modelnet40_summary.py"), "--results", str(tmp_path / "results"),
          "--json", "summary.json"], tmp_path)
     cells = {(c["setting"], c["split"]): c for c in json.loads((tmp_path / "summary.json").read_text())["cells"]}
     assert cells[("PV", "UPC")]["ours"]["RMSE(R)"] == 0.3
     assert cells[("CO", "UPC")]["ours"]["RMSE(R)"] == pytest.approx(0.9)
+
+
+@requires_modelnet
+def test_modelnet40_tables_draw_the_rotation_range_and_search_only_in_the_vrnet_row(tmp_path):
+    common = [str(ROOT / "benchmarks" / "modelnet40_tables.py"), "--models", "vrnet-pv-upc-rcp", "--max-items", "4",
+              "--batch-size", "4", "--data-dir", str(MODELNET_DIR), "--methods", "vrnet", "vcp",
+              "--rotation-range", "so3"]
+    rows = {}
+    for below in ("0", "0.5"):
+        run(common + ["--rotation-search-below", below, "--json", f"{below}.json", "--markdown", f"{below}.md"],
+            tmp_path)
+        (rows[below],) = json.loads((tmp_path / f"{below}.json").read_text())["results"]
+        assert rows[below]["rotations"] == "so3" and rows[below]["solve"]["rotation_search_below"] == float(below)
+        assert "rotations: so3" in (tmp_path / f"{below}.md").read_text()
+    assert rows["0"]["methods"]["vcp"]["RMSE(R)"] == rows["0.5"]["methods"]["vcp"]["RMSE(R)"]  # one pass, no search
+    assert rows["0"]["methods"]["vrnet"]["turned_share"] == 0 < rows["0.5"]["methods"]["vrnet"]["turned_share"]
+    assert rows["0.5"]["methods"]["vrnet"]["RMSE(R)"] < rows["0"]["methods"]["vrnet"]["RMSE(R)"]
+    run(common + ["--rotation-search-below", "0.5", "--swap", "--json", "swap.json", "--markdown", "swap.md"], tmp_path)
+    (swapped,) = json.loads((tmp_path / "swap.json").read_text())["results"]
+    assert swapped["swapped"] and "swapped: target onto source" in (tmp_path / "swap.md").read_text()
+    for row in (rows["0.5"], swapped):  # the ground truth of either direction: every pair registered
+        assert row["methods"]["vrnet"]["RMSE(R)"] < 1.0, row
+
+
+def test_modelnet40_rotations_puts_each_cells_estimates_side_by_side(tmp_path):
+    """Runs alone and with the search, on two kinds of pairs: one row per cell and kind, both
+    estimates in it; a cell measured by two models is refused."""
+    tables = tmp_path / "tables"
+    tables.mkdir()
+
+    def cell(model, rotations, swapped, below, recall):
+        return {"model": model, "setting": "PV", "split": "UPC", "pairs": 100, "rotations": rotations,
+                "swapped": swapped, "solve": {"rotation_search_below": below},
+                "methods": {"vrnet": {"recall(RE<5,TE<0.1)": recall, "RMSE(R)": 90 * (1 - recall),
+                                      "seconds_per_pair": 0.02 + below}}}
+
+    for name, cells in (("a", [cell("m", "so3", False, 0.0, 0.2), cell("m", "protocol", True, 0.0, 0.5)]),
+                        ("b", [cell("m", "so3", False, 0.1, 1.0), cell("m", "protocol", True, 0.1, 0.99)])):
+        (tables / f"{name}.json").write_text(json.dumps({"results": cells}))
+    run([str(ROOT / "benchmarks" / "modelnet40_rotations.py"), "--tables", str(tables), "--json", "r.json",
+         "--markdown", "r.md", "--note", "a note"], tmp_path)
+    rows = {row["pairs_of"]: row for row in json.loads((tmp_path / "r.json").read_text())["rows"]}
+    assert set(rows) == {"so3", "protocol, swapped"}
+    assert rows["so3"]["alone"]["recall"] == 0.2 and rows["so3"]["search"]["recall"] == 1.0
+    assert "| so3 | PV / UPC | `m` | 100 | 20.0% | 100.0% |" in (tmp_path / "r.md").read_text()
+    (tables / "c.json").write_text(json.dumps({"results": [cell("other", "so3", False, 0.1, 1.0)]}))
+    result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "modelnet40_rotations.py"), "--tables",
+                             str(tables)], cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode != 0 and "another model" in result.stderr
 
 
 @requires_modelnet

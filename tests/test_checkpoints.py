@@ -1,4 +1,5 @@
 """Checkpoints are untrusted files: bounded, validated, clear errors naming the file."""
+import json
 import pickle
 import subprocess
 import sys
@@ -129,6 +130,7 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     shipped = read_checkpoint(tmp_path / "weights" / "tiny-model.pt")
     assert shipped["card"]["training"]["preset"] == "tiny" and shipped["card"]["training"]["sessions"] == 1
     assert shipped["card"]["test"]["pairs"] == 4 and "validation" in shipped["card"]["training"]
+    assert shipped["card"]["training"]["rotations"] == "protocol: each Euler angle in [0, 45] degrees"
     assert "data_dir" not in shipped["config"] and "out_dir" not in shipped["config"]
     card = (tmp_path / "weights" / "tiny-model.md").read_text()
     assert "A smoke-test model." in card and "RMSE(R)" in card
@@ -136,6 +138,9 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert not model.training
     assert main(["export", str(run / "best.pt"), "x", "--out-dir", str(tmp_path), "--test-json",
                  str(tmp_path / "missing.json")]) == 2
+    turned_json = tmp_path / "test_so3.json"  # a card's test table holds the paper's protocol only
+    turned_json.write_text(json.dumps({**json.loads(test_json.read_text()), "rotations": "so3"}))
+    assert main(["export", str(run / "best.pt"), "x", "--out-dir", str(tmp_path), "--test-json", str(turned_json)]) == 2
     # shipped weights re-exported with another robust solve: the card kept, the test measured with it
     shipped_path = str(tmp_path / "weights" / "tiny-model.pt")
     solve_flags = ["--irls-iterations", "7", "--irls-kernel", "geman_mcclure", "--irls-scale", "0.5",

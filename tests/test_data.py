@@ -19,6 +19,39 @@ def test_rotation_is_dcp_rx_ry_rz():
     assert np.all((euler >= 0) & (euler <= 45))
 
 
+def test_the_protocol_draws_each_angle_in_zero_to_max_and_symmetric_on_both_sides():
+    protocol = np.stack([random_motion(np.random.default_rng(seed), 30.0, 0.5)[2] for seed in range(400)])
+    symmetric = np.stack([random_motion(np.random.default_rng(seed), 30.0, 0.5, "symmetric")[2] for seed in range(400)])
+    assert protocol.min() >= 0 and protocol.max() <= 30
+    assert symmetric.min() >= -30 and symmetric.max() <= 30
+    assert (symmetric < -20).mean(axis=0).min() > 0.1 and (symmetric > 20).mean(axis=0).min() > 0.1
+    # the protocol's draws are the ones the paper's tables were measured on: unchanged by the option
+    R, t, euler = random_motion(np.random.default_rng(3), 45.0, 0.5)
+    R2, t2, euler2 = random_motion(np.random.default_rng(3), 45.0, 0.5, "protocol")
+    assert np.array_equal(R, R2) and np.array_equal(t, t2) and np.array_equal(euler, euler2)
+
+
+def test_so3_rotations_are_uniform():
+    rotations = np.stack([random_motion(np.random.default_rng(seed), 45.0, 0.5, "so3")[0] for seed in range(2000)])
+    np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (2000, 3, 3)),
+                               atol=1e-9)
+    # uniform over SO(3): the mean of R vanishes, and the angle's cumulative distribution is (t - sin t) / pi
+    assert np.abs(rotations.mean(axis=0)).max() < 0.05
+    angles = np.sort(np.arccos(np.clip((np.trace(rotations, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    expected = (angles - np.sin(angles)) / np.pi
+    assert np.abs(np.arange(1, 2001) / 2000 - expected).max() < 0.04  # Kolmogorov-Smirnov, 2000 draws
+
+
+def test_pairs_follow_the_rotation_range_and_a_bad_one_is_refused():
+    base = np.random.default_rng(0).standard_normal((1024, 3))
+    pair = make_pair(base, PairSpec(setting="RS", rotation_range="symmetric"), np.random.default_rng(5))
+    inliers = pair["gt_idx"] >= 0
+    moved = pair["src"] @ pair["rotation"].T + pair["translation"]
+    np.testing.assert_allclose(moved[inliers], pair["tgt"][pair["gt_idx"][inliers]], atol=1e-5)
+    with pytest.raises(ValueError, match="rotation_range must be one of"):
+        PairSpec(rotation_range="octant")
+
+
 @pytest.mark.parametrize("setting,count", [("CO", 1024), ("PV", 768), ("RS", 768), ("PV+RS", 768)])
 def test_settings_counts_and_ground_truth(setting, count):
     base = np.random.default_rng(0).standard_normal((1024, 3))

@@ -424,8 +424,98 @@ def test_the_second_pass_keeps_the_more_consistent_pass_of_each_pair():
     assert not model(src, tgt).second_pass.any()
 
 
+def _looked_twice(model, src, tgt, start):
+    """A plain model's estimate of each pair from src turned by ``start`` (3, 3), and of a pass from
+    that estimate, whichever agrees more with its RCPs: (rotation, translation, consistency) of src,
+    as the search takes each start (radius 1)."""
+    from vrnet_ext.geometry.transforms import compose, move
+
+    first = model(move(src, start.expand(len(src), 3, 3), torch.zeros(len(src), 3)), tgt)
+    R1 = first.rotation @ start
+    again = model(move(src, R1, first.translation), tgt)
+    R2, t2 = compose(again.rotation, again.translation, R1, first.translation)
+    consistency2 = ((move(src, R2, t2) - again.rcp).norm(dim=-1) < 1.0).float().mean(dim=-1)
+    better = consistency2 > first.consistency
+    return (torch.where(better[:, None, None], R2, R1), torch.where(better[:, None], t2, first.translation),
+            torch.maximum(consistency2, first.consistency))
+
+
+def test_the_rotation_search_keeps_the_most_consistent_start_of_each_doubtful_pair():
+    from vrnet_ext.geometry.transforms import cube_rotations
+
+    src, tgt = turned_pairs()
+    starts = torch.as_tensor(cube_rotations(), dtype=src.dtype)
+    plain = small_model(consistency_radius=1.0).eval()
+    with torch.no_grad():
+        first = plain(src, tgt)
+        runs = [_looked_twice(plain, src, tgt, g) for g in starts[1:]]
+    consistency = torch.stack([run[2] for run in runs], dim=1)  # (B, 23)
+    best = consistency.argmax(dim=1)
+    below = float(first.consistency.sort().values[-2])  # every pair but the most consistent one searches
+    searched = first.consistency < below
+    turned = searched & (consistency.max(dim=1).values > first.consistency)
+    assert turned.any() and (searched & ~turned).any(), "the pairs must exercise both outcomes"
+    found_R = torch.stack([runs[int(b)][0][i] for i, b in enumerate(best)])
+    found_t = torch.stack([runs[int(b)][1][i] for i, b in enumerate(best)])
+    model = small_model(consistency_radius=1.0, rotation_search_below=below).eval()
+    with torch.no_grad():
+        out = model(src, tgt)
+    pick = turned[:, None, None]
+    torch.testing.assert_close(out.rotation, torch.where(pick, found_R, first.rotation), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out.translation, torch.where(pick[:, 0], found_t, first.translation),
+                               rtol=1e-4, atol=1e-5)
+    expected_start = torch.where(pick, starts[1 + best], torch.eye(3).expand(len(src), 3, 3))
+    assert torch.equal(out.start_rotation, expected_start)
+    assert torch.linalg.det(out.rotation.double()).sub(1).abs().max() < 1e-5  # still rotations
+    with torch.no_grad():  # each pair alone gets what it gets in the batch
+        alone = [model(src[i:i + 1], tgt[i:i + 1]) for i in range(len(src))]
+    torch.testing.assert_close(torch.cat([a.rotation for a in alone]), out.rotation, rtol=1e-4, atol=1e-5)
+    model.train()  # training sees the configured passes only
+    assert torch.equal(model(src, tgt).start_rotation, torch.eye(3).expand(len(src), 3, 3))
+
+
+def test_the_rotation_search_takes_only_the_pairs_the_second_pass_left_doubtful():
+    src, tgt = turned_pairs()
+    looked = small_model(consistency_radius=1.0, second_pass_below=1.0).eval()
+    with torch.no_grad():
+        after_second = looked(src, tgt)
+    below = float(after_second.consistency.sort().values[-2])
+    both = small_model(consistency_radius=1.0, second_pass_below=1.0, rotation_search_below=below).eval()
+    with torch.no_grad():
+        out = both(src, tgt)
+    left = after_second.consistency >= below  # not searched: exactly the second pass's rows
+    torch.testing.assert_close(out.rotation[left], after_second.rotation[left])
+    assert (out.consistency >= after_second.consistency).all()  # a search only ever keeps a better row
+    assert torch.equal(out.start_rotation[left], torch.eye(3).expand(int(left.sum()), 3, 3))
+
+
+def test_the_shipped_model_registers_any_rotation_with_the_search():
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from vrnet_ext.data.procedural import chair
+    from vrnet_ext.geometry.transforms import move
+    from vrnet_ext import load_pretrained
+
+    rng = np.random.default_rng(11)
+    base = chair(rng)[:768].astype(np.float32)
+    rotations = torch.as_tensor(Rotation.random(6, random_state=5).as_matrix(), dtype=torch.float32)
+    src = torch.from_numpy(base).expand(6, -1, -1).contiguous()
+    tgt = move(src, rotations, torch.zeros(6, 3))
+    tgt = tgt[:, torch.from_numpy(rng.permutation(768))]
+    model = load_pretrained()
+    with torch.no_grad():
+        model.config.rotation_search_below = 0.0
+        plain = rotation_error_deg(model(src, tgt).rotation, rotations)
+        model.config.rotation_search_below = 0.5
+        searched = rotation_error_deg(model(src, tgt).rotation, rotations)
+    assert (plain > 5).any(), plain  # rotations the model alone does not register ...
+    assert (searched < 1).all(), searched  # ... all registered with the search
+
+
 @pytest.mark.parametrize("field, value", [("second_pass_below", 1.5), ("second_pass_below", -0.1),
                                           ("second_pass_below", float("nan")), ("consistency_radius", 0.0),
+                                          ("rotation_search_below", 2.0), ("rotation_search_below", float("nan")),
                                           ("consistency_radius", float("inf"))])
 def test_second_pass_options_are_checked(field, value):
     with pytest.raises(ValueError, match=field):

@@ -312,6 +312,24 @@ def test_wider_training_rotations_leave_the_validation_pairs_as_the_protocol_dra
         assert np.array_equal(wide_val[i]["rotation"].numpy(), val_pairs[i]["rotation"].numpy())
 
 
+@requires_modelnet
+def test_the_rotation_range_draws_the_training_and_validation_pairs():
+    import numpy as np
+
+    from vrnet_ext.learning.train import _datasets
+    from vrnet_ext.geometry.metrics import euler_zyx_deg
+
+    def angles(dataset):
+        return np.stack([euler_zyx_deg(dataset[i]["rotation"]) for i in range(len(dataset))])
+
+    for pairs in _datasets(TrainConfig.from_preset("tiny", data_dir=str(MODELNET_DIR), rotation_range="symmetric")):
+        assert pairs.spec.rotation_range == "symmetric"
+        drawn = angles(pairs)
+        assert (drawn < 0).any() and np.abs(drawn).max() <= 45.0 + 1e-3
+    with pytest.raises(ValueError, match="^rotation_range must be one of"):
+        TrainConfig.from_preset("tiny", rotation_range="octant")
+
+
 def test_train_takes_any_pair_provider(tmp_path):
     """Datasets of one's own (here procedural chairs, no ModelNet40 needed) instead of the config's."""
     cfg = TrainConfig.from_preset("tiny", out_dir=str(tmp_path / "run"), progress=False)

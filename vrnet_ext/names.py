@@ -18,6 +18,11 @@ MIXED = "mixed"  # training only: one of SETTINGS per pair
 DEFAULT_SETTING = "PV"
 SPLITS = ("UPC", "UC", "ND")
 DEFAULT_SPLIT = "UPC"
+# How a pair's rotation is drawn (vrnet_ext.data.protocol.random_motion): "protocol", the paper's,
+# each Euler angle in [0, max_angle]; "symmetric", each in [-max_angle, max_angle]; "so3", uniform
+# over all rotations (max_angle unused).
+ROTATION_RANGES = ("protocol", "symmetric", "so3")
+DEFAULT_ROTATION_RANGE = "protocol"
 
 DEFAULT_MODEL = "vrnet-pv-upc-rcp"  # the shipped ModelNet40 model of the paper's main cell
 DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-real"  # the shipped scene model (vrnet register --method vrnet)

@@ -11,17 +11,20 @@ from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFo
                                   positive_int, report_to, train_device, unit_interval, view_points, writable_path,
                                   write_json)
 from vrnet_ext.data.protocol import FAR_POINTS
-from vrnet_ext.names import (BACKENDS, DEFAULT_BACKEND, DEFAULT_SETTING, DEFAULT_SPLIT, MIXED, PROCRUSTES_POINTS,
-                             SETTINGS, SPLITS, TRANSFORMER_PRECISIONS)
+from vrnet_ext.names import (BACKENDS, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING, DEFAULT_SPLIT, MIXED,
+                             PROCRUSTES_POINTS, ROTATION_RANGES, SETTINGS, SPLITS, TRANSFORMER_PRECISIONS)
 
 
-# The estimate's inference-time options: the robust solve and the second pass.
-SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "consistency_radius")
+ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0, 45] degrees (the paper's); "
+                       "symmetric = in [-45, 45]; so3 = uniform over all rotations")
+# The estimate's inference-time options: the robust solve, the second pass and the rotation search.
+SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "rotation_search_below",
+              "consistency_radius")
 
 
 def add_solve_options(parser, default: str) -> None:
     """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale``, ``--second-pass-below``,
-    ``--consistency-radius`` (VRNetConfig's fields of these names); ``default`` says what applies
+    ``--rotation-search-below``, ``--consistency-radius`` (VRNetConfig's fields of these names); ``default`` says what applies
     when a flag is not given."""
     from vrnet_ext.model.config import IRLS_KERNELS
 
@@ -35,6 +38,11 @@ def add_solve_options(parser, default: str) -> None:
                         help="register a pair once more from the moved source when fewer than this share of its "
                              "RCPs agree with its estimate, and keep the pass whose RCPs agree more; 0: never "
                              f"(default: {default})")
+    parser.add_argument("--rotation-search-below", type=unit_interval, default=None,
+                        help="register a pair again from its source turned by each of the 23 other rotations of a "
+                             "cube when fewer than this share of its RCPs agree with its estimate (after the second "
+                             "pass), and keep the start whose RCPs agree most: any rotation, at 46 more passes per "
+                             f"searched pair; 0: never (default: {default})")
     parser.add_argument("--consistency-radius", type=positive_float, default=None,
                         help=f"how near its estimate an RCP must lie to agree with it, in the clouds' units "
                              f"(default: {default})")
@@ -86,7 +94,8 @@ def _add_section(group, section) -> None:
                "setting": {"choices": SETTINGS + (MIXED,)}, "split": {"choices": SPLITS},
                "data_dir": {"type": str}, "out_dir": {"type": output_folder}, "device": {"type": train_device},
                "precision": {"choices": PRECISIONS}, "backend": {"choices": BACKENDS},
-               "loss_l4_form": {"choices": L4_FORMS}, "far_points": {"choices": FAR_POINTS}}
+               "loss_l4_form": {"choices": L4_FORMS}, "far_points": {"choices": FAR_POINTS},
+               "rotation_range": {"choices": ROTATION_RANGES}}
     hints = typing.get_type_hints(section)
     for f in fields(section):
         add = group.add_argument
@@ -177,6 +186,8 @@ def add_eval(sub) -> None:
                    help="partial views: prnet = the paper's: one far point near the diagonal cuts both clouds; "
                         "sphere = in a random direction for each cloud; mixed = one of the two per pair; "
                         "symmetric = the target's far point mirrors the source's (the paper's ablations)")
+    p.add_argument("--rotation-range", choices=ROTATION_RANGES, default=DEFAULT_ROTATION_RANGE,
+                   help=ROTATION_RANGE_HELP)
     p.add_argument("--backend", choices=BACKENDS, default=DEFAULT_BACKEND,
                    help="ext: the compiled kernels; torch: the pure-PyTorch references")
     p.add_argument("--transformer-precision", choices=TRANSFORMER_PRECISIONS, default=TRANSFORMER_PRECISIONS[0],
@@ -223,14 +234,15 @@ def _evaluate_and_report(args) -> tuple[dict, Path | str]:
     if setting == MIXED:
         raise ValueError(f"{args.checkpoint} was trained on every setting: give --setting ({' | '.join(SETTINGS)})")
     spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768),
-                    far_points=args.far_points)
+                    far_points=args.far_points, rotation_range=args.rotation_range)
     data = ModelNet40Pairs(args.data_dir or cfg.get("data_dir"), partition="test", setting=setting, split=split,
                            max_items=args.max_items, spec=spec)
     model.to(args.device)
     result = evaluate(model, data, batch_size=args.batch_size, device=args.device, backend=args.backend,
                       progress=args.progress)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
-    result.update(setting=setting, split=split, far_points=args.far_points, checkpoint=str(args.checkpoint),
+    result.update(setting=setting, split=split, far_points=args.far_points, rotations=args.rotation_range,
+                  checkpoint=str(args.checkpoint),
                   iterations=model.config.iterations, **{k: getattr(model.config, k) for k in SOLVE_KEYS},
                   transformer_precision=args.transformer_precision,
                   transformer_bf16=model.eval().transformer_in_bf16(data[0]["src"].to(args.device)))
@@ -336,6 +348,9 @@ def run_export(args) -> int:
     tests = [_read_eval_json(path) for path in args.test_json or []]
     served = {**VRNetConfig().to_dict(), **state["config"]["model"], **overrides}  # older files name fewer fields
     for path, test in zip(args.test_json or [], tests):
+        if test.get("rotations", DEFAULT_ROTATION_RANGE) != DEFAULT_ROTATION_RANGE:
+            raise ValueError(f"--test-json {path}: measured on {test['rotations']} rotations; a card's test table "
+                             f"holds the paper's protocol ({DEFAULT_ROTATION_RANGE})")
         differing = [k for k in SOLVE_KEYS if k in test and test[k] != served.get(k)]
         if differing:
             raise ValueError(f"--test-json {path}: measured with {', '.join(f'{k} {test[k]}' for k in differing)}, "

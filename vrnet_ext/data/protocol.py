@@ -2,7 +2,9 @@
 
 * Rigid motion: angles uniform in [0, max_angle] about x, y, z; R = Rx Ry Rz as in DCP, which is
   scipy's ``Rotation.from_euler('zyx', [az, ay, ax])`` (extrinsic z, then y, then x);
-  translation uniform in [-0.5, 0.5] per axis. ``tgt = R src + t``.
+  translation uniform in [-0.5, 0.5] per axis. ``tgt = R src + t``. Beyond the protocol
+  (``rotation_range``): each angle in [-max_angle, max_angle] ("symmetric"), or R uniform over all
+  rotations ("so3", a normalised 4-d Gaussian as the quaternion).
 * Settings (crops are taken in each cloud's own frame):
   CO all points; PV the ``num_subsampled`` points nearest to a random far point
   (``far_points="prnet"``, the paper's main tables: U[0,1]^3 + 500 s (1,1,1), s in {1,-1}, the SAME
@@ -27,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vrnet_ext.geometry.transforms import move
-from vrnet_ext.names import MIXED, SETTINGS
+from vrnet_ext.names import DEFAULT_ROTATION_RANGE, MIXED, ROTATION_RANGES, SETTINGS
 
 FAR_POINTS = ("prnet", "sphere", "mixed", "symmetric")
 # How the default ("prnet") partial views are cut, recorded with measurements so that a table never
@@ -41,8 +43,9 @@ class PairSpec:
 
     ``setting``: one of SETTINGS or "mixed"; ``noise``: ND's jitter on both clouds; ``num_points``
     points per shape before the crop, ``num_subsampled`` per cloud after it; ``max_angle_deg``: the
-    largest rotation about each axis (degrees); ``max_translation``: per axis, in the shape's unit;
-    ``far_points``: one of FAR_POINTS.
+    largest rotation about each axis (degrees); ``rotation_range``: how the angles are drawn (one of
+    ROTATION_RANGES); ``max_translation``: per axis, in the shape's unit; ``far_points``: one of
+    FAR_POINTS.
     """
 
     setting: str = "PV"
@@ -51,10 +54,13 @@ class PairSpec:
     num_subsampled: int = 768
     pvrs_presample: int | None = None  # PV+RS random pre-sample; default 896/1024 of num_points
     max_angle_deg: float = 45.0
+    rotation_range: str = DEFAULT_ROTATION_RANGE
     max_translation: float = 0.5
     far_points: str = "prnet"  # where PV's far points lie: see the module docstring
 
     def __post_init__(self) -> None:
+        if self.rotation_range not in ROTATION_RANGES:
+            raise ValueError(f"rotation_range must be one of {ROTATION_RANGES}, got {self.rotation_range!r}")
         if self.far_points not in FAR_POINTS:
             raise ValueError(f"far_points must be one of {FAR_POINTS}, got {self.far_points!r}")
         if self.pvrs_presample is None:
@@ -67,11 +73,18 @@ class PairSpec:
             raise ValueError(f"num_subsampled ({self.num_subsampled}) exceeds num_points ({self.num_points})")
 
 
-def random_motion(rng: np.random.Generator, max_angle_deg: float, max_translation: float):
-    """(R (3, 3), t (3,), euler_zyx_deg (3,)) with R = Rx Ry Rz."""
-    ax, ay, az = rng.uniform(0.0, np.deg2rad(max_angle_deg), size=3)
+def random_motion(rng: np.random.Generator, max_angle_deg: float, max_translation: float,
+                  rotation_range: str = DEFAULT_ROTATION_RANGE):
+    """(R (3, 3), t (3,), euler_zyx_deg (3,)) with R = Rx Ry Rz, drawn as ``rotation_range`` says (the
+    module docstring)."""
     from scipy.spatial.transform import Rotation  # here, not at import: `vrnet register` never needs it
 
+    if rotation_range == "so3":
+        turn = Rotation.from_quat(rng.standard_normal(4))  # normalised by scipy: uniform over SO(3)
+        az, ay, ax = turn.as_euler("zyx")
+    else:
+        low = -max_angle_deg if rotation_range == "symmetric" else 0.0
+        ax, ay, az = rng.uniform(np.deg2rad(low), np.deg2rad(max_angle_deg), size=3)
     rotation = Rotation.from_euler("zyx", [az, ay, ax]).as_matrix()
     translation = rng.uniform(-max_translation, max_translation, size=3)
     return rotation, translation, np.rad2deg([az, ay, ax])
@@ -132,7 +145,7 @@ def make_pair(base: np.ndarray, spec: PairSpec, rng: np.random.Generator) -> dic
         setting = SETTINGS[int(rng.integers(len(SETTINGS)))]
         if setting == "CO":
             base = base[np.sort(rng.choice(base.shape[0], spec.num_subsampled, replace=False))]
-    rotation, translation, euler = random_motion(rng, spec.max_angle_deg, spec.max_translation)
+    rotation, translation, euler = random_motion(rng, spec.max_angle_deg, spec.max_translation, spec.rotation_range)
     moved = move(base, rotation, translation)
     scheme = spec.far_points if spec.far_points != "mixed" else ("prnet", "sphere")[int(rng.integers(2))]
     src_far, tgt_far = view_points(rng, scheme) if setting in ("PV", "PV+RS") else (None, None)

@@ -26,6 +26,22 @@ def compose(rotation_2, translation_2, rotation_1, translation_1):
     return rotation_2 @ rotation_1, (rotation_2 @ translation_1[..., None])[..., 0] + translation_2
 
 
+def cube_rotations() -> np.ndarray:
+    """The 24 rotations that map a cube onto itself (the signed permutation matrices of determinant
+    +1), (24, 3, 3) float64, the identity first. Every rotation lies within 62.8 degrees of one of
+    them."""
+    import itertools
+
+    found = [np.eye(3)]
+    for order in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            matrix = np.zeros((3, 3))
+            matrix[range(3), order] = signs
+            if np.linalg.det(matrix) > 0 and not np.array_equal(matrix, np.eye(3)):
+                found.append(matrix)
+    return np.stack(found)
+
+
 def to_homogeneous(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """(3, 3) R and (3,) t -> (4, 4) float64 numpy matrix."""
     T = np.eye(4)

@@ -8,7 +8,7 @@ import math
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
 from vrnet_ext.model.config import VRNetConfig
-from vrnet_ext.names import DEFAULT_BACKEND, DEFAULT_SETTING, DEFAULT_SPLIT
+from vrnet_ext.names import DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING, DEFAULT_SPLIT, ROTATION_RANGES
 
 PRESETS = {
     "paper": dict(model=VRNetConfig().to_dict(), batch_size=28, stage1_epochs=100, stage2_epochs=100,
@@ -55,6 +55,8 @@ FIELD_HELP = {
     "train_max_angle": "largest rotation about each axis of the training pairs, in degrees (validation pairs keep "
                        "the protocol's 45: a wider range trains the features on the large motions where the errors "
                        "of a 45-degree test concentrate)",
+    "rotation_range": "how the rotations of the training and validation pairs are drawn: protocol = each Euler angle "
+                      "in [0, max] degrees (the paper's); symmetric = in [-max, max]; so3 = uniform over all rotations",
     "seed": "seed of the training pairs, batch order and initialisation (every run validates on the same held-out "
             "shapes and pairs)",
     "device": "auto | cpu | cuda",
@@ -128,6 +130,7 @@ class DataOptions:
     max_val_items: int | None = None
     val_fraction: float = 0.1
     train_max_angle: float = 45.0
+    rotation_range: str = DEFAULT_ROTATION_RANGE
     seed: int = 1234
 
     def __post_init__(self) -> None:
@@ -135,6 +138,8 @@ class DataOptions:
         _integers(self, {"num_points": 1, "num_subsampled": 1, "seed": 0})
         if not (isinstance(self.train_max_angle, (int, float)) and 0 < self.train_max_angle <= 180):
             raise ValueError(f"train_max_angle must be in (0, 180] degrees, got {self.train_max_angle!r}")
+        if self.rotation_range not in ROTATION_RANGES:
+            raise ValueError(f"rotation_range must be one of {ROTATION_RANGES}, got {self.rotation_range!r}")
         if self.num_points > MODELNET_POINTS:
             raise ValueError(f"num_points must be at most {MODELNET_POINTS} (the ModelNet40 files hold "
                              f"{MODELNET_POINTS} points per shape), got {self.num_points}")

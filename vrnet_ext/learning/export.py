@@ -12,16 +12,18 @@ from vrnet_ext.model.checkpoints import model_from_state, read_checkpoint, valid
 from vrnet_ext.model.pretrained import (DEFAULT_MODEL, FORMAT, available, card_runs_seconds, model_card,
                                         training_seconds)
 from vrnet_ext.model.scene import SCENE_FORMAT
+from vrnet_ext.names import DEFAULT_ROTATION_RANGE
 
 
 # Model-config fields an export may change: they choose how the estimate is solved, not the weights.
 INFERENCE_FIELDS = ("procrustes_points", "irls_iterations", "irls_kernel", "irls_scale", "second_pass_below",
-                    "consistency_radius")
+                    "rotation_search_below", "consistency_radius")
 
 
 def training_facts(checkpoint: str | os.PathLike, name: str | None = None) -> dict:
     """What a model card says about training, read from a ``vrnet train`` checkpoint and the
-    ``metrics.jsonl`` beside it: setting, split, preset, the selected epoch, steps, wall time, the
+    ``metrics.jsonl`` beside it: setting, split, preset, the rotations of its training pairs (how
+    drawn, the largest angle; unused for ``so3``), the selected epoch, steps, wall time, the
     shipped model its warm starts began from and the wall time of the runs since
     (:mod:`vrnet_ext.learning.lineage`), and that epoch's validation metrics.
 
@@ -35,6 +37,10 @@ def training_facts(checkpoint: str | os.PathLike, name: str | None = None) -> di
     facts = {key: config.get(key) for key in ("preset", "setting", "split", "num_points", "num_subsampled",
                                               "batch_size", "stage1_epochs", "stage2_epochs", "precision",
                                               "max_train_items", "val_fraction", "seed")}
+    drawn, largest = config.get("rotation_range", DEFAULT_ROTATION_RANGE), config.get("train_max_angle", 45.0)
+    lowest = -largest if drawn == "symmetric" else 0
+    facts["rotations"] = ("so3: uniform over all rotations" if drawn == "so3"
+                          else f"{drawn}: each Euler angle in [{lowest:g}, {largest:g}] degrees")
     starting_point, runs_seconds = _starting_point(lineage_of(state, str(checkpoint)), name)
     facts.update(stage=state.get("stage"), epoch=(state.get("epoch") or 0) + 1, step=state.get("step"),
                  train_seconds=round(run_seconds(state), 1), starting_point=starting_point,

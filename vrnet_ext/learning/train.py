@@ -91,7 +91,8 @@ class _Run:
 
 def _datasets(cfg: TrainConfig):
     data = cfg.data
-    spec = dict(num_points=data.num_points, num_subsampled=data.num_subsampled, far_points=data.far_points)
+    spec = dict(num_points=data.num_points, num_subsampled=data.num_subsampled, far_points=data.far_points,
+                rotation_range=data.rotation_range)
     common = dict(root=data.data_dir, setting=data.setting, split=data.split, val_fraction=data.val_fraction,
                   classes=data.classes)
     # Validation pairs are the dataset's fixed ones: runs of different seeds are selected on the same pairs.

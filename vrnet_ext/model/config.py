@@ -55,6 +55,15 @@ class VRNetConfig:
       ``iterations`` alone. A pair the passes register well has most RCPs on its estimate; one that
       failed (a large rotation, a symmetric shape) has almost none, and a second look from closer
       usually fixes it.
+    * ``rotation_search_below``: after the second pass, a pair whose consistency is still below this
+      share is registered again from its source turned by each of the 23 other rotations of a cube
+      (:func:`vrnet_ext.geometry.transforms.cube_rotations`: every rotation lies within 63 degrees of
+      one of them), a few pairs' starts per batch, each start followed by a second look from its
+      estimate (kept where its RCPs agree more); the start whose RCPs then agree most with its
+      estimate is kept where they agree more than with the estimate so far (not in the paper; 0:
+      never; eval mode only). A model trained on the protocol's rotations (each Euler angle in
+      [0, 45] degrees) fails on most other motions; with the search it registers rotations from all
+      of SO(3), at 46 more passes for each pair it searches and none for the others.
     * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.
 
     Run-time choices (no effect on the weights):
@@ -94,6 +103,7 @@ class VRNetConfig:
     irls_min_scale: float = 1e-3
     iterations: int = 1
     second_pass_below: float = 0.0
+    rotation_search_below: float = 0.0
     consistency_radius: float = 0.02
     backend: str = "ext"
     transformer_precision: str = "auto"
@@ -116,6 +126,8 @@ class VRNetConfig:
         if not 0 <= self.second_pass_below <= 1 or not 0 < self.consistency_radius < float("inf"):
             raise ValueError(f"second_pass_below must be in [0, 1] and consistency_radius a positive finite "
                              f"distance, got {self.second_pass_below} and {self.consistency_radius}")
+        if not 0 <= self.rotation_search_below <= 1:
+            raise ValueError(f"rotation_search_below must be in [0, 1], got {self.rotation_search_below}")
         if self.irls_kernel not in IRLS_KERNELS:
             raise ValueError(f"irls_kernel must be one of {IRLS_KERNELS}, got {self.irls_kernel!r}")
         if self.backend not in BACKENDS:

@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from vrnet_ext.geometry.metrics import correct_match_ratio
-from vrnet_ext.geometry.transforms import compose, move
+from vrnet_ext.geometry.transforms import compose, cube_rotations, move
 from vrnet_ext.model.config import VRNetConfig
 from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
@@ -17,6 +17,8 @@ from vrnet_ext.model.transformer import Transformer
 from vrnet_ext.ops import robust_kabsch, soft_match
 from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
 from vrnet_ext.runtime import cpu_has_native_bf16
+
+SEARCH_CLOUDS = 96  # turned source clouds the rotation search registers per batch (bounds its memory)
 
 
 @dataclass
@@ -35,6 +37,7 @@ class VRNetOutput:
     confidence_logits: torch.Tensor | None = None  # (B, N) RCP confidence, or None (unweighted)
     consistency: torch.Tensor | None = None  # (B,) share of RCPs within consistency_radius of R src + t
     second_pass: torch.Tensor | None = None  # (B,) bool: the estimate comes from the second pass
+    start_rotation: torch.Tensor | None = None  # (B, 3, 3) the turn of src the estimate's passes began from
 
     @property
     def weights(self) -> torch.Tensor | None:
@@ -79,6 +82,28 @@ def match_clouds(phi_x: torch.Tensor, phi_y: torch.Tensor, tgt: torch.Tensor, ba
         peak = torch.exp(scale * (query * peak_key).sum(-1) - lse)
         entropy = lse - scale * (query * out[..., 3:]).sum(-1)
     return CloudMatch(matched[..., :3], matched[..., 3:].transpose(1, 2), peak, entropy, matching)
+
+
+def _rows_of(out: VRNetOutput, rows: torch.Tensor) -> VRNetOutput:
+    """The rows ``rows`` of every batch-first field of ``out``."""
+    values = {f.name: getattr(out, f.name) for f in fields(VRNetOutput)}
+    return VRNetOutput(**{name: None if value is None else value[rows] for name, value in values.items()})
+
+
+def _rows(values: torch.Tensor | None, rows: torch.Tensor) -> torch.Tensor | None:
+    """``values[rows]``, or None for None."""
+    return None if values is None else values[rows]
+
+
+def _replace_rows(out: VRNetOutput, rows: torch.Tensor, candidate: VRNetOutput) -> None:
+    """Where ``candidate`` (one row per entry of ``rows``) agrees more with its RCPs than ``out``'s
+    rows ``rows`` do, its rows replace them (every field is batch-first; in place)."""
+    better = candidate.consistency > out.consistency[rows]
+    kept = rows[better]
+    for field in fields(VRNetOutput):
+        value = getattr(out, field.name)
+        if value is not None:
+            setattr(out, field.name, value.index_copy(0, kept, getattr(candidate, field.name)[better]))
 
 
 def procrustes_weights(confidence_logits: torch.Tensor) -> torch.Tensor:
@@ -126,9 +151,27 @@ class VRNet(nn.Module):
         check_finite(src, "src")
         check_finite(tgt, "tgt")
         backend = backend or self.config.backend
+        out, tgt_features = self._passes(src, tgt, backend, return_matching)
+        out.start_rotation = torch.eye(3, dtype=src.dtype, device=src.device).expand(src.shape[0], 3, 3)
+        out.second_pass = torch.zeros(src.shape[0], dtype=torch.bool, device=src.device)
+        if self.training:
+            return out
+        if self.config.second_pass_below > 0:
+            retry = (out.consistency < self.config.second_pass_below).nonzero().squeeze(1)
+            if retry.numel():
+                _replace_rows(out, retry, self._second_look(src[retry], tgt[retry], _rows_of(out, retry), backend,
+                                                            return_matching, _rows(tgt_features, retry)))
+        if self.config.rotation_search_below > 0:
+            self._rotation_search(src, tgt, out, backend, return_matching, tgt_features)
+        return out
+
+    def _passes(self, src: torch.Tensor, tgt: torch.Tensor, backend: str, return_matching: bool,
+                tgt_features: torch.Tensor | None = None) -> tuple[VRNetOutput, torch.Tensor | None]:
+        """The ``iterations`` passes from src as it is: the output with the composed motion and its
+        consistency, and the target's features for later passes over the same tgt."""
         rotation = torch.eye(3, dtype=src.dtype, device=src.device).expand(src.shape[0], 3, 3)
         translation = src.new_zeros(src.shape[0], 3)
-        moved, tgt_features = src, None
+        moved = src
         for _ in range(self.config.iterations):
             out, tgt_features = self._single_pass(moved, tgt, backend, return_matching, tgt_features)
             with torch.autocast(src.device.type, enabled=False):  # compose the motions in src's dtype
@@ -136,10 +179,7 @@ class VRNet(nn.Module):
                 moved = move(src, rotation, translation)
         out.rotation, out.translation = rotation, translation
         out.consistency = self._consistency(src, rotation, translation, out.rcp)
-        out.second_pass = torch.zeros(src.shape[0], dtype=torch.bool, device=src.device)
-        if not self.training and self.config.second_pass_below > 0:
-            self._second_pass(src, tgt, out, backend, return_matching, tgt_features)
-        return out
+        return out, tgt_features
 
     def _consistency(self, src: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor,
                      rcp: torch.Tensor) -> torch.Tensor:
@@ -147,29 +187,48 @@ class VRNet(nn.Module):
         how far a pair's RCPs agree with its estimate."""
         return correct_match_ratio(rcp, src, rotation, translation, self.config.consistency_radius).to(src.dtype)
 
-    def _second_pass(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
-                     return_matching: bool, tgt_features: torch.Tensor | None) -> None:
-        """Registers the pairs whose consistency is below ``second_pass_below`` once more from the
-        moved source (the target's features reused where the first pass kept them); where the new
-        pass's RCPs agree more with its estimate, its rows replace ``out``'s (in place)."""
-        retry = (out.consistency < self.config.second_pass_below).nonzero().squeeze(1)
-        if retry.numel() == 0:
-            return
+    def _second_look(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
+                     return_matching: bool, tgt_features: torch.Tensor | None) -> VRNetOutput:
+        """One more pass over each pair from the source moved by ``out``'s estimate (the target's
+        features reused where given), its motion composed with ``out``'s, marked ``second_pass``."""
         with torch.autocast(src.device.type, enabled=False):
-            moved = move(src[retry], out.rotation[retry], out.translation[retry])
-        again, _ = self._single_pass(moved, tgt[retry], backend, return_matching,
-                                     None if tgt_features is None else tgt_features[retry])
+            moved = move(src, out.rotation, out.translation)
+        again, _ = self._single_pass(moved, tgt, backend, return_matching, tgt_features)
         with torch.autocast(src.device.type, enabled=False):
-            again.rotation, again.translation = compose(again.rotation, again.translation, out.rotation[retry],
-                                                        out.translation[retry])
-        again.consistency = self._consistency(src[retry], again.rotation, again.translation, again.rcp)
-        better = again.consistency > out.consistency[retry]
-        kept = retry[better]
-        again.second_pass = torch.ones_like(better)
-        for field in fields(VRNetOutput):  # every field is batch-first
-            rows = getattr(out, field.name)
-            if rows is not None:
-                setattr(out, field.name, rows.index_copy(0, kept, getattr(again, field.name)[better]))
+            again.rotation, again.translation = compose(again.rotation, again.translation, out.rotation,
+                                                        out.translation)
+        again.consistency = self._consistency(src, again.rotation, again.translation, again.rcp)
+        again.start_rotation = out.start_rotation
+        again.second_pass = torch.ones(src.shape[0], dtype=torch.bool, device=src.device)
+        return again
+
+    def _rotation_search(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
+                         return_matching: bool, tgt_features: torch.Tensor | None) -> None:
+        """Registers the pairs whose consistency is still below ``rotation_search_below`` again from
+        the source turned by each other rotation of the cube (:func:`cube_rotations`), a few pairs'
+        turns per batch, each start followed by a second look (kept where its RCPs agree more); the
+        start whose RCPs then agree most with its estimate replaces ``out``'s rows (in place) where
+        they agree more than ``out``'s."""
+        retry = (out.consistency < self.config.rotation_search_below).nonzero().squeeze(1)
+        starts = torch.as_tensor(cube_rotations()[1:], dtype=src.dtype, device=src.device)  # (S, 3, 3)
+        count = starts.shape[0]
+        for chunk in retry.split(max(1, SEARCH_CLOUDS // count)) if retry.numel() else ():
+            rows = chunk.repeat_interleave(count)  # pair of each (pair, start), start fastest
+            turns = starts.repeat(chunk.numel(), 1, 1)
+            features = _rows(tgt_features, rows)
+            with torch.autocast(src.device.type, enabled=False):
+                turned = move(src[rows], turns, src.new_zeros(rows.numel(), 3))
+            found, _ = self._passes(turned, tgt[rows], backend, return_matching, features)
+            with torch.autocast(src.device.type, enabled=False):  # R' (g src) + t = (R' g) src + t
+                found.rotation = found.rotation @ turns
+            found.start_rotation = turns
+            found.second_pass = torch.zeros_like(rows, dtype=torch.bool)
+            every = torch.arange(rows.numel(), device=src.device)
+            _replace_rows(found, every, self._second_look(src[rows], tgt[rows], found, backend, return_matching,
+                                                          features))
+            best = found.consistency.view(chunk.numel(), count).argmax(dim=1)
+            chosen = torch.arange(chunk.numel(), device=src.device) * count + best
+            _replace_rows(out, chunk, _rows_of(found, chosen))
 
     def _features(self, src: torch.Tensor, tgt: torch.Tensor, backend: str,
                   tgt_features: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
