@@ -18,7 +18,7 @@ from vrnet_ext.ops import robust_kabsch, soft_match
 from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
 from vrnet_ext.runtime import cpu_has_native_bf16
 
-SEARCH_CLOUDS = 96  # turned source clouds the rotation search registers per batch (bounds its memory)
+SEARCH_POINTS = 2 ** 16  # source points the rotation search registers per batch (bounds its memory)
 
 
 @dataclass
@@ -212,7 +212,7 @@ class VRNet(nn.Module):
         retry = (out.consistency < self.config.rotation_search_below).nonzero().squeeze(1)
         starts = torch.as_tensor(cube_rotations()[1:], dtype=src.dtype, device=src.device)  # (S, 3, 3)
         count = starts.shape[0]
-        for chunk in retry.split(max(1, SEARCH_CLOUDS // count)) if retry.numel() else ():
+        for chunk in retry.split(max(1, SEARCH_POINTS // (count * src.shape[1]))) if retry.numel() else ():
             rows = chunk.repeat_interleave(count)  # pair of each (pair, start), start fastest
             turns = starts.repeat(chunk.numel(), 1, 1)
             features = _rows(tgt_features, rows)
