@@ -138,6 +138,7 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert not model.training
     assert main(["export", str(run / "best.pt"), "x", "--out-dir", str(tmp_path), "--test-json",
                  str(tmp_path / "missing.json")]) == 2
+    assert json.loads(test_json.read_text())["rotations"] == "protocol"  # the run's range (the preset's)
     turned_json = tmp_path / "test_so3.json"  # a card's test table holds the paper's protocol only
     turned_json.write_text(json.dumps({**json.loads(test_json.read_text()), "rotations": "so3"}))
     assert main(["export", str(run / "best.pt"), "x", "--out-dir", str(tmp_path), "--test-json", str(turned_json)]) == 2

@@ -186,8 +186,8 @@ def add_eval(sub) -> None:
                    help="partial views: prnet = the paper's: one far point near the diagonal cuts both clouds; "
                         "sphere = in a random direction for each cloud; mixed = one of the two per pair; "
                         "symmetric = the target's far point mirrors the source's (the paper's ablations)")
-    p.add_argument("--rotation-range", choices=ROTATION_RANGES, default=DEFAULT_ROTATION_RANGE,
-                   help=ROTATION_RANGE_HELP)
+    p.add_argument("--rotation-range", choices=ROTATION_RANGES, default=None,
+                   help=ROTATION_RANGE_HELP + f" (default: the checkpoint's, else {DEFAULT_ROTATION_RANGE})")
     p.add_argument("--backend", choices=BACKENDS, default=DEFAULT_BACKEND,
                    help="ext: the compiled kernels; torch: the pure-PyTorch references")
     p.add_argument("--transformer-precision", choices=TRANSFORMER_PRECISIONS, default=TRANSFORMER_PRECISIONS[0],
@@ -233,15 +233,16 @@ def _evaluate_and_report(args) -> tuple[dict, Path | str]:
     split = args.split or cfg.get("split", DEFAULT_SPLIT)
     if setting == MIXED:
         raise ValueError(f"{args.checkpoint} was trained on every setting: give --setting ({' | '.join(SETTINGS)})")
+    rotations = args.rotation_range or cfg.get("rotation_range", DEFAULT_ROTATION_RANGE)
     spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768),
-                    far_points=args.far_points, rotation_range=args.rotation_range)
+                    far_points=args.far_points, rotation_range=rotations)
     data = ModelNet40Pairs(args.data_dir or cfg.get("data_dir"), partition="test", setting=setting, split=split,
                            max_items=args.max_items, spec=spec)
     model.to(args.device)
     result = evaluate(model, data, batch_size=args.batch_size, device=args.device, backend=args.backend,
                       progress=args.progress)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
-    result.update(setting=setting, split=split, far_points=args.far_points, rotations=args.rotation_range,
+    result.update(setting=setting, split=split, far_points=args.far_points, rotations=rotations,
                   checkpoint=str(args.checkpoint),
                   iterations=model.config.iterations, **{k: getattr(model.config, k) for k in SOLVE_KEYS},
                   transformer_precision=args.transformer_precision,
