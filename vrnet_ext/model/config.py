@@ -63,7 +63,8 @@ class VRNetConfig:
       estimate is kept where they agree more than with the estimate so far (not in the paper; 0:
       never; eval mode only). A model trained on the protocol's rotations (each Euler angle in
       [0, 45] degrees) fails on most other motions; with the search it registers rotations from all
-      of SO(3), at 46 more passes for each pair it searches and none for the others.
+      of SO(3), at 23 x (iterations + 1) more passes (46 with one pass) for each pair it searches and
+      none for the others.
     * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.
 
     Run-time choices (no effect on the weights):
