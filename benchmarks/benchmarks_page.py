@@ -19,6 +19,7 @@ EARLIER_VIEWS = "; its PV and PV+RS rows on earlier pairs, whose target view had
 TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "real_pairs": "Real scan pairs (`bench_real_pairs.py`)",
     "real_pairs_turned": "Real scan pairs turned by a further rotation (`bench_real_pairs.py --extra-rotation`)",
+    "real_pairs_cross_check": "Real scan pairs, the default with its check by a second estimator beside sc2 and fpfh (`bench_real_pairs.py --methods default sc2 fpfh --seeds 1`)",
     "modelnet40_summary": "ModelNet40, the paper's 12 cells (`modelnet40_summary.py`)",
     "modelnet40_tables": "ModelNet40 tables (`modelnet40_tables.py`)" + EARLIER_VIEWS,
     "modelnet40_tables_nd": "ModelNet40 tables, noisy data (`modelnet40_tables.py`)" + EARLIER_VIEWS,
@@ -60,6 +61,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "degeneracy": "How well real scans constrain ICP: the smallest eigenvalue share at the ground truth (`bench_degeneracy.py`)",
     "register_batch": "Many pairs: one process per pair, `register-batch`, `torchrun` with 2 processes (`bench_register_batch.py`)",
     "default": "The default (`auto`) beside the methods it combines, on pairs none was tuned on (`bench_default.py`)",
+    "default_cross_check": "The default (`auto`) with its check by a second estimator, beside the methods it combines (`bench_default.py`)",
     "register_scene": "Many scans of one scene against ground-truth poses: `register-scene` and Open3D's multiway registration (`bench_register_scene.py`)",
     "icp_from_truth": "Where ICP goes when it starts from the official ground truth (`bench_icp_from_truth.py`)",
     "global_fit": "Spatial consistency vs RANSAC, matching + fit on the same descriptors (`bench_global_fit.py`)",

@@ -221,7 +221,9 @@ def test_the_default_brings_in_its_other_estimators_only_when_in_doubt(monkeypat
     tgt = apply(truth, closed_room(seed=1))
     settings = IcpSettings(points=6000)
     fine = register(src, tgt, global_points=3000, icp_settings=settings)
-    assert fine.start == "sc2" and not fine.selection and "initial (fpfh)" not in fine.seconds
+    # FPFH + RANSAC checks a confident refinement; it lands there too, so the scene model never runs
+    assert fine.start == "sc2" and not fine.selection and "initial (fpfh)" in fine.seconds
+    assert "initial (vrnet)" not in fine.seconds
 
     class Wrong(GlobalEstimator):
         name = "sc2"
@@ -246,13 +248,41 @@ def test_the_default_brings_in_its_other_estimators_only_when_in_doubt(monkeypat
             raise ValueError("found nothing")
 
     fallbacks = Adaptive.fallbacks
-    monkeypatch.setattr(Adaptive, "fallbacks", lambda self, pair, budget=None: ({"fpfh": Failing()}, []))
+    monkeypatch.setattr(Adaptive, "fallbacks", lambda self, pair, budget=None, names=None: ({"fpfh": Failing()}, []))
     unconfirmed = register(src, tgt, global_points=3000, icp_settings=settings)  # the wrong start alone
     assert "no two ended together" in unconfirmed.selection, unconfirmed.selection
     assert any(w.startswith("no two estimators agree") for w in unconfirmed.warnings), unconfirmed.warnings
     monkeypatch.setattr(Adaptive, "fallbacks", fallbacks)
     alone = register(src, tgt, method=Wrong(), global_points=3000, icp_settings=settings)
     assert alone.start == "sc2" and "initial (fpfh)" not in alone.seconds and alone.warnings
+
+
+def test_the_default_checks_a_confident_first_estimate_with_a_second_one(monkeypatch):
+    """A refinement from spatial consistency that looks fine (converged, fitting) but is wrong: the
+    FPFH + RANSAC check does not land there, so every member runs and the confirmed one wins."""
+    import vrnet_ext.registration.pipeline as pipeline
+    from vrnet_ext.registration import GlobalEstimator, RegistrationResult
+    from vrnet_ext.registration.global_estimators import Adaptive
+
+    src = closed_room()
+    truth = motion(75.0, [0.3, -0.2, 0.1])
+    tgt = apply(truth, closed_room(seed=1))
+
+    class Wrong(GlobalEstimator):
+        name = "sc2"
+
+        def estimate_pair(self, pair, seed):
+            return RegistrationResult.global_estimate(motion(150.0, [2.0, 0.0, 0.0]), self.name)
+
+    member = Adaptive.member
+    monkeypatch.setattr(Adaptive, "member", lambda self, name, device=None: Wrong() if name == "sc2"
+                        else member(self, name, device))
+    monkeypatch.setattr(pipeline, "doubt", lambda refined: None)  # as if the wrong refinement fitted well
+    checked = register(src, tgt, global_points=3000, icp_settings=IcpSettings(points=6000))
+    assert checked.selection.startswith("sc2 ended apart from ICP from the fpfh estimate"), checked.selection
+    assert checked.start in ("fpfh", "vrnet") and "ended too" in checked.selection, checked.selection
+    assert transform_errors(checked.T_target_source, truth)["rotation_error_deg"] < 1.0
+    assert {"initial (fpfh)", "initial (vrnet)"} <= set(checked.seconds)
 
 
 def test_the_default_takes_a_scene_model_only():

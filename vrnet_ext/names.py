@@ -28,8 +28,9 @@ DEFAULT_MODEL = "vrnet-pv-upc-rcp"  # the shipped ModelNet40 model of the paper'
 DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-real"  # the shipped scene model (vrnet register --method vrnet)
 
 GLOBAL_ESTIMATORS = ("auto", "sc2", "fpfh", "vrnet", "fgr", "icp")  # vrnet_ext.registration.global_estimators
-# "auto": the first of these; when its refinement is doubtful, the others too, and the best fit that
-# another confirms wins, else the scene model's (benchmarks/bench_default.py).
+# "auto": the first of these, checked by the second's estimate; when its refinement is doubtful or the
+# check lands elsewhere, the others too, and the best fit that another confirms wins, else the scene
+# model's (benchmarks/bench_default.py).
 AUTO_MEMBERS = ("sc2", "fpfh", "vrnet")
 DEFAULT_METHOD = "auto"
 ICP_STEPS = ("point_to_point", "point_to_plane", "gicp")  # vrnet_ext.registration.icp_steps

@@ -43,9 +43,9 @@ def add_registration_options(p) -> None:
     from vrnet_ext.registration.counts import PointCounts
 
     p.add_argument("--method", choices=GLOBAL_ESTIMATORS, default=argparse.SUPPRESS,
-                   help=f"global estimate (default: {DEFAULT_METHOD}: sc2, and fpfh and vrnet too when ICP from "
-                        f"sc2's estimate is doubtful, the best fit that another confirms kept, else vrnet's; vrnet "
-                        f"when --checkpoint is given)")
+                   help=f"global estimate (default: {DEFAULT_METHOD}: sc2, checked by fpfh's estimate; when ICP from "
+                        f"sc2's estimate is doubtful or fpfh lands elsewhere, vrnet too, the best fit that another "
+                        f"confirms kept, else vrnet's; vrnet when --checkpoint is given)")
     initial = p.add_mutually_exclusive_group()
     initial.add_argument("--checkpoint", default=None,
                          help="with --method vrnet: shipped model name or checkpoint (a scene model of `vrnet "

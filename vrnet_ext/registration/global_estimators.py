@@ -19,7 +19,7 @@ result is doubtful).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Sequence
 
 import numpy as np
 import torch
@@ -274,7 +274,8 @@ def network_estimator(model: VRNet | SceneVRNet, backend: str = "ext") -> Global
 @dataclass
 class Adaptive(GlobalEstimator):
     """The default (``"auto"``): the first of ``members`` (spatial consistency) estimates; when the
-    refinement from it is doubtful (:func:`vrnet_ext.registration.pipeline.register_prepared` says
+    refinement from it is doubtful, or the ``checker``'s estimate (RANSAC on the same features)
+    does not end where it did (:func:`vrnet_ext.registration.pipeline.register_prepared` says
     when), the others estimate on the same prepared scans too, ICP runs from each, and the best fit
     among the refinements another one confirms wins, else the ``arbiter``'s (the pipeline's
     ``_agreed``). ``model``: the scene model of the ``"vrnet"`` member (default:
@@ -286,6 +287,7 @@ class Adaptive(GlobalEstimator):
     name: ClassVar[str] = "auto"
     members: ClassVar[tuple[str, ...]] = AUTO_MEMBERS
     arbiter: ClassVar[str] = "vrnet"  # whose refinement is kept when no two members' refinements agree
+    checker: ClassVar[str] = "fpfh"  # whose estimate must land where a confident first refinement did
     sized_by: ClassVar[tuple[str, ...]] = ("global_points",)
 
     def __post_init__(self) -> None:
@@ -311,12 +313,13 @@ class Adaptive(GlobalEstimator):
         estimate.method = self.name
         return estimate
 
-    def fallbacks(self, pair: ScanPair, budget_bytes: int | None = None) -> tuple[dict[str, GlobalEstimator],
-                                                                                 list[str]]:
-        """The members that estimate when the first one's refinement is doubtful, by name; under a
-        memory budget only those whose predicted peak fits it, with a note for each one left out."""
+    def fallbacks(self, pair: ScanPair, budget_bytes: int | None = None,
+                  names: Sequence[str] | None = None) -> tuple[dict[str, GlobalEstimator], list[str]]:
+        """The members ``names`` (default: all but the first, those that estimate when its refinement
+        is doubtful) by name; under a memory budget only those whose predicted peak fits it, with a
+        note for each one left out."""
         largest, kept, notes = max(len(pair.src.points), len(pair.tgt.points)), {}, []
-        for name in self.members[1:]:
+        for name in (self.members[1:] if names is None else names):
             member = self.member(name, pair.device)
             peak = None if budget_bytes is None else predicted_peak_mb(member, largest, pair.counts)
             if peak is not None and peak > budget_bytes / MB:

@@ -26,6 +26,7 @@ from vrnet_ext.registration.result import RegistrationResult
 LOW_FITNESS = 0.2  # below this share of source points with a target point within reach, warn
 SPARSE = 1.5  # a reach below this many point spacings of the target cannot judge the overlap
 FITNESS_TIE = 0.005  # refinements whose fitness differs by less converged to the same fit
+ESTIMATE_SLACK = 2.0  # global voxels a robust fit's estimate may lie from the refinement it agrees with (its inlier bound)
 
 
 @dataclass(frozen=True)
@@ -79,9 +80,10 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     estimate from ``model`` (a :class:`SceneVRNet` on about ``global_points`` points per scan, or a
     ModelNet40 :class:`VRNet` on ``network_points`` subsampled points; default: the shipped scene
     model); ``"fgr"``: FPFH + Fast Global Registration; ``"icp"``: ICP from no motion; ``"auto"``:
-    ``"sc2"``, and when ICP from it is doubtful (:func:`doubt`) ``"fpfh"`` and ``"vrnet"`` too, ICP
-    from each and the best fit that another confirms kept, else ``"vrnet"``'s (``selection`` says
-    why; a scene ``model`` is used for its ``"vrnet"``). None: ``"vrnet"`` when a model is given, else ``"auto"`` (the default of
+    ``"sc2"``, checked by ``"fpfh"``'s estimate (it must land where ICP from ``"sc2"`` ended); when
+    ICP from ``"sc2"`` is doubtful (:func:`doubt`) or the check lands elsewhere, ``"fpfh"`` and
+    ``"vrnet"`` too, ICP from each and the best fit that another confirms kept, else ``"vrnet"``'s
+    (``selection`` says why; a scene ``model`` is used for its ``"vrnet"``). None: ``"vrnet"`` when a model is given, else ``"auto"`` (the default of
     ``vrnet register`` too).
     icp_settings: the refinement (:class:`IcpSettings`). When the estimator asks for it
     (``also_start_from``: the scene network also starts from ``"sc2"``'s estimate, a ModelNet40 network
@@ -175,7 +177,8 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
     """The global estimate and ICP of :func:`register` on a pair already prepared (its clouds near
     the origin, its point counts fitted to any budget): many registrations between a set of scans
     share each scan's preparation this way. With the default estimator (``"auto"``), a doubtful
-    refinement (:func:`doubt`) brings in the others, those that fit ``run.max_memory``."""
+    refinement (:func:`doubt`), or one its checker does not land on (:func:`_cross_check`), brings in
+    the others, those that fit ``run.max_memory``."""
     src, tgt, warnings = pair.src.points, pair.tgt.points, []
     seconds: dict[str, float] = {}
     estimate, starts = _global_starts(pair, run, seconds)
@@ -191,9 +194,18 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
     refined, failures = _refine(problem, pair, starts, run, seconds)
     selection = ""
     if hasattr(run.estimator, "fallbacks"):
-        reason = doubt(refined.get(own))
+        reason, checked = doubt(refined.get(own)), ()
+        checker = getattr(run.estimator, "checker", None)
+        if reason is None and checker is not None:
+            check, _ = run.estimator.fallbacks(pair, run.max_memory, (checker,))
+            if check:
+                checked = (checker,)
+                reason, more = _cross_check(problem, pair, run, seconds, first=refined[own], checker=checker,
+                                            estimator=check[checker])
+                refined.update(more)
         if reason:
-            fallbacks, left_out = run.estimator.fallbacks(pair, run.max_memory)
+            fallbacks, left_out = run.estimator.fallbacks(pair, run.max_memory, [
+                member for member in run.estimator.members[1:] if member not in checked])
             warnings += left_out
             others = _fallback_starts(fallbacks, pair, run, seconds)
             more, more_failures = _refine(problem, pair, others, run, seconds)
@@ -250,7 +262,8 @@ def _agreed(problem: IcpProblem, refined: dict[str, RegistrationResult], own: st
     overlap onto a large surface), else the best fit."""
     fits = ", ".join(f"{start} {result.fitness:.1%}" for start, result in refined.items())
     support = {start: [other for other in refined if other != start
-                       and _same_alignment(problem, refined[other], refined[start])] for start in refined}
+                       and _same_alignment(problem, refined[other].T_target_source, refined[start].T_target_source)]
+               for start in refined}
     most = max(len(others) for others in support.values())
     if most > 0:
         winner = _best_fit({start: refined[start] for start in refined if len(support[start]) == most}, own)
@@ -261,13 +274,42 @@ def _agreed(problem: IcpProblem, refined: dict[str, RegistrationResult], own: st
     return winner, f"refined from each ({fits}): no two ended together; the best fit, {winner}'s", False
 
 
-def _same_alignment(problem: IcpProblem, a: RegistrationResult, b: RegistrationResult) -> bool:
-    """Whether two refinements place the source within ICP's reach of each other (the RMS distance
-    between the source's ICP points moved by either)."""
+def _apart(problem: IcpProblem, a: np.ndarray, b: np.ndarray) -> float:
+    """The RMS distance between the source's ICP points moved by transform ``a`` and by ``b`` (4, 4)."""
     points = problem.src[0]
-    difference = torch.as_tensor(a.T_target_source - b.T_target_source, dtype=points.dtype, device=points.device)
-    apart = points @ difference[:3, :3].T + difference[:3, 3]
-    return float(apart.square().sum(dim=1).mean().sqrt()) < problem.settings.max_distance
+    difference = torch.as_tensor(a - b, dtype=points.dtype, device=points.device)
+    return float((points @ difference[:3, :3].T + difference[:3, 3]).square().sum(dim=1).mean().sqrt())
+
+
+def _same_alignment(problem: IcpProblem, a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two refinements (4, 4) place the source within ICP's reach of each other."""
+    return _apart(problem, a, b) < problem.settings.max_distance
+
+
+def _cross_check(problem: IcpProblem, pair: ScanPair, run: RegistrationRun, seconds: dict[str, float], *,
+                 first: RegistrationResult, checker: str, estimator: GlobalEstimator
+                 ) -> tuple[str | None, dict[str, RegistrationResult]]:
+    """Whether the first estimator's confident refinement ``first`` is doubtful after all -> (why, or
+    None; the refinement from the checker's estimate by its name, when it ran and ended elsewhere).
+    A second, independent estimator (``checker``, e.g. RANSAC on the same features) must land where
+    ``first`` did: its estimate (within ICP's reach plus :data:`ESTIMATE_SLACK` global voxels: a
+    robust fit's own accuracy) or else ICP from it. One that finds no estimate or whose ICP finds no
+    pairs says nothing either way. A result both reach from different hypotheses is rarely wrong; one
+    they disagree on often is (:func:`register_prepared` then runs every member)."""
+    started = time.perf_counter()
+    try:
+        guess = _as_estimate(checker, estimator.estimate_pair(pair, run.seed)).T_target_source
+    except ValueError:
+        return None, {}
+    finally:
+        seconds[f"initial ({checker})"] = time.perf_counter() - started
+    slack = problem.settings.max_distance + ESTIMATE_SLACK * pair.global_voxel
+    if _apart(problem, guess, first.T_target_source) < slack:
+        return None, {}
+    refined, _ = _refine(problem, pair, {checker: guess}, run, seconds)
+    if checker not in refined or _same_alignment(problem, refined[checker].T_target_source, first.T_target_source):
+        return None, {}
+    return f"ended apart from ICP from the {checker} estimate", refined
 
 
 def doubt(refined: RegistrationResult | None) -> str | None:
