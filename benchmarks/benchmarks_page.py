@@ -47,6 +47,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "rotations": "ModelNet40 beyond the protocol's rotations, each cell's model alone and with its rotation search (`modelnet40_rotations.py` over `modelnet40_tables.py --methods vrnet --max-items 100 --rotation-range symmetric|so3 [--swap] --rotation-search-below 0|0.1`)",
     "rotations_whole_splits": "ModelNet40 with each angle in [-45, 45] degrees on whole test splits, four cells alone and with the rotation search (`modelnet40_rotations.py` over `modelnet40_tables.py --methods vrnet --rotation-range symmetric --rotation-search-below 0|0.1`)",
     "memory_plan": "Memory planner: predicted vs measured peaks (`bench_memory_plan.py`)",
+    "memory_plan_refit": "Memory planner refitted as upper bounds, with a 3,000,000-point pair (`bench_memory_plan.py`)",
     "memory_plan_scene": "Memory planner, scene model (`bench_memory_plan.py --methods vrnet vrnet-large`)",
     "large": "Large scenes under memory budgets (`bench_large_scene.py`)",
     "register": "Registration against Open3D and small_gicp (`bench_register.py`)",

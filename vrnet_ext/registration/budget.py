@@ -1,14 +1,16 @@
 """Sizing a registration run to a memory budget (``vrnet register --max-memory 2GB``).
 
 The budget bounds the peak resident memory of the whole process: what it already holds (Python,
-torch, the scans just read) plus the largest transient of the stages that follow. Those transients
-grow linearly with the point counts (never beyond the larger scan's); the coefficients below were
-fitted on this project's CPU machine (those of the global estimators beside each estimator,
-:meth:`~vrnet_ext.registration.GlobalEstimator.peak_mb`) to whole-process peaks of each method on the 3DMatch kitchen
-and LiDAR pairs at 1,000-20,000 global and 5,000-200,000 ICP points
-(``benchmarks/bench_memory_plan.py``: the prediction lies within 0-25 % above the measured peak
-there; ``benchmarks/bench_large_scene.py`` checks whole runs under budgets) and carry a 25 % safety
-factor on each stage. The plan keeps the requested point counts when
+torch, the scans just read) plus what the run keeps through all its stages (copies of the scans) and
+the largest transient of the stages that follow. Those grow linearly with the scans' size and the
+point counts (never beyond the larger scan's); the coefficients below (those
+of the global estimators beside each estimator, :meth:`~vrnet_ext.registration.GlobalEstimator.peak_mb`)
+were fitted on this project's CPU machine as upper bounds of whole-process peaks of each method on
+the 3DMatch kitchen and LiDAR pairs and a synthetic pair of 3,000,000-point scans at 1,000-20,000
+global and 5,000-200,000 ICP points, at least 3 % above every measured peak and as close to them as
+the fit allows (at most 18 % above), with no further safety factor
+(``benchmarks/bench_memory_plan.py`` compares them with fresh measurements;
+``benchmarks/bench_large_scene.py`` checks whole runs under budgets). The plan keeps the requested point counts when
 they fit, else lowers them (never below the ``MIN_*`` counts), and raises :class:`MemoryBudgetError`
 before any heavy work when even the smallest run would not fit, saying what would.
 """
@@ -22,13 +24,13 @@ from typing import Protocol
 from vrnet_ext.registration.counts import PointCounts
 
 MB = 2 ** 20
-SAFETY = 1.25
-MARGIN_MB = 20.0     # allocator slack, small tensors, the result
+MARGIN_MB = 26.0     # allocator slack, small tensors, the result
 # Peak growth of the stages every run has, in MB: intercept + bytes per point / MB
 # (benchmarks/bench_memory_plan.py compares the predicted peaks with measured ones); each global
 # estimator states its own (GlobalEstimator.peak_mb).
-VOXEL_BYTES_PER_INPUT_POINT = 110.0          # voxel_downsample of the larger scan
-ICP_MB, ICP_BYTES_PER_POINT = 14.0, 270.0    # per point of source + target after downsampling
+RETAINED_BYTES_PER_INPUT_POINT = 19.0        # kept through every stage, per point of the larger scan
+VOXEL_BYTES_PER_INPUT_POINT = 48.0           # voxel_downsample of the larger scan
+ICP_MB, ICP_BYTES_PER_POINT = 25.0, 187.0    # per point of source + target after downsampling
 MIN_GLOBAL_POINTS, MIN_ICP_POINTS, MIN_NETWORK_POINTS = 1000, 5000, 256
 FLOORS = {"global_points": MIN_GLOBAL_POINTS, "network_points": MIN_NETWORK_POINTS, "icp_points": MIN_ICP_POINTS}
 
@@ -64,7 +66,7 @@ def require_headroom(budget_bytes: int) -> None:
     """MemoryBudgetError at once if this process alone (Python, torch) already needs more than
     the budget plus room for the smallest run; called before any scan is read."""
     now_mb = resident_mb()
-    floor_mb = now_mb + MARGIN_MB + SAFETY * ICP_MB
+    floor_mb = now_mb + MARGIN_MB + ICP_MB
     if budget_bytes / MB < floor_mb:
         raise MemoryBudgetError(f"max_memory {budget_bytes / MB:.0f} MB cannot be met: Python and torch alone "
                                 f"hold {now_mb:.0f} MB; allow at least {floor_mb:.0f} MB plus room for the scans")
@@ -89,8 +91,9 @@ class RegistrationPlan:
 
 
 def transient_mb(estimator: CostedEstimator | None, largest_scan: int, counts: PointCounts) -> float:
-    """Largest transient of the run's stages (MB, before the safety factor): the voxel grid, ICP and
-    the global estimator's own cost (:meth:`GlobalEstimator.peak_mb`; None or unknown: not counted)."""
+    """What the run keeps through its stages plus the largest transient of them (MB): the voxel grid,
+    ICP and the global estimator's own cost (:meth:`GlobalEstimator.peak_mb`; None or unknown: not
+    counted)."""
     counts = replace(counts, global_points=min(counts.global_points, largest_scan),  # no scan grows
                      icp_points=min(counts.icp_points, largest_scan))
     stages = [VOXEL_BYTES_PER_INPUT_POINT * largest_scan / MB,
@@ -99,16 +102,16 @@ def transient_mb(estimator: CostedEstimator | None, largest_scan: int, counts: P
     own = None if cost is None else cost(largest_scan, counts)
     if own is not None:
         stages.append(own)
-    return max(stages)
+    return RETAINED_BYTES_PER_INPUT_POINT * largest_scan / MB + max(stages)
 
 
 def predicted_peak_mb(estimator: CostedEstimator | None, largest_scan: int, counts: PointCounts,
                       held_mb: float | None = None) -> float:
     """The peak resident memory (MB) this process is expected to reach if it registers with
     ``estimator`` at ``counts`` holding ``held_mb`` (default: what it holds now): the margin and the
-    largest stage with the safety factor on top."""
+    largest stage on top."""
     held = resident_mb() if held_mb is None else held_mb
-    return held + MARGIN_MB + SAFETY * transient_mb(estimator, largest_scan, counts)
+    return held + MARGIN_MB + transient_mb(estimator, largest_scan, counts)
 
 
 def plan_registration(budget_bytes: int, estimator: CostedEstimator | None, source_points: int,

@@ -38,11 +38,11 @@ from vrnet_ext.registration.ransac import SCORING_MB as RANSAC_SCORING_MB, featu
 from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import from_normalised, to_homogeneous
 
-# Peak growth of each estimator, in MB: intercept + bytes per point / MB, fitted to whole-process peaks
-# (benchmarks/bench_memory_plan.py; :mod:`vrnet_ext.registration.budget` adds its safety factor).
-FPFH_MB, FPFH_BYTES_PER_POINT = 33.0, 5500.0  # normals, FPFH (100 neighbours), matching, RANSAC / SC2
-FGR_MB, FGR_BYTES_PER_POINT = 50.0, 4000.0    # FPFH + Fast Global Registration's correspondence sets
-SCENE_MB, SCENE_BYTES_PER_POINT = 60.0, 21000.0  # FPFH + the scene network's context graph, per point per scan
+# Peak growth of each estimator, in MB: intercept + bytes per point / MB, fitted as upper bounds of
+# whole-process peaks (benchmarks/bench_memory_plan.py; :mod:`vrnet_ext.registration.budget`).
+FPFH_MB, FPFH_BYTES_PER_POINT = 17.0, 5400.0  # normals, FPFH (100 neighbours), matching, RANSAC / SC2
+FGR_MB, FGR_BYTES_PER_POINT = 40.0, 4000.0    # FPFH + Fast Global Registration's correspondence sets
+SCENE_MB, SCENE_BYTES_PER_POINT = 36.0, 23400.0  # FPFH + the scene network's context graph, per point per scan
 NETWORK_MB, NETWORK_BYTES_PER_POINT = 40.0, 20000.0  # the ModelNet40 VRNet (streamed matching), per point per cloud
 
 
@@ -64,7 +64,7 @@ class GlobalEstimator:
     sized_by: ClassVar[tuple[str, ...]] = ()
 
     def peak_mb(self, largest_scan: int, counts: PointCounts) -> float | None:
-        """How much the process's peak grows while it estimates at ``counts`` (MB, no safety factor),
+        """How much the process's peak grows while it estimates at ``counts`` (MB, an upper bound),
         on scans of at most ``largest_scan`` points; None when unknown."""
         return None
 
