@@ -209,34 +209,51 @@ def test_fpfh_ransac_registers_a_low_overlap_3dlomatch_pair_for_most_seeds():
     assert registered >= 4, f"{registered} of 5 seeds registered {LOW_OVERLAP_PAIR}"
 
 
+class WrongFirst:
+    """A room pair and a spatial-consistency member that always answers 150 degrees off (patched into
+    the default by :meth:`install`): ``src``, ``tgt``, ``truth``, ``estimator``."""
+
+    def __init__(self) -> None:
+        from vrnet_ext.registration import GlobalEstimator, RegistrationResult
+
+        class Wrong(GlobalEstimator):
+            name = "sc2"
+
+            def estimate_pair(self, pair, seed):
+                return RegistrationResult.global_estimate(motion(150.0, [2.0, 0.0, 0.0]), self.name)
+
+        self.src = closed_room()
+        self.truth = motion(75.0, [0.3, -0.2, 0.1])
+        self.tgt = apply(self.truth, closed_room(seed=1))
+        self.estimator = Wrong()
+
+    def install(self, monkeypatch) -> None:
+        from vrnet_ext.registration.global_estimators import Adaptive
+
+        member = Adaptive.member
+        monkeypatch.setattr(Adaptive, "member", lambda auto, name, device=None: self.estimator if name == "sc2"
+                            else member(auto, name, device))
+
+
 def test_the_default_brings_in_its_other_estimators_only_when_in_doubt(monkeypatch):
     """``auto``: spatial consistency alone while its refinement fits; when it is doubtful (here made
     wrong on purpose), FPFH + RANSAC and the scene model estimate on the same prepared scans, ICP
     runs from each and the best fit wins, the result saying why; ``--method sc2`` never does."""
-    from vrnet_ext.registration import GlobalEstimator, RegistrationResult
+    from vrnet_ext.registration import GlobalEstimator
     from vrnet_ext.registration.global_estimators import Adaptive
 
-    src = closed_room()
-    truth = motion(75.0, [0.3, -0.2, 0.1])
-    tgt = apply(truth, closed_room(seed=1))
+    case = WrongFirst()
+    src, tgt = case.src, case.tgt
     settings = IcpSettings(points=6000)
     fine = register(src, tgt, global_points=3000, icp_settings=settings)
     # FPFH + RANSAC checks a confident refinement; it lands there too, so the scene model never runs
     assert fine.start == "sc2" and not fine.selection and "initial (fpfh)" in fine.seconds
     assert "initial (vrnet)" not in fine.seconds
 
-    class Wrong(GlobalEstimator):
-        name = "sc2"
-
-        def estimate_pair(self, pair, seed):
-            return RegistrationResult.global_estimate(motion(150.0, [2.0, 0.0, 0.0]), self.name)
-
-    member = Adaptive.member
-    monkeypatch.setattr(Adaptive, "member", lambda self, name, device=None: Wrong() if name == "sc2"
-                        else member(self, name, device))
+    case.install(monkeypatch)
     rescued = register(src, tgt, global_points=3000, icp_settings=settings)
     assert rescued.method == "auto" and rescued.start in ("fpfh", "vrnet"), rescued
-    assert transform_errors(rescued.T_target_source, truth)["rotation_error_deg"] < 1.0
+    assert transform_errors(rescued.T_target_source, case.truth)["rotation_error_deg"] < 1.0
     assert rescued.selection.startswith("sc2 ") and "refined from each" in rescued.selection, rescued.selection
     # fpfh and the scene model both find the motion: the winner is confirmed, no disagreement
     assert "ended too" in rescued.selection and not any("agree" in w for w in rescued.warnings), rescued
@@ -253,7 +270,7 @@ def test_the_default_brings_in_its_other_estimators_only_when_in_doubt(monkeypat
     assert "no two ended together" in unconfirmed.selection, unconfirmed.selection
     assert any(w.startswith("no two estimators agree") for w in unconfirmed.warnings), unconfirmed.warnings
     monkeypatch.setattr(Adaptive, "fallbacks", fallbacks)
-    alone = register(src, tgt, method=Wrong(), global_points=3000, icp_settings=settings)
+    alone = register(src, tgt, method=case.estimator, global_points=3000, icp_settings=settings)
     assert alone.start == "sc2" and "initial (fpfh)" not in alone.seconds and alone.warnings
 
 
@@ -261,27 +278,14 @@ def test_the_default_checks_a_confident_first_estimate_with_a_second_one(monkeyp
     """A refinement from spatial consistency that looks fine (converged, fitting) but is wrong: the
     FPFH + RANSAC check does not land there, so every member runs and the confirmed one wins."""
     import vrnet_ext.registration.pipeline as pipeline
-    from vrnet_ext.registration import GlobalEstimator, RegistrationResult
-    from vrnet_ext.registration.global_estimators import Adaptive
 
-    src = closed_room()
-    truth = motion(75.0, [0.3, -0.2, 0.1])
-    tgt = apply(truth, closed_room(seed=1))
-
-    class Wrong(GlobalEstimator):
-        name = "sc2"
-
-        def estimate_pair(self, pair, seed):
-            return RegistrationResult.global_estimate(motion(150.0, [2.0, 0.0, 0.0]), self.name)
-
-    member = Adaptive.member
-    monkeypatch.setattr(Adaptive, "member", lambda self, name, device=None: Wrong() if name == "sc2"
-                        else member(self, name, device))
+    case = WrongFirst()
+    case.install(monkeypatch)
     monkeypatch.setattr(pipeline, "doubt", lambda refined: None)  # as if the wrong refinement fitted well
-    checked = register(src, tgt, global_points=3000, icp_settings=IcpSettings(points=6000))
+    checked = register(case.src, case.tgt, global_points=3000, icp_settings=IcpSettings(points=6000))
     assert checked.selection.startswith("sc2 ended apart from ICP from the fpfh estimate"), checked.selection
     assert checked.start in ("fpfh", "vrnet") and "ended too" in checked.selection, checked.selection
-    assert transform_errors(checked.T_target_source, truth)["rotation_error_deg"] < 1.0
+    assert transform_errors(checked.T_target_source, case.truth)["rotation_error_deg"] < 1.0
     assert {"initial (fpfh)", "initial (vrnet)"} <= set(checked.seconds)
 
 
