@@ -7,9 +7,9 @@ point counts (never beyond the larger scan's); the coefficients below (those
 of the global estimators beside each estimator, :meth:`~vrnet_ext.registration.GlobalEstimator.peak_mb`)
 were fitted on this project's CPU machine as upper bounds of whole-process peaks of each method on
 the 3DMatch kitchen and LiDAR pairs and a synthetic pair of 3,000,000-point scans at 1,000-20,000
-global and 5,000-200,000 ICP points, at least 3 % above every measured peak and as close to them as
-the fit allows (at most 18 % above), with no further safety factor
-(``benchmarks/bench_memory_plan.py`` compares them with fresh measurements;
+global and 5,000-200,000 ICP points (at least 3 % above every peak measured for the fit, as close to
+them as the fit allows), with no further safety factor; a fresh run found the predictions 1-18 %
+above the measured peaks (``benchmarks/bench_memory_plan.py`` compares them with fresh measurements;
 ``benchmarks/bench_large_scene.py`` checks whole runs under budgets). The plan keeps the requested point counts when
 they fit, else lowers them (never below the ``MIN_*`` counts), and raises :class:`MemoryBudgetError`
 before any heavy work when even the smallest run would not fit, saying what would.

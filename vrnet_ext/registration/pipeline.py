@@ -296,17 +296,11 @@ def _cross_check(problem: IcpProblem, pair: ScanPair, run: RegistrationRun, seco
     robust fit's own accuracy) or else ICP from it. One that finds no estimate or whose ICP finds no
     pairs says nothing either way. A result both reach from different hypotheses is rarely wrong; one
     they disagree on often is (:func:`register_prepared` then runs every member)."""
-    started = time.perf_counter()
-    try:
-        guess = _as_estimate(checker, estimator.estimate_pair(pair, run.seed)).T_target_source
-    except ValueError:
-        return None, {}
-    finally:
-        seconds[f"initial ({checker})"] = time.perf_counter() - started
+    starts = _fallback_starts({checker: estimator}, pair, run, seconds)
     slack = problem.settings.max_distance + ESTIMATE_SLACK * pair.global_voxel
-    if _apart(problem, guess, first.T_target_source) < slack:
+    if checker not in starts or _apart(problem, starts[checker], first.T_target_source) < slack:
         return None, {}
-    refined, _ = _refine(problem, pair, {checker: guess}, run, seconds)
+    refined, _ = _refine(problem, pair, starts, run, seconds)
     if checker not in refined or _same_alignment(problem, refined[checker].T_target_source, first.T_target_source):
         return None, {}
     return f"ended apart from ICP from the {checker} estimate", refined
