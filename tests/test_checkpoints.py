@@ -139,6 +139,13 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert main(["export", str(run / "best.pt"), "x", "--out-dir", str(tmp_path), "--test-json",
                  str(tmp_path / "missing.json")]) == 2
     assert json.loads(test_json.read_text())["rotations"] == "protocol"  # the run's range (the preset's)
+    val_json = tmp_path / "val.json"  # the run's validation pairs: for choosing, never for a card
+    assert main(["eval", "--checkpoint", str(run / "best.pt"), "--data-dir", str(MODELNET_DIR), "--max-items", "4",
+                 "--partition", "val", "--json", str(val_json), "--no-progress"]) == 0
+    val_result, test_result = json.loads(val_json.read_text()), json.loads(test_json.read_text())
+    assert val_result["partition"] == "val" and test_result["partition"] == "test"
+    assert val_result["RMSE(R)"] != test_result["RMSE(R)"]  # other shapes
+    assert main(["export", str(run / "best.pt"), "x", "--out-dir", str(tmp_path), "--test-json", str(val_json)]) == 2
     turned_json = tmp_path / "test_so3.json"  # a card's test table holds the paper's protocol only
     turned_json.write_text(json.dumps({**json.loads(test_json.read_text()), "rotations": "so3"}))
     assert main(["export", str(run / "best.pt"), "x", "--out-dir", str(tmp_path), "--test-json", str(turned_json)]) == 2
@@ -244,3 +251,20 @@ def test_export_names_the_run_it_read_when_that_run_is_out_of_bounds(tmp_path):
     with pytest.raises(CheckpointError, match=r"run\.pt: model iterations = 1000000 is outside"):
         export_pretrained(run, tmp_path / "out" / "model.pt", {})
     assert not (tmp_path / "out" / "model.pt").exists()
+
+
+def test_eval_names_a_bad_device_before_reading_a_checkpoint(capsys):
+    """``vrnet eval --device``: auto (the default: CUDA when there is one), else a device this
+    machine has; anything else is an error naming the option, not a misleading checkpoint error."""
+    import torch
+
+    from vrnet_ext.cli import main
+    from vrnet_ext.learning.train import resolve_device
+
+    assert resolve_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert resolve_device("cpu") == "cpu"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["eval", "--device", "nonsense"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --device: not a device name" in err and "not a vrnet checkpoint" not in err

@@ -146,7 +146,7 @@ def device_name(text: str) -> str:
     return text
 
 
-def train_device(text: str) -> str:
+def device_or_auto(text: str) -> str:
     """``auto`` (CUDA when there is one) or a device of :func:`device_name`."""
     return text if text == "auto" else device_name(text)
 

@@ -76,7 +76,9 @@ def add_registration_options(p) -> None:
     p.add_argument("--estimator", dest="icp_step", choices=ICP_STEPS, action=RenamedOption, help=argparse.SUPPRESS)
     p.add_argument("--backend", choices=BACKENDS, default=DEFAULT_BACKEND,
                    help="ext: the compiled kernels; torch: the pure-PyTorch references")
-    p.add_argument("--device", type=device_name, default="cpu", help="torch device to run on, e.g. cpu or cuda")
+    p.add_argument("--device", type=device_name, default="cpu",
+                   help="torch device to run on, e.g. cpu or cuda (cpu unless asked: the pipeline's voxels, normals, "
+                        "FPFH and global estimates run CPU kernels, a GPU speeds up ICP's products only)")
     p.add_argument("--seed", type=int, default=0, help="seed of the global estimate's sampling")
 
 

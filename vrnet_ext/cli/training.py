@@ -6,10 +6,9 @@ import typing
 from dataclasses import fields
 from pathlib import Path
 
-from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFormatter, Switch, existing_folder,
-                                  json_output, nonnegative_int, output_folder, positive_float,
-                                  positive_int, report_to, train_device, unit_interval, view_points, writable_path,
-                                  write_json)
+from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFormatter, Switch, device_or_auto,
+                                  existing_folder, json_output, nonnegative_int, output_folder, positive_float,
+                                  positive_int, report_to, unit_interval, view_points, writable_path, write_json)
 from vrnet_ext.data.protocol import FAR_POINTS
 from vrnet_ext.names import (BACKENDS, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING, DEFAULT_SPLIT, MIXED,
                              PROCRUSTES_POINTS, ROTATION_RANGES, SETTINGS, SPLITS, TRANSFORMER_PRECISIONS)
@@ -18,6 +17,7 @@ from vrnet_ext.names import (BACKENDS, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, 
 ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0, 45] degrees (the paper's); "
                        "symmetric = in [-45, 45]; so3 = uniform over all rotations")
 # The estimate's inference-time options: the robust solve, the second pass and the rotation search.
+EVAL_PARTITIONS = ("test", "val")  # vrnet eval --partition (ModelNet40Pairs partitions a model is measured on)
 SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "rotation_search_below",
               "consistency_radius")
 
@@ -92,7 +92,7 @@ def _add_section(group, section) -> None:
 
     special = {"classes": {"type": int, "nargs": "+"}, "lr_milestones": {"type": int, "nargs": "+"},
                "setting": {"choices": SETTINGS + (MIXED,)}, "split": {"choices": SPLITS},
-               "data_dir": {"type": str}, "out_dir": {"type": output_folder}, "device": {"type": train_device},
+               "data_dir": {"type": str}, "out_dir": {"type": output_folder}, "device": {"type": device_or_auto},
                "precision": {"choices": PRECISIONS}, "backend": {"choices": BACKENDS},
                "loss_l4_form": {"choices": L4_FORMS}, "far_points": {"choices": FAR_POINTS},
                "rotation_range": {"choices": ROTATION_RANGES}}
@@ -177,8 +177,12 @@ def add_eval(sub) -> None:
     p.add_argument("--split", choices=SPLITS, default=None, help=f"default: the checkpoint's, else {DEFAULT_SPLIT}")
     p.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     p.add_argument("--batch-size", type=positive_int, default=16, help="pairs per forward")
+    p.add_argument("--partition", choices=EVAL_PARTITIONS, default="test",
+                   help="test: the test split's pairs (what a paper reports); val: the shapes `vrnet train` holds "
+                        "out of the train split to choose checkpoints by (the same pairs as its validation): compare "
+                        "fine-tunes and settings there, never on test")
     p.add_argument("--max-items", type=positive_int, default=None,
-                   help="evaluate the first N test shapes only (default: the whole test split)")
+                   help="evaluate the first N shapes of --partition only (default: all of it)")
     p.add_argument("--iterations", type=positive_int, default=None,
                    help="ICP-like passes (paper Table 'with iteration') (default: the model's)")
     add_solve_options(p, "the model's")
@@ -193,10 +197,12 @@ def add_eval(sub) -> None:
     p.add_argument("--transformer-precision", choices=TRANSFORMER_PRECISIONS, default=TRANSFORMER_PRECISIONS[0],
                    help="the Transformer's products: auto = bfloat16 on a CPU with native bf16 (AVX512-BF16 / AMX), "
                         "else float32 (default: auto)")
-    p.add_argument("--device", default="cpu", help="torch device to run on, e.g. cpu or cuda")
+    p.add_argument("--device", type=device_or_auto, default="auto",
+                   help="torch device to run on: auto (cuda when there is one, else cpu), cpu, cuda, cuda:1")
     p.add_argument("--progress", action=Switch, default=True, help="progress bars")
     p.add_argument("--json", type=json_output, default=None,
-                   help="output JSON path, - for standard output (default: eval_SETTING_SPLIT.json beside a "
+                   help="output JSON path, - for standard output (default: eval_SETTING_SPLIT.json, "
+                        "eval_val_SETTING_SPLIT.json for --partition val, beside a "
                         "checkpoint file, or in the working folder for a shipped model)")
 
 
@@ -211,6 +217,7 @@ def _evaluate_and_report(args) -> tuple[dict, Path | str]:
     """Evaluates, prints the table -> (the JSON record, where it goes)."""
     from vrnet_ext.data import ModelNet40Pairs, PairSpec
     from vrnet_ext.learning.evaluate import evaluate, format_table, time_inference
+    from vrnet_ext.learning.train import resolve_device
     from vrnet_ext.model.pretrained import load_vrnet
 
     if args.checkpoint is None:
@@ -221,6 +228,7 @@ def _evaluate_and_report(args) -> tuple[dict, Path | str]:
         if args.checkpoint is None:
             raise ValueError(f"no shipped model is trained for setting {wanted[0]} / split {wanted[1]}; "
                              f"give --checkpoint")
+    args.device = resolve_device(args.device)
     model, state = load_vrnet(args.checkpoint, args.device)
     cfg = state["config"]
     if args.iterations:
@@ -236,19 +244,23 @@ def _evaluate_and_report(args) -> tuple[dict, Path | str]:
     rotations = args.rotation_range or cfg.get("rotation_range", DEFAULT_ROTATION_RANGE)
     spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768),
                     far_points=args.far_points, rotation_range=rotations)
-    data = ModelNet40Pairs(args.data_dir or cfg.get("data_dir"), partition="test", setting=setting, split=split,
-                           max_items=args.max_items, spec=spec)
+    data = ModelNet40Pairs(args.data_dir or cfg.get("data_dir"), partition=args.partition, setting=setting,
+                           split=split, max_items=args.max_items, spec=spec,
+                           val_fraction=cfg.get("val_fraction", 0.1))
     model.to(args.device)
     result = evaluate(model, data, batch_size=args.batch_size, device=args.device, backend=args.backend,
                       progress=args.progress)
     result["inference_seconds_per_pair"] = time_inference(model, data, args.device, backend=args.backend)
-    result.update(setting=setting, split=split, far_points=args.far_points, rotations=rotations,
+    result.update(partition=args.partition, setting=setting, split=split, far_points=args.far_points,
+                  rotations=rotations,
                   checkpoint=str(args.checkpoint),
                   iterations=model.config.iterations, **{k: getattr(model.config, k) for k in SOLVE_KEYS},
                   transformer_precision=args.transformer_precision,
                   transformer_bf16=model.eval().transformer_in_bf16(data[0]["src"].to(args.device)))
-    print(format_table({k: v for k, v in result.items() if isinstance(v, (int, float))}, f"VRNet {setting} {split}"))
-    out = args.json or Path(args.checkpoint).with_name(f"eval_{setting}_{split}.json".replace("+", ""))
+    title = f"VRNet {setting} {split}" + (", validation pairs" if args.partition == "val" else "")
+    print(format_table({k: v for k, v in result.items() if isinstance(v, (int, float))}, title))
+    prefix = "eval_val" if args.partition == "val" else "eval"
+    out = args.json or Path(args.checkpoint).with_name(f"{prefix}_{setting}_{split}.json".replace("+", ""))
     return result, out
 
 
@@ -349,6 +361,9 @@ def run_export(args) -> int:
     tests = [_read_eval_json(path) for path in args.test_json or []]
     served = {**VRNetConfig().to_dict(), **state["config"]["model"], **overrides}  # older files name fewer fields
     for path, test in zip(args.test_json or [], tests):
+        if test.get("partition", "test") != "test":
+            raise ValueError(f"--test-json {path}: measured on the {test['partition']} pairs; a card's test table "
+                             f"holds the test split's")
         if test.get("rotations", DEFAULT_ROTATION_RANGE) != DEFAULT_ROTATION_RANGE:
             raise ValueError(f"--test-json {path}: measured on {test['rotations']} rotations; a card's test table "
                              f"holds the paper's protocol ({DEFAULT_ROTATION_RANGE})")

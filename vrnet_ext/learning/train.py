@@ -58,6 +58,13 @@ from vrnet_ext.learning.lineage import Lineage, lineage_before
 from vrnet_ext.learning.warm_start import init_features_from, init_walk_from
 from vrnet_ext.learning.config import TrainConfig
 
+def resolve_device(name: str) -> str:
+    """``"auto"``: ``"cuda"`` when a CUDA device is available, else ``"cpu"``; any other name as given."""
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return name
+
+
 class _Run:
     """Distributed context: rank, world size, device."""
 
@@ -65,8 +72,7 @@ class _Run:
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
         local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-        if device == "auto":
-            device = "cuda" if torch.cuda.is_available() else "cpu"
+        device = resolve_device(device)
         self.device = torch.device(f"cuda:{local_rank}" if device == "cuda" and self.world > 1 else device)
         if self.device.type == "cuda":
             torch.cuda.set_device(self.device)
