@@ -225,6 +225,27 @@ def test_svd3x3(dtype):
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("N,k", [(3, 2), (130, 17), (1000, 30)])
+def test_normals(dtype, N, k):
+    """Same per-point routine on both devices; a flat patch (repeated singular values), coincident
+    points and a viewpoint far off; non-contiguous inputs; bad input raises the same errors."""
+    from vrnet_ext.ops.normals import neighbourhood
+
+    points = torch.randn(N, 3, dtype=dtype)
+    points[: N // 3, 2] = 0  # a plane
+    if N > 10:
+        points[N // 3: N // 3 + 2] = points[N // 3 + 2]  # three coincident points
+    idx = neighbourhood(points, k)[1]
+    for viewpoint in ([0.0, 0.0, 0.0], [1e3, -2e3, 5.0]):
+        assert_same("normals", points, idx, viewpoint)
+    assert_same("normals", non_contiguous(points), non_contiguous(idx), [0.0, 0.0, 1.0])
+    assert_same("normals", torch.empty(0, 3, dtype=dtype), torch.empty(0, 2, dtype=torch.int64), [0.0, 0.0, 0.0])
+    assert run_both("normals", points, idx + N, [0.0, 0.0, 0.0]) == (None, None)
+    assert run_both("normals", points, idx[:, :1], [0.0, 0.0, 0.0]) == (None, None)
+    assert run_both("normals", points, idx, [0.0, 0.0]) == (None, None)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("B,N", [(1, 3), (37, 45), (2, 1000)])
 def test_kabsch(dtype, B, N):
     src, tgt = torch.randn(B, N, 3, dtype=dtype), torch.randn(B, N, 3, dtype=dtype)

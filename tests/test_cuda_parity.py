@@ -110,3 +110,15 @@ def test_backward_is_deterministic():
         runs.append(torch.autograd.grad(loss, (x, points)))
     for a, b in zip(*runs):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_normals_match_cpu(dtype):
+    """The same double-precision per-point routine on both devices (normals/normals_math.h)."""
+    from vrnet_ext.ops.normals import neighbourhood
+
+    points = torch.randn(2000, 3, dtype=dtype)
+    idx = neighbourhood(points, 30)[1]
+    cpu = torch.ops.vrnet_ext.normals(points, idx, [0.0, 0.0, 0.0])
+    cuda = torch.ops.vrnet_ext.normals(points.cuda(), idx.cuda(), [0.0, 0.0, 0.0])
+    torch.testing.assert_close(cuda.cpu(), cpu, **tolerances(dtype))

@@ -1,5 +1,4 @@
-// Argument checks of the normals op (CPU kernel; no CUDA kernel yet: the Python op falls back to its
-// reference there).
+// Argument checks of the normals op, shared by its CPU and CUDA kernels.
 #pragma once
 
 #include "common/common.h"
@@ -17,6 +16,13 @@ inline void check_neighbourhood(const at::Tensor& points, const at::Tensor& idx)
   TORCH_CHECK_VALUE(idx.size(0) == points.size(0), "idx must have one row per point (N = ", points.size(0),
                     "), got ", idx.sizes());
   check_index_range(idx, points.size(0), "idx");
+}
+
+// check_neighbourhood, a viewpoint of 3 coordinates and at least 2 neighbours per point.
+inline void check_normals_inputs(const at::Tensor& points, const at::Tensor& idx, at::ArrayRef<double> viewpoint) {
+  check_neighbourhood(points, idx);
+  TORCH_CHECK_VALUE(viewpoint.size() == 3, "viewpoint must have 3 coordinates, got ", viewpoint.size());
+  TORCH_CHECK_VALUE(idx.size(1) >= 2, "idx must hold at least 2 neighbours per point, got ", idx.sizes());
 }
 
 }  // namespace vrnet

@@ -50,7 +50,7 @@ def normals(points: torch.Tensor, neighbours: int = 30, viewpoint: tuple[float, 
     viewpoint = tuple(float(v) for v in viewpoint)
     if not all(math.isfinite(v) for v in viewpoint):
         raise ValueError(f"viewpoint must have 3 finite coordinates, got {viewpoint!r}")
-    if use_extension(backend, points.device) and points.device.type == "cpu":  # no CUDA kernel yet
+    if use_extension(backend, points.device):
         return torch.ops.vrnet_ext.normals(points, idx, list(viewpoint))
     with float32_region(points):
         return normals_reference(points, idx, viewpoint)
