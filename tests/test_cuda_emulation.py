@@ -246,6 +246,30 @@ def test_normals(dtype, N, k):
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("N,k,radius", [(3, 2, 10.0), (150, 20, 0.6), (800, 40, 0.3)])
+def test_fpfh(dtype, N, k, radius):
+    """Same per-point routines on both devices: duplicates (no frame), isolated points (all-zero
+    rows), a normal along the joining line; non-contiguous inputs; bad input raises the same errors."""
+    from vrnet_ext import ops
+    from vrnet_ext.ops.normals import neighbourhood
+
+    points = torch.rand(N, 3, dtype=dtype)
+    if N > 10:
+        points[1] = points[0]  # a duplicate
+        points[2] = 50.0  # isolated
+    normals = ops.normals(points)
+    dist2, idx = neighbourhood(points, k)
+    assert_same("fpfh", points, normals, idx, dist2, radius)
+    assert_same("fpfh", non_contiguous(points), non_contiguous(normals), non_contiguous(idx),
+                non_contiguous(dist2), radius)
+    empty = torch.empty(0, 3, dtype=dtype)
+    assert_same("fpfh", empty, empty, torch.empty(0, 2, dtype=torch.int64), torch.empty(0, 2, dtype=dtype), radius)
+    assert run_both("fpfh", points, normals, idx, dist2, 0.0) == (None, None)
+    assert run_both("fpfh", points, normals[:2], idx, dist2, radius) == (None, None)
+    assert run_both("fpfh", points, normals, idx, dist2[:, :1], radius) == (None, None)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("B,N", [(1, 3), (37, 45), (2, 1000)])
 def test_kabsch(dtype, B, N):
     src, tgt = torch.randn(B, N, 3, dtype=dtype), torch.randn(B, N, 3, dtype=dtype)

@@ -98,8 +98,8 @@ def test_fpfh_bins_are_open3d_s():
 
 @requires_ext
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_kernel_matches_the_reference(dtype):
-    points = room_points(dtype=dtype)
+def test_kernel_matches_the_reference(dtype, device):
+    points = room_points(dtype=dtype).to(device)
     normals = ops.normals(points, viewpoint=(5.0, 4.0, 1.5))
     dist2, idx = neighbourhood(points, 40)
     ext = torch.ops.vrnet_ext.fpfh(points, normals, idx, dist2, 0.35)
@@ -107,6 +107,7 @@ def test_kernel_matches_the_reference(dtype):
     rows_equal = ((ext - ref).abs().amax(1) <= (1e-9 if dtype == torch.float64 else 2e-4)).float().mean()
     assert rows_equal > 0.995, rows_equal  # ties at a bin edge round either way
     torch.testing.assert_close(ext.mean(0), ref.mean(0), rtol=0, atol=0.05)
+    assert ext.device == points.device
 
 
 @requires_ext

@@ -111,7 +111,7 @@ def fpfh(points: torch.Tensor, normals: torch.Tensor, radius: float, max_neighbo
     check_finite(normals, "normals")
     _check_unit(normals)
     dist2, idx = neighbourhood(points, max_neighbours)
-    if use_extension(backend, points.device) and points.device.type == "cpu":  # no CUDA kernel yet
+    if use_extension(backend, points.device):
         return torch.ops.vrnet_ext.fpfh(points, normals, idx, dist2, float(radius))
     with float32_region(points):
         return fpfh_reference(points, normals, idx, dist2, float(radius))
