@@ -10,9 +10,10 @@ the default point counts, the planner's smallest counts and large ones (20,000 g
 points), one fresh process reads the scans,
 asks :func:`vrnet_ext.registration.budget.plan_registration` what peak it predicts for exactly those counts
 (what the process holds then included), runs :func:`vrnet_ext.registration.register` with them and
-reports its peak resident memory (``ru_maxrss``, the whole process). The ratio predicted / measured
-should lie in [1, 1.1]: below 1 a budget could be exceeded, above 1.1 a budget 10 % above what the
-run needs would be refused or shrink the run. ``vrnet-large``: a scene model of the largest size a file may ask for (random
+reports its peak resident memory (the whole process) and each stage's (on Linux: the kernel's peak
+is reset as a stage starts). The ratio predicted / measured should lie in [1, 1.1]: below 1 a budget
+could be exceeded, above 1.1 a budget 10 % above what the run needs would be refused or shrink the
+run. ``vrnet-large``: a scene model of the largest size a file may ask for (random
 weights), at the smallest counts.
 """
 from __future__ import annotations
@@ -32,17 +33,48 @@ METHODS = ("auto", "sc2", "fpfh", "fgr", "icp", "vrnet", "vrnet-large")
 LARGE_SCENE_MODEL = dict(hidden=1024, emb_dims=1024, neighbours=64, walk_hidden=1024)  # the limits' largest
 
 CHILD = r"""
-import json, resource, sys
+import functools, json, os, re, resource, sys
 import torch
 torch.set_num_threads(2)
 from vrnet_ext.geometry.io import read_points
-from vrnet_ext.registration.budget import plan_registration, resident_mb, transient_mb
+import vrnet_ext.registration.pipeline as pipeline
+from vrnet_ext.registration.budget import (plan_registration, resident_mb, return_freed_memory, stage_peaks_mb,
+                                           transient_mb)
 from vrnet_ext.registration import IcpSettings, PointCounts, register
 from vrnet_ext.registration.global_estimators import make_global_estimator
 from vrnet_ext.model.pretrained import DEFAULT_SCENE_MODEL, load_pretrained
 from vrnet_ext.model.scene import SceneConfig, SceneVRNet
 
+# register's stages (the planner's, budget.STAGES, and the default's check), each measured on its own:
+# the kernel's peak (VmHWM) is reset as a stage starts and read as it ends; the peaks between stages are kept
+STAGES = {"_global_starts": "global", "_icp_problem": "preparation", "_refine": "iterations",
+          "_cross_check": "check", "_fallback_starts": "check"}
+BY_STAGE = os.access("/proc/self/clear_refs", os.W_OK)  # Linux; elsewhere only the whole run's peak
+peaks, stages, depth = [], {}, [0]
+
+
+def status(field):
+    return int(re.search(field + r":\s+(\d+)", open("/proc/self/status").read()).group(1)) / 1024.0
+
+
+def staged(function, stage):
+    @functools.wraps(function)
+    def run(*args, **kwargs):
+        if depth[0]:
+            return function(*args, **kwargs)
+        depth[0] += 1
+        peaks.append(status("VmHWM"))  # the peak since the last reset
+        open("/proc/self/clear_refs", "w").write("5")
+        try:
+            return function(*args, **kwargs)
+        finally:
+            depth[0] -= 1
+            stages[stage] = max(stages.get(stage, 0.0), status("VmHWM") - held)
+    return run
+
+
 source, target, method, global_points, icp_points, large = sys.argv[1:7]
+return_freed_memory()  # as `vrnet register --max-memory` does before it reads the scans
 global_points, icp_points = int(global_points), int(icp_points)
 src, tgt = read_points(source), read_points(target)
 model = load_pretrained(DEFAULT_SCENE_MODEL) if method == "vrnet" else None
@@ -52,16 +84,20 @@ estimator = make_global_estimator(method, model)
 counts = PointCounts(global_points=global_points, icp_points=icp_points)
 held = resident_mb()
 plan = plan_registration(1 << 50, estimator, len(src), len(tgt), counts)
-transient = transient_mb(estimator, max(len(src), len(tgt)), counts)
+scans = (len(src), len(tgt))
+transient, predicted_stages = transient_mb(estimator, scans, counts), stage_peaks_mb(estimator, scans, counts)
+if BY_STAGE:
+    for name, stage in STAGES.items():
+        setattr(pipeline, name, staged(getattr(pipeline, name), stage))
 outcome = "registered"
 try:
-    register(src, tgt, method=method, model=model, global_points=global_points,
-             icp_settings=IcpSettings(points=icp_points))
+    register(src, tgt, method=method, model=model, global_points=global_points,  # a budget that fits: its
+             icp_settings=IcpSettings(points=icp_points), max_memory=1 << 50)    # allocator setting, these counts
 except ValueError as error:  # random weights find no consensus; their forward pass has run by then
     outcome = str(error)
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+peak = max(peaks + [status("VmHWM")]) if BY_STAGE else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 print(json.dumps({"predicted_mb": plan.predicted_peak_mb, "peak_mb": peak, "held_mb": held, "transient_mb": transient,
-                  "outcome": outcome}))
+                  "scan_points": scans, "predicted_stages_mb": predicted_stages, "measured_stages_mb": stages, "outcome": outcome}))
 """
 
 
@@ -99,21 +135,51 @@ def measure(pair: dict, method: str, global_points: int, icp_points: int) -> dic
     return result
 
 
+def planned(row: dict) -> bool:
+    """Whether the planner's prediction is the run's bound: not ``auto`` (its other members are planned
+    one by one against what is left of a budget)."""
+    return row["method"] != "auto"
+
+
+def summary(rows: list[dict]) -> dict:
+    """The ratio's range over the planned rows, and over those at the smallest counts (a budget is
+    refused only when the smallest run's prediction exceeds it)."""
+    def span(ratios: list[float]) -> list[float] | None:
+        return [min(ratios), max(ratios)] if ratios else None
+
+    measured = [r for r in rows if "ratio" in r and planned(r)]
+    return {"planned_rows": len(measured), "ratio": span([r["ratio"] for r in measured]),
+            "smallest_ratio": span([r["ratio"] for r in measured if r["counts"] == "smallest"])}
+
+
+def _stages(r: dict) -> str:
+    measured = r.get("measured_stages_mb", {})
+    return " · ".join(f"{r['predicted_stages_mb'][stage]:.0f}/{measured[stage]:.0f}" if stage in measured
+                      else f"{r['predicted_stages_mb'][stage]:.0f}/–" for stage in r["predicted_stages_mb"])
+
+
 def markdown(rows: list[dict], meta: dict) -> str:
+    s = summary(rows)
     lines = [f"Measured {meta['date']} on {meta['machine']}, torch {meta['torch']}. Held: what the process holds when "
              f"it plans (Python, torch, the scans); growth: measured peak - held; transient: the planner's largest "
-             f"stage. `auto` is planned for its first member (sc2): the others run only "
-             f"when sc2 is doubtful, and under a budget only where they fit what is left.", "",
-             "| pair | method | counts | held MB | growth MB | transient MB | predicted MB | measured peak MB "
-             "| predicted / measured |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+             f"stage; stages: predicted / measured growth of the global estimate, ICP's preparation and ICP's "
+             f"iterations (each stage's peak above held). Every run under a budget (freed memory goes back to the "
+             f"system). `auto` is planned for its first member (sc2): the others run only when sc2 is doubtful, and "
+             f"under a budget only where they fit what is left.", "",
+             f"Predicted / measured over the {s['planned_rows']} planned rows (not `auto`, marked *): {s['ratio'][0]:.3f}-{s['ratio'][1]:.3f}; at the smallest counts, "
+             f"which decide a refusal: {s['smallest_ratio'][0]:.3f}-{s['smallest_ratio'][1]:.3f}." if s["ratio"] else
+             "No planned row was measured.", "",
+             "| pair | method | counts | held MB | growth MB | transient MB | stages MB | predicted MB | "
+             "measured peak MB | predicted / measured |",
+             "|---|---|---|---:|---:|---:|---|---:|---:|---:|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['pair']} | {r['method']} | {r['counts']} | – | – | – | – | – | error: {r['error']} |")
+            lines.append(f"| {r['pair']} | {r['method']} | {r['counts']} | – | – | – | – | – | – | error: {r['error']} |")
         else:
-            lines.append(f"| {r['pair']} | {r['method']} | {r['counts']} | {r['held_mb']:.0f} | "
-                         f"{r['peak_mb'] - r['held_mb']:.0f} | {r['transient_mb']:.0f} | {r['predicted_mb']:.0f} | "
-                         f"{r['peak_mb']:.0f} | {r['ratio']:.2f} |")
+            mark = "" if planned(r) else " *"
+            lines.append(f"| {r['pair']} | {r['method']}{mark} | {r['counts']} | {r['held_mb']:.0f} | "
+                         f"{r['peak_mb'] - r['held_mb']:.0f} | {r['transient_mb']:.0f} | {_stages(r)} | "
+                         f"{r['predicted_mb']:.0f} | {r['peak_mb']:.0f} | {r['ratio']:.2f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -152,7 +218,7 @@ def main(argv: list[str] | None = None) -> None:
                 print(json.dumps(row), flush=True)
                 rows.append(row)
     meta = {"date": datetime.date.today().isoformat(), "machine": cpu_description(), "torch": torch.__version__}
-    args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    args.json.write_text(json.dumps({"meta": meta, "summary": summary(rows), "rows": rows}, indent=1))
     args.markdown.write_text(markdown(rows, meta))
     print(f"wrote {args.json} and {args.markdown}")
 

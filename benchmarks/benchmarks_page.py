@@ -50,6 +50,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "memory_plan": "Memory planner: predicted vs measured peaks (`bench_memory_plan.py`)",
     "memory_plan_refit": "Memory planner refitted as upper bounds, with a 3,000,000-point pair (`bench_memory_plan.py`)",
     "memory_plan_scene": "Memory planner, scene model (`bench_memory_plan.py --methods vrnet vrnet-large`)",
+    "memory_plan_stages": "Memory planner by stage, every run returning freed memory (`bench_memory_plan.py`)",
     "large": "Large scenes under memory budgets (`bench_large_scene.py`)",
     "register": "Registration against Open3D and small_gicp (`bench_register.py`)",
     "register_lidar": "Registration, LiDAR pair (`bench_register.py`)",

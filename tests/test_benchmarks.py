@@ -115,6 +115,12 @@ def test_bench_memory_plan_predicts_at_least_the_measured_peak(tmp_path):
     assert [r["counts"] for r in rows] == ["default", "smallest", "large"]
     for row in rows:  # a budget the plan accepts must hold: no prediction below the measured peak
         assert row["predicted_mb"] >= row["peak_mb"], row
+        assert set(row["predicted_stages_mb"]) == {"global", "preparation", "iterations"}
+        if sys.platform.startswith("linux"):  # each stage measured on its own
+            assert set(row["measured_stages_mb"]) == {"global", "preparation", "iterations"}, row
+    summary = json.loads((tmp_path / "plan.json").read_text())["summary"]
+    assert summary["planned_rows"] == 3 and summary["smallest_ratio"][0] >= 1.0
+    assert "at the smallest counts" in (tmp_path / "plan.md").read_text()
 
 
 @requires_modelnet

@@ -1,6 +1,8 @@
 """The registration wing's inner API: one build of the global estimator and one memory plan per
 call, both scans prepared once for every start, results built by keyword."""
 
+import sys
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -109,7 +111,7 @@ def test_results_are_built_by_keyword_and_counts_name_their_argument(turned_room
 def test_the_default_is_planned_for_its_first_member_and_tries_the_others_only_within_the_budget(turned_room):
     """``auto`` under ``max_memory``: the plan is spatial consistency's (the others run only when it is
     doubtful); a fallback whose predicted peak passes the budget is left out, with a note naming it."""
-    from vrnet_ext.registration.budget import MB
+    from vrnet_ext.registration.budget import MB, predicted_peak_mb
     from vrnet_ext.registration.global_estimators import Adaptive, SpatialConsistency
 
     counts = PointCounts()
@@ -119,7 +121,38 @@ def test_the_default_is_planned_for_its_first_member_and_tries_the_others_only_w
     assert set(every) == {"fpfh", "vrnet"} and notes == []
     auto = Adaptive()
     auto.member("vrnet")  # loaded before the budget is read, as in a run that plans first
-    tight = int((resident_mb() + 150) * MB)  # room for FPFH + RANSAC, not for the scene network
+    scans = (len(pair.src.points), len(pair.tgt.points))
+    fpfh_mb, scene_mb = (predicted_peak_mb(auto.member(name), scans, pair.counts) for name in ("fpfh", "vrnet"))
+    assert fpfh_mb + 20 < scene_mb
+    tight = int((fpfh_mb + scene_mb) / 2 * MB)  # room for FPFH + RANSAC, not for the scene network
     kept, notes = auto.fallbacks(pair, tight)
     assert set(kept) == {"fpfh"}, (kept, notes)
     assert len(notes) == 1 and notes[0].startswith("vrnet was not tried: it needs about"), notes
+
+
+FREED_PROBE = r"""
+import sys
+import numpy as np
+from vrnet_ext.registration.budget import resident_mb, return_freed_memory
+if sys.argv[1] == "budget":
+    return_freed_memory()
+first = np.ones(5 << 18)  # 10 MB: glibc's adaptive threshold rises to it once it is freed
+del first
+before = resident_mb()
+blocks = [np.ones(1 << 20) for _ in range(8)]  # then these come from its heap unless blocks are mapped
+keep = np.ones(16)  # a small allocation above them pins the heap's top
+del blocks
+print(resident_mb() - before)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
+def test_under_a_budget_freed_blocks_go_back_to_the_system():
+    """``return_freed_memory`` (set by every budgeted run): 64 MB allocated and freed in 8 MB blocks
+    leave the resident memory where it was, where glibc's default keeps them in its heap."""
+    import subprocess
+
+    grown = {mode: float(subprocess.run([sys.executable, "-c", FREED_PROBE, mode], capture_output=True, text=True,
+                                        check=True).stdout) for mode in ("default", "budget")}
+    assert grown["budget"] < 4, grown
+    assert grown["default"] > 8, grown  # what the setting changes (glibc 2.36 keeps 16 MB)

@@ -88,3 +88,22 @@ def test_numpy_front_end_and_voxel_size_for():
         count = len(voxel_downsample(scan, size))
         assert 0.9 * target <= count <= target, (target, count)
     assert voxel_size_for(scan[:100], 5000) > 0 and math.isfinite(voxel_size_for(scan[:100], 5000))
+
+
+def test_asking_for_more_points_than_a_scan_has_never_leaves_fewer():
+    """A dense scan (most points packed near a sensor, as in a LiDAR sweep) with fewer points than
+    asked for: the edge keeps about all of them (at least as many as any smaller ask), where a
+    thousandth of the scan's extent would merge most of the dense part; a sparse one keeps all, and
+    exact copies of points do not make a scan dense."""
+    rng = np.random.default_rng(3)
+    near = rng.normal(scale=0.5, size=(18_000, 3))  # 18k points within about a metre
+    far = rng.uniform(-100, 100, size=(2_000, 3))    # 2k points over 200 m
+    scan = np.concatenate([near, far])
+    counts = {ask: len(voxel_downsample(scan, voxel_size_for(scan, ask))) for ask in (10_000, 19_000, 20_000, 50_000)}
+    assert len(voxel_downsample(scan, 200 / 1000)) < 0.5 * len(scan)  # what a thousandth of the extent keeps
+    assert counts[50_000] >= 0.9 * len(scan) and counts[20_000] >= counts[19_000] >= counts[10_000], counts
+    sparse = rng.uniform(-1, 1, size=(3_000, 3))
+    assert len(voxel_downsample(sparse, voxel_size_for(sparse, 5_000))) == len(sparse)
+    copies = np.concatenate([sparse, sparse[:1_500]])  # exact copies merge at any edge: not a dense scan
+    edge = voxel_size_for(copies, 5_000)
+    assert len(voxel_downsample(copies, edge)) == len(sparse) and edge > 1e-3, edge

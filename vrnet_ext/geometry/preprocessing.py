@@ -30,6 +30,7 @@ STRAY_POINTS = 2  # extreme points per axis end that voxel_size_for ignores
 
 
 CLOSE_ENOUGH = 0.9  # voxel_size_for stops once the count is within this share of the target
+DISTINCT = 1e-9     # points closer than this share of a scan's extent count as one (its distinct points)
 
 
 def voxel_size_for(points: np.ndarray, target_points: int) -> float:
@@ -40,14 +41,20 @@ def voxel_size_for(points: np.ndarray, target_points: int) -> float:
     each axis, so one or two stray points far away (a reflection, a bad range reading) do not make
     the voxels coarse. A first guess comes from the voxel count at a hundredth of that diagonal and
     surface scaling (V ~ 1/size^2); the search then steps by that scaling, and bisects (in log
-    size) once it has edges on both sides of the target."""
+    size) once it has edges on both sides of the target. A scan of no more than ``target_points``
+    points keeps about all of its distinct points: a thousandth of that diagonal where that keeps 90 %
+    of them, else (a dense scan) the edge the search finds for their count, so asking for more points
+    never leaves fewer."""
     if target_points < 1:
         raise ValueError(f"target_points must be >= 1, got {target_points}")
     trim = min(STRAY_POINTS, (len(points) - 1) // 2)
     ordered = np.partition(points, [trim, len(points) - 1 - trim], axis=0)
     extent = float(np.linalg.norm(ordered[len(points) - 1 - trim] - ordered[trim])) or 1.0
     if len(points) <= target_points:
-        return extent / 1000.0
+        distinct = len(voxel_downsample(points, extent * DISTINCT))
+        if len(voxel_downsample(points, extent / 1000.0)) >= CLOSE_ENOUGH * distinct:
+            return extent / 1000.0
+        target_points = distinct  # dense, e.g. a LiDAR scan near its sensor
     coarse = extent / 100.0
     size = coarse * (len(voxel_downsample(points, coarse)) / target_points) ** 0.5
     fits, too_fine = None, None  # the finest edge known to leave <= target points; an edge known to leave more

@@ -1,21 +1,25 @@
 """Sizing a registration run to a memory budget (``vrnet register --max-memory 2GB``).
 
 The budget bounds the peak resident memory of the whole process: what it already holds (Python,
-torch, the scans just read) plus what the run keeps through all its stages (copies of the scans) and
-the largest transient of the stages that follow. Those grow linearly with the scans' size and the
-point counts (never beyond the larger scan's); the coefficients below (those
-of the global estimators beside each estimator, :meth:`~vrnet_ext.registration.GlobalEstimator.peak_mb`)
-were fitted on this project's CPU machine as upper bounds of whole-process peaks of each method on
-the 3DMatch kitchen and LiDAR pairs and a synthetic pair of 3,000,000-point scans at 1,000-20,000
-global and 5,000-200,000 ICP points (at least 3 % above every peak measured for the fit, as close to
-them as the fit allows), with no further safety factor; a fresh run found the predictions 1-18 %
-above the measured peaks (``benchmarks/bench_memory_plan.py`` compares them with fresh measurements;
-``benchmarks/bench_large_scene.py`` checks whole runs under budgets). The plan keeps the requested point counts when
-they fit, else lowers them (never below the ``MIN_*`` counts), and raises :class:`MemoryBudgetError`
-before any heavy work when even the smallest run would not fit, saying what would.
+torch, the scans just read) plus the largest of the run's stages in turn (:func:`stage_peaks_mb`):
+the global estimate, ICP's preparation on what the estimate leaves, ICP's iterations. Each grows
+linearly with the scans' size and the point counts (never beyond a scan's own); the coefficients
+below (those of the global estimators beside each estimator,
+:meth:`~vrnet_ext.registration.GlobalEstimator.peak_mb`) were fitted on this project's CPU machine
+as upper bounds of each stage's measured peak, for each method on the 3DMatch kitchen and LiDAR
+pairs and a synthetic pair of 3,000,000-point scans at 1,000-20,000 global and 5,000-200,000 ICP
+points (``benchmarks/bench_memory_plan.py`` measures the stages and the whole run afresh;
+``benchmarks/bench_large_scene.py`` checks whole runs under budgets). Under a budget, memory a stage
+frees goes back to the system before the next one allocates (:func:`return_freed_memory`): without
+it, what glibc's heap kept after the global estimate of the 3,000,000-point pair ranged over 17-57 MB
+with the order of earlier allocations (18-26 MB with it), which no per-stage bound can foresee. The
+plan keeps the requested point counts when they fit, else lowers them (never below the ``MIN_*``
+counts), and raises :class:`MemoryBudgetError` before any heavy work when even the smallest run
+would not fit, saying what would.
 """
 from __future__ import annotations
 
+import ctypes
 import re
 import resource
 from dataclasses import dataclass, field, replace
@@ -24,15 +28,21 @@ from typing import Protocol
 from vrnet_ext.registration.counts import PointCounts
 
 MB = 2 ** 20
-MARGIN_MB = 26.0     # allocator slack, small tensors, the result
+MARGIN_MB = 6.0      # allocator slack, small tensors, the result
 # Peak growth of the stages every run has, in MB: intercept + bytes per point / MB
 # (benchmarks/bench_memory_plan.py compares the predicted peaks with measured ones); each global
 # estimator states its own (GlobalEstimator.peak_mb).
-RETAINED_BYTES_PER_INPUT_POINT = 19.0        # kept through every stage, per point of the larger scan
-VOXEL_BYTES_PER_INPUT_POINT = 48.0           # voxel_downsample of the larger scan
-ICP_MB, ICP_BYTES_PER_POINT = 25.0, 187.0    # per point of source + target after downsampling
+VOXEL_BYTES_PER_INPUT_POINT = 50.0           # a voxel-edge search over the larger scan
+DOWNSAMPLED_BYTES_PER_POINT = 48.0           # ICP's downsampled copies, kept while its voxel is searched
+ICP_PREPARE_MB, ICP_PREPARE_BYTES_PER_POINT = 4.0, 215.0   # ICP's problem: tensors, reach grid
+ICP_MB, ICP_BYTES_PER_POINT = 8.0, 190.0     # the problem kept + ICP's iterations
+GLOBAL_KEPT_MB, GLOBAL_KEPT_BYTES_PER_POINT = 24.0, 1000.0  # what a global estimate leaves (views, code)
+FIRST_STAGE_MB = 12.0                        # code and pools a run's first stage loads (ICP alone)
 MIN_GLOBAL_POINTS, MIN_ICP_POINTS, MIN_NETWORK_POINTS = 1000, 5000, 256
 FLOORS = {"global_points": MIN_GLOBAL_POINTS, "network_points": MIN_NETWORK_POINTS, "icp_points": MIN_ICP_POINTS}
+
+M_MMAP_THRESHOLD = -3            # glibc's mallopt parameter
+MAPPED_BLOCK_BYTES = 1 << 20     # under a budget, blocks of at least this size are mapped on their own
 
 _SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)(i?b?)\s*$", re.IGNORECASE)
 
@@ -62,11 +72,26 @@ def resident_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def return_freed_memory() -> None:
+    """Make memory a stage frees go back to the system before the next stage allocates: glibc then
+    maps every block of at least :data:`MAPPED_BLOCK_BYTES` on its own (its adaptive default keeps
+    freed blocks of up to 32 MB in its heap, so a process's peak would depend on the order of earlier
+    allocations and exceed what the stages hold at once). Set for the whole process, once a budget is
+    asked for; elsewhere than glibc, nothing."""
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return
+    mallopt(M_MMAP_THRESHOLD, MAPPED_BLOCK_BYTES)
+
+
 def require_headroom(budget_bytes: int) -> None:
     """MemoryBudgetError at once if this process alone (Python, torch) already needs more than
-    the budget plus room for the smallest run; called before any scan is read."""
+    the budget plus room for the smallest run; called before any scan is read (and from then on
+    freed memory goes back to the system, :func:`return_freed_memory`)."""
+    return_freed_memory()
     now_mb = resident_mb()
-    floor_mb = now_mb + MARGIN_MB + ICP_MB
+    floor_mb = now_mb + MARGIN_MB + FIRST_STAGE_MB + ICP_MB
     if budget_bytes / MB < floor_mb:
         raise MemoryBudgetError(f"max_memory {budget_bytes / MB:.0f} MB cannot be met: Python and torch alone "
                                 f"hold {now_mb:.0f} MB; allow at least {floor_mb:.0f} MB plus room for the scans")
@@ -90,28 +115,43 @@ class RegistrationPlan:
     notes: list[str] = field(default_factory=list)
 
 
-def transient_mb(estimator: CostedEstimator | None, largest_scan: int, counts: PointCounts) -> float:
-    """What the run keeps through its stages plus the largest transient of them (MB): the voxel grid,
-    ICP and the global estimator's own cost (:meth:`GlobalEstimator.peak_mb`; None or unknown: not
-    counted)."""
-    counts = replace(counts, global_points=min(counts.global_points, largest_scan),  # no scan grows
-                     icp_points=min(counts.icp_points, largest_scan))
-    stages = [VOXEL_BYTES_PER_INPUT_POINT * largest_scan / MB,
-              ICP_MB + ICP_BYTES_PER_POINT * 2 * counts.icp_points / MB]
+STAGES = ("global", "preparation", "iterations")  # a run's stages in turn (stage_peaks_mb)
+
+
+def stage_peaks_mb(estimator: CostedEstimator | None, scan_points: tuple[int, int],
+                   counts: PointCounts) -> dict[str, float]:
+    """The peak growth (MB) of each stage of a run on scans of ``scan_points`` (source, target) points,
+    by :data:`STAGES`: the global estimate (a voxel search over the larger scan, the estimator's own
+    cost: :meth:`GlobalEstimator.peak_mb`; None or unknown: not counted), then on what it leaves
+    ICP's preparation (its voxel search with the downsampled copies, or its problem's tensors) and
+    ICP's iterations. ICP's points are bounded by the requested count per scan, or all of a smaller
+    scan's points."""
+    largest = max(scan_points)
+    global_points = min(counts.global_points, largest)  # no scan grows
+    icp_points = sum(min(counts.icp_points, points) for points in scan_points)
     cost = getattr(estimator, "peak_mb", None)  # an estimator object of one's own may not state it
-    own = None if cost is None else cost(largest_scan, counts)
-    if own is not None:
-        stages.append(own)
-    return RETAINED_BYTES_PER_INPUT_POINT * largest_scan / MB + max(stages)
+    own = None if cost is None else cost(largest, replace(counts, global_points=global_points))
+    estimates = "global_points" in (getattr(estimator, "sized_by", ()) or ())
+    voxel_search = VOXEL_BYTES_PER_INPUT_POINT * largest / MB
+    kept = GLOBAL_KEPT_MB + GLOBAL_KEPT_BYTES_PER_POINT * global_points / MB if estimates else FIRST_STAGE_MB
+    return {"global": max(voxel_search, own or 0.0) if estimates else (own or 0.0),
+            "preparation": kept + max(voxel_search + DOWNSAMPLED_BYTES_PER_POINT * icp_points / MB,
+                                      ICP_PREPARE_MB + ICP_PREPARE_BYTES_PER_POINT * icp_points / MB),
+            "iterations": kept + ICP_MB + ICP_BYTES_PER_POINT * icp_points / MB}
 
 
-def predicted_peak_mb(estimator: CostedEstimator | None, largest_scan: int, counts: PointCounts,
+def transient_mb(estimator: CostedEstimator | None, scan_points: tuple[int, int], counts: PointCounts) -> float:
+    """The peak growth (MB) of a run: its largest stage (:func:`stage_peaks_mb`)."""
+    return max(stage_peaks_mb(estimator, scan_points, counts).values())
+
+
+def predicted_peak_mb(estimator: CostedEstimator | None, scan_points: tuple[int, int], counts: PointCounts,
                       held_mb: float | None = None) -> float:
-    """The peak resident memory (MB) this process is expected to reach if it registers with
-    ``estimator`` at ``counts`` holding ``held_mb`` (default: what it holds now): the margin and the
-    largest stage on top."""
+    """The peak resident memory (MB) this process is expected to reach if it registers scans of
+    ``scan_points`` (source, target) points with ``estimator`` at ``counts`` holding ``held_mb``
+    (default: what it holds now): the margin and the largest stage on top."""
     held = resident_mb() if held_mb is None else held_mb
-    return held + MARGIN_MB + transient_mb(estimator, largest_scan, counts)
+    return held + MARGIN_MB + transient_mb(estimator, scan_points, counts)
 
 
 def plan_registration(budget_bytes: int, estimator: CostedEstimator | None, source_points: int,
@@ -119,15 +159,16 @@ def plan_registration(budget_bytes: int, estimator: CostedEstimator | None, sour
     """Point counts that keep the process's peak within ``budget_bytes``: ``requested`` where they
     fit, else lowered (never below the ``MIN_*`` counts), ICP's and those the estimator is
     ``sized_by``. Raises :class:`MemoryBudgetError` when what the process holds now plus even the
-    smallest counts' transients would not fit."""
+    smallest counts' transients would not fit. From then on freed memory goes back to the system
+    (:func:`return_freed_memory`)."""
+    return_freed_memory()
     budget_mb = budget_bytes / MB
     now_mb = resident_mb()  # what the process holds now (an earlier peak of a long-lived process is past)
-    largest = max(source_points, target_points)
     shrinkable = ("icp_points", *(getattr(estimator, "sized_by", ()) or ()))
     counts = requested
 
     def predicted(at: PointCounts) -> float:
-        return predicted_peak_mb(estimator, largest, at, now_mb)
+        return predicted_peak_mb(estimator, (source_points, target_points), at, now_mb)
 
     while predicted(counts) > budget_mb:
         lower = {name: max(FLOORS[name], int(getattr(counts, name) * 0.8)) for name in shrinkable

@@ -38,12 +38,14 @@ from vrnet_ext.registration.ransac import SCORING_MB as RANSAC_SCORING_MB, featu
 from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import from_normalised, to_homogeneous
 
-# Peak growth of each estimator, in MB: intercept + bytes per point / MB, fitted as upper bounds of
-# whole-process peaks (benchmarks/bench_memory_plan.py; :mod:`vrnet_ext.registration.budget`).
-FPFH_MB, FPFH_BYTES_PER_POINT = 17.0, 5400.0  # normals, FPFH (100 neighbours), matching, RANSAC / SC2
-FGR_MB, FGR_BYTES_PER_POINT = 40.0, 4000.0    # FPFH + Fast Global Registration's correspondence sets
-SCENE_MB, SCENE_BYTES_PER_POINT = 36.0, 23400.0  # FPFH + the scene network's context graph, per point per scan
+# Peak growth of each estimator's stage, in MB: intercept + bytes per point / MB, fitted as upper bounds
+# of each stage's measured peak (benchmarks/bench_memory_plan.py; :mod:`vrnet_ext.registration.budget`).
+FPFH_MB, FPFH_BYTES_PER_POINT = 36.0, 1300.0  # normals, FPFH (100 neighbours), matching, RANSAC
+GRAPH_MB = 38.0                                # SC2: FPFH + the compatibility graph, one bit per pair of points
+FGR_MB, FGR_BYTES_PER_POINT = 48.0, 1150.0    # FPFH + Fast Global Registration's correspondence sets
+SCENE_MB, SCENE_BYTES_PER_POINT = 18.0, 21800.0  # FPFH + the scene network's context graph, per point per scan
 NETWORK_MB, NETWORK_BYTES_PER_POINT = 40.0, 20000.0  # the ModelNet40 VRNet (streamed matching), per point per cloud
+# (NETWORK_*: fitted on whole-process peaks before the stages were measured one by one)
 
 
 class GlobalEstimator:
@@ -149,7 +151,7 @@ class SpatialConsistency(GlobalEstimator):
 
     def peak_mb(self, largest_scan, counts):
         points = min(counts.global_points, largest_scan)  # the compatibility graph: one bit per pair
-        return max(_fpfh_mb(counts.global_points), FPFH_MB + points * points / 8 / MB)
+        return max(_fpfh_mb(counts.global_points), GRAPH_MB + points * points / 8 / MB)
 
     def estimate_pair(self, pair, seed):
         src, tgt = pair.global_views()
@@ -318,10 +320,10 @@ class Adaptive(GlobalEstimator):
         """The members ``names`` (default: all but the first, those that estimate when its refinement
         is doubtful) by name; under a memory budget only those whose predicted peak fits it, with a
         note for each one left out."""
-        largest, kept, notes = max(len(pair.src.points), len(pair.tgt.points)), {}, []
+        scans, kept, notes = (len(pair.src.points), len(pair.tgt.points)), {}, []
         for name in (self.members[1:] if names is None else names):
             member = self.member(name, pair.device)
-            peak = None if budget_bytes is None else predicted_peak_mb(member, largest, pair.counts)
+            peak = None if budget_bytes is None else predicted_peak_mb(member, scans, pair.counts)
             if peak is not None and peak > budget_bytes / MB:
                 notes.append(f"{name} was not tried: it needs about {peak:.0f} MB, more than max_memory "
                              f"{budget_bytes / MB:.0f} MB")

@@ -94,7 +94,9 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     is the initial estimate with a message in ``warnings``. max_memory: a budget in bytes for the
     process's peak resident memory; the point counts are lowered to fit it
     (:func:`vrnet_ext.registration.budget.plan_registration` with the estimator's own cost,
-    :meth:`GlobalEstimator.peak_mb`; notes in ``warnings``) or MemoryBudgetError says at once what would fit.
+    :meth:`GlobalEstimator.peak_mb`; notes in ``warnings``) or MemoryBudgetError says at once what would fit;
+    from then on the process gives the memory it frees back to the system
+    (:func:`vrnet_ext.registration.budget.return_freed_memory`, glibc's allocator setting).
     """
     _require_icp_settings(icp_settings)
     src, tgt = as_points(src, "src"), as_points(tgt, "tgt")
@@ -158,7 +160,7 @@ def _shape_notes(points: np.ndarray, name: str) -> list[str]:
 
 def _far_from_origin(src: np.ndarray, tgt: np.ndarray) -> bool:
     """Whether float32 coordinates would be too coarse for the target's extent."""
-    largest = max(np.abs(src).max(), np.abs(tgt).max())
+    largest = max(-src.min(), src.max(), -tgt.min(), tgt.max())  # (no |x| copy of the scans)
     return coarse_in_float32(largest, float(np.max(tgt.max(axis=0) - tgt.min(axis=0))))
 
 
