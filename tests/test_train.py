@@ -279,11 +279,21 @@ def test_invalid_options_are_refused_naming_the_argument_and_on_the_command_line
 
 def test_cli_refuses_an_output_file_and_a_missing_gpu_naming_the_flag(tmp_path, capsys):
     from vrnet_ext.cli import main
+    from vrnet_ext.cli.common import checkpoint_or_shipped
+    from vrnet_ext.model.pretrained import weights_path
+
+    # a shipped model's name stands for its weights file (the path is what the run's config records)
+    assert checkpoint_or_shipped("vrnet-pv-upc-rcp") == str(weights_path("vrnet-pv-upc-rcp"))
+    existing_checkpoint = tmp_path / "run.pt"
+    existing_checkpoint.write_bytes(b"")
+    assert checkpoint_or_shipped(str(existing_checkpoint)) == str(existing_checkpoint)
 
     existing = tmp_path / "a_file"
     existing.write_text("")
     cases = [(["--out-dir", str(existing)], "--out-dir.*is a file"),
-             (["--out-dir", str(existing / "sub")], "--out-dir.*not a writable folder")]
+             (["--out-dir", str(existing / "sub")], "--out-dir.*not a writable folder"),
+             (["--features-from", "no-such-model"], "--features-from.*neither a file nor a shipped model"),
+             (["--walk-from", str(tmp_path)], "--walk-from.*neither a file nor a shipped model")]
     if not torch.cuda.is_available():
         cases.append((["--device", "cuda"], "--device.*no CUDA device"))
     for flags, message in cases:

@@ -151,6 +151,19 @@ def device_or_auto(text: str) -> str:
     return text if text == "auto" else device_name(text)
 
 
+def checkpoint_or_shipped(text: str) -> str:
+    """A checkpoint file as given, or a shipped model's name (e.g. vrnet-pv-upc-rcp) as its weights
+    file's path (recorded as such in the run's config)."""
+    if Path(text).expanduser().is_file():
+        return text
+    from vrnet_ext.model.pretrained import available, weights_path
+
+    if text in available("vrnet"):
+        return str(weights_path(text))
+    raise argparse.ArgumentTypeError(f"{text!r} is neither a file nor a shipped model (one of: "
+                                     f"{', '.join(available('vrnet'))})")
+
+
 def output_folder(text: str) -> str:
     """A folder to create or fill: not an existing file, and under a writable existing ancestor."""
     path = Path(text).expanduser().resolve()

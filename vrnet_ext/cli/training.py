@@ -6,9 +6,10 @@ import typing
 from dataclasses import fields
 from pathlib import Path
 
-from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFormatter, Switch, device_or_auto,
-                                  existing_folder, json_output, nonnegative_int, output_folder, positive_float,
-                                  positive_int, report_to, unit_interval, view_points, writable_path, write_json)
+from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFormatter, Switch,
+                                  checkpoint_or_shipped, device_or_auto, existing_folder, json_output, nonnegative_int,
+                                  output_folder, positive_float, positive_int, report_to, unit_interval, view_points,
+                                  writable_path, write_json)
 from vrnet_ext.data.protocol import FAR_POINTS
 from vrnet_ext.names import (BACKENDS, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING, DEFAULT_SPLIT, MIXED,
                              PROCRUSTES_POINTS, ROTATION_RANGES, SETTINGS, SPLITS, TRANSFORMER_PRECISIONS)
@@ -95,7 +96,8 @@ def _add_section(group, section) -> None:
                "data_dir": {"type": str}, "out_dir": {"type": output_folder}, "device": {"type": device_or_auto},
                "precision": {"choices": PRECISIONS}, "backend": {"choices": BACKENDS},
                "loss_l4_form": {"choices": L4_FORMS}, "far_points": {"choices": FAR_POINTS},
-               "rotation_range": {"choices": ROTATION_RANGES}}
+               "rotation_range": {"choices": ROTATION_RANGES},
+               "features_from": {"type": checkpoint_or_shipped}, "walk_from": {"type": checkpoint_or_shipped}}
     hints = typing.get_type_hints(section)
     for f in fields(section):
         add = group.add_argument

@@ -79,9 +79,10 @@ FIELD_HELP = {
     "checkpoint_minutes": "also write last.pt every this many minutes inside an epoch",
     "resume": "continue from this last.pt (same model options as the run that wrote it; a larger epoch count "
               "extends a finished stage, and this run's --lr-milestones apply)",
-    "features_from": "start from the feature extractor of this checkpoint (e.g. stage 2 on another run's features)",
-    "walk_from": "start the correction walk from this checkpoint's walk (a shared-trunk walk is split in two "
-                 "when this run has --walk-confidence-trunk)",
+    "features_from": "start from the feature extractor of this checkpoint or shipped model (e.g. stage 2 on another "
+                     "run's features)",
+    "walk_from": "start the correction walk from this checkpoint's or shipped model's walk (a shared-trunk walk is "
+                 "split in two when this run has --walk-confidence-trunk)",
     "freeze_confidence": "stage 2 leaves the walk's confidence MLP as it is (weights and BatchNorm statistics; "
                          "needs --walk-confidence-trunk): train the offsets on a trained walk's confidences "
                          "(with --walk-from)",
