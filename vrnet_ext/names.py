@@ -10,6 +10,7 @@ clouds: the test shapes of the training categories), UC (unseen categories: trai
 
 BACKENDS = ("ext", "torch")  # the compiled kernels, or their pure-PyTorch references
 DEFAULT_BACKEND = "ext"
+AUTO_DEVICE = "auto"  # a device option's: CUDA when there is one, else the CPU (train, eval)
 TRANSFORMER_PRECISIONS = ("auto", "bf16", "fp32")  # auto: bfloat16 where the CPU multiplies it natively
 PROCRUSTES_POINTS = ("rcp", "vcp")  # what the final Procrustes aligns the source with: RCPs (VRNet) or VCPs
 

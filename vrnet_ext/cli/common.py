@@ -13,6 +13,8 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager, nullcontext, redirect_stdout
 from pathlib import Path
 
+from vrnet_ext.names import AUTO_DEVICE
+
 
 class DefaultsHelpFormatter(argparse.HelpFormatter):
     """Shows each option's default after its help, a list as its items (``1 16 64``), unless the help
@@ -148,7 +150,7 @@ def device_name(text: str) -> str:
 
 def device_or_auto(text: str) -> str:
     """``auto`` (CUDA when there is one) or a device of :func:`device_name`."""
-    return text if text == "auto" else device_name(text)
+    return text if text == AUTO_DEVICE else device_name(text)
 
 
 def checkpoint_or_shipped(text: str) -> str:

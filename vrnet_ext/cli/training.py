@@ -11,8 +11,9 @@ from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFo
                                   output_folder, positive_float, positive_int, report_to, unit_interval, view_points,
                                   writable_path, write_json)
 from vrnet_ext.data.protocol import FAR_POINTS
-from vrnet_ext.names import (BACKENDS, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING, DEFAULT_SPLIT, MIXED,
-                             PROCRUSTES_POINTS, ROTATION_RANGES, SETTINGS, SPLITS, TRANSFORMER_PRECISIONS)
+from vrnet_ext.names import (AUTO_DEVICE, BACKENDS, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING,
+                             DEFAULT_SPLIT, MIXED, PROCRUSTES_POINTS, ROTATION_RANGES, SETTINGS, SPLITS,
+                             TRANSFORMER_PRECISIONS)
 
 
 ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0, 45] degrees (the paper's); "
@@ -199,7 +200,7 @@ def add_eval(sub) -> None:
     p.add_argument("--transformer-precision", choices=TRANSFORMER_PRECISIONS, default=TRANSFORMER_PRECISIONS[0],
                    help="the Transformer's products: auto = bfloat16 on a CPU with native bf16 (AVX512-BF16 / AMX), "
                         "else float32 (default: auto)")
-    p.add_argument("--device", type=device_or_auto, default="auto",
+    p.add_argument("--device", type=device_or_auto, default=AUTO_DEVICE,
                    help="torch device to run on: auto (cuda when there is one, else cpu), cpu, cuda, cuda:1")
     p.add_argument("--progress", action=Switch, default=True, help="progress bars")
     p.add_argument("--json", type=json_output, default=None,

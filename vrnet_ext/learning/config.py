@@ -8,7 +8,8 @@ import math
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
 from vrnet_ext.model.config import VRNetConfig
-from vrnet_ext.names import DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING, DEFAULT_SPLIT, ROTATION_RANGES
+from vrnet_ext.names import (AUTO_DEVICE, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING, DEFAULT_SPLIT,
+                             ROTATION_RANGES)
 
 PRESETS = {
     "paper": dict(model=VRNetConfig().to_dict(), batch_size=28, stage1_epochs=100, stage2_epochs=100,
@@ -202,7 +203,7 @@ class RuntimeOptions:
     except ``precision``."""
 
     out_dir: str = "runs/vrnet"
-    device: str = "auto"
+    device: str = AUTO_DEVICE
     backend: str = DEFAULT_BACKEND
     num_workers: int = 0
     precision: str = "auto"

@@ -46,6 +46,7 @@ from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
 from vrnet_ext.model.checkpoints import read_checkpoint, validate_model_config
+from vrnet_ext.names import AUTO_DEVICE
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.learning.evaluate import evaluate, to_device
 from vrnet_ext.learning.losses import HybridLossWeights, correspondence_loss, hybrid_loss
@@ -59,8 +60,9 @@ from vrnet_ext.learning.warm_start import init_features_from, init_walk_from
 from vrnet_ext.learning.config import TrainConfig
 
 def resolve_device(name: str) -> str:
-    """``"auto"``: ``"cuda"`` when a CUDA device is available, else ``"cpu"``; any other name as given."""
-    if name == "auto":
+    """``AUTO_DEVICE`` ("auto"): ``"cuda"`` when a CUDA device is available, else ``"cpu"``; any other
+    name as given."""
+    if name == AUTO_DEVICE:
         return "cuda" if torch.cuda.is_available() else "cpu"
     return name
 
