@@ -25,4 +25,18 @@ inline void check_fpfh_inputs(const at::Tensor& points, const at::Tensor& normal
   TORCH_CHECK_VALUE(std::isfinite(radius) && radius > 0, "radius must be a finite number > 0, got ", radius);
 }
 
+// The op's inputs checked (check_fpfh_inputs), made contiguous, points and normals finite.
+struct FpfhInputs {
+  at::Tensor points, normals, idx, dist2;
+};
+
+inline FpfhInputs checked_fpfh_inputs(const at::Tensor& points, const at::Tensor& normals, const at::Tensor& idx,
+                                      const at::Tensor& dist2, double radius) {
+  check_fpfh_inputs(points, normals, idx, dist2, radius);
+  FpfhInputs in{points.contiguous(), normals.contiguous(), idx.contiguous(), dist2.contiguous()};
+  check_finite(in.points, "points");
+  check_finite(in.normals, "normals");
+  return in;
+}
+
 }  // namespace vrnet

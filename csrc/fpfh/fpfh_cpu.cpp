@@ -12,11 +12,8 @@ namespace {
 
 at::Tensor fpfh_cpu(const at::Tensor& points_in, const at::Tensor& normals_in, const at::Tensor& idx_in,
                     const at::Tensor& dist2_in, double radius) {
-  check_fpfh_inputs(points_in, normals_in, idx_in, dist2_in, radius);
-  const at::Tensor points = points_in.contiguous(), normals = normals_in.contiguous();
-  const at::Tensor idx = idx_in.contiguous(), dist2 = dist2_in.contiguous();
-  check_finite(points, "points");
-  check_finite(normals, "normals");
+  const FpfhInputs in = checked_fpfh_inputs(points_in, normals_in, idx_in, dist2_in, radius);
+  const at::Tensor &points = in.points, &normals = in.normals, &idx = in.idx, &dist2 = in.dist2;
   const int64_t N = points.size(0), k = idx.size(1);
   at::Tensor out = at::empty({N, fpfh_detail::kFeatures}, points.options());
   at::Tensor spfh = at::empty({N, fpfh_detail::kFeatures}, points.options());
