@@ -45,6 +45,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "modelnet40_tables_rs_nd": "ModelNet40 tables, RS / ND (`modelnet40_tables.py --models vrnet-rs-nd-rcp --methods vrnet vcp`)",
     "modelnet40_tables_nd_cells": "ModelNet40 tables, CO / RS / PV+RS with noise (`modelnet40_tables.py --models vrnet-mixed-nd-rcp --settings CO RS PV+RS`)" + EARLIER_VIEWS,
     "rotations": "ModelNet40 beyond the protocol's rotations, each cell's model alone and with its rotation search (`modelnet40_rotations.py` over `modelnet40_tables.py --methods vrnet --max-items 100 --rotation-range symmetric|so3 [--swap] --rotation-search-below 0|0.1`)",
+    "finetune_pv_upc_symmetric": "Fine-tuning PV / UPC on symmetric rotations on a CPU, on validation pairs (`vrnet train --rotation-range symmetric`, `vrnet eval --partition val`)",
     "finetune_rs_upc_symmetric": "Fine-tuning RS / UPC on symmetric rotations on a CPU, on validation pairs (`vrnet train --rotation-range symmetric`, `vrnet eval --partition val`)",
     "finetune_pv_nd_symmetric": "Fine-tuning PV / ND on symmetric rotations on a CPU, on validation pairs (`vrnet train --rotation-range symmetric`)",
     "rotations_whole_splits": "ModelNet40 with each angle in [-45, 45] degrees on whole test splits, four cells alone and with the rotation search (`modelnet40_rotations.py` over `modelnet40_tables.py --methods vrnet --rotation-range symmetric --rotation-search-below 0|0.1`)",
