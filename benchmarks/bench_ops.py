@@ -190,14 +190,14 @@ def _scan_knn_case(k=20, points=300_000, stray=False):
         def pykdtree_knn(x):
             from pykdtree.kdtree import KDTree
 
-            points = x.numpy()
+            points = x.cpu().numpy()
             return KDTree(points).query(points, k=k)
         impls["pykdtree"] = pykdtree_knn
     if importlib.util.find_spec("small_gicp"):
         def small_gicp_knn(x):
             import small_gicp
 
-            points = x.numpy()
+            points = x.cpu().numpy()
             threads = torch.get_num_threads()
             return small_gicp.KdTree(points, threads).batch_knn_search(points, k, threads)
         impls["small_gicp"] = small_gicp_knn
@@ -210,7 +210,7 @@ def _scan_knn_case(k=20, points=300_000, stray=False):
 def _open3d_cloud(points: torch.Tensor):
     import open3d as o3d
 
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.numpy()))
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.cpu().numpy()))
 
 
 def _normals_case(voxel=0.05):
@@ -237,7 +237,7 @@ def _fpfh_case(voxel=0.05):
 
         def open3d_fpfh(x, n):
             cloud = _open3d_cloud(x)
-            cloud.normals = o3d.utility.Vector3dVector(n.numpy())
+            cloud.normals = o3d.utility.Vector3dVector(n.cpu().numpy())
             return o3d.pipelines.registration.compute_fpfh_feature(
                 cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
         impls["open3d"] = open3d_fpfh
@@ -254,7 +254,7 @@ def _voxel_downsample_case(voxel):
     impls = {b: (lambda x, b=b: ops.voxel_downsample(x, voxel, backend=b)) for b in ("ext", "torch")}
 
     def numpy_unique(x):
-        points = x.numpy()
+        points = x.cpu().numpy()
         cells = np.floor((points - points.min(0)) / voxel).astype(np.int64)
         _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
         inverse = inverse.reshape(-1)
