@@ -367,6 +367,19 @@ def test_bench_register_scene_measures_the_kitti_scene_and_the_optimiser(tmp_pat
     assert "kitti00 | ours" in (tmp_path / "scene.md").read_text()
 
 
+def test_scene_objectives_refines_the_kitti_scene_every_way(tmp_path):
+    from conftest import DATA_DIR
+
+    if not (DATA_DIR / "scenes" / "real_pairs" / "MANIFEST.tsv").exists():
+        pytest.skip(f"real pairs not found under {DATA_DIR / 'scenes'}")
+    run([str(ROOT / "benchmarks" / "scene_objectives.py"), "--data", str(DATA_DIR / "scenes" / "real_pairs"),
+         "--scene", "kitti00", "--rounds", "1", "--json", "objectives.json"], tmp_path)
+    record = json.loads((tmp_path / "objectives.json").read_text())
+    assert [row["refinement"] for row in record["rows"]] == ["none (pose graph)", "map", "pairwise", "joint"]
+    assert all(row["max_rotation_deg"] < 1.0 and len(row["translation"]) == 4 for row in record["rows"]), record
+    assert len(record["truth_moves"]) == 4
+
+
 def test_bench_default_runs_every_method_on_a_cut_pair_and_draws_the_calibration(tmp_path):
     from conftest import DATA_DIR
 
