@@ -4,6 +4,7 @@ import torch
 from conftest import (DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext,
                       tolerances, under_each_cpu_dispatch)
 from vrnet_ext import ops
+from vrnet_ext.ops._checks import trusted_values
 
 
 def assert_knn_matches(dist, idx, query, ref, k, exclude_self=False):
@@ -81,6 +82,23 @@ def test_ties_broken_by_lower_index(device, C):
         expected = torch.sort(torch.cdist(query, ref).square(), dim=-1, stable=True).indices[..., :6]
         assert torch.equal(idx[..., :4], expected[..., :4]), backend
         assert torch.equal(idx[0, 0, :4], torch.tensor([0, 5, 10, 15])), backend
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("trusted", [False, True])
+def test_reference_orders_crowded_ties_by_index(dtype, trusted):
+    """7 shuffled copies of 6 points: rows where more points tie with the k-th distance than fit
+    keep the lowest indices, as a stable sort of the distances does, inside trusted_values (no
+    branch on the data) as outside; queries far from the origin too."""
+    g = torch.Generator().manual_seed(3)
+    base = torch.randn(2, 6, 5, dtype=dtype, generator=g)
+    ref = base.repeat(1, 7, 1)[:, torch.randperm(42, generator=g)] + 1e3
+    query = torch.cat([base[:, :3] + 1e3, torch.randn(2, 4, 5, dtype=dtype, generator=g) + 1e3], 1)
+    with trusted_values(trusted):
+        dist, idx = ops.knn(query, ref, 10, backend="torch")
+    scores = torch.cdist(query, ref).square()
+    assert torch.equal(idx, torch.sort(scores, dim=-1, stable=True).indices[..., :10])
+    assert torch.equal(dist, scores.gather(-1, idx))
 
 
 @requires_ext

@@ -47,8 +47,17 @@ void parallel_ranges(int64_t total, int64_t grain, const F& fn) {
   parallel_tasks(chunks, [&](int64_t c) { fn(c * chunk, std::min(total, (c + 1) * chunk)); });
 }
 
+// Checks that read the values of tensors on an accelerator (NaN / Inf, index ranges, weights) are
+// host synchronisations. vrnet_ext.ops.trusted_values() suspends them in its thread (this depth,
+// set through vrnet_ext._C) for values that come from checked inputs through the ops. CPU tensors
+// are always checked: no synchronisation there, and the CPU kernels' memory accesses rely on it.
+int& value_checks_suspended();  // defined in registration.cpp
+
+inline bool device_values_checked() { return value_checks_suspended() == 0; }
+
 // Conditions computed on an accelerator (one-element bool tensors), fetched with ONE synchronisation;
-// raises ValueError with the message of the first that is false.
+// raises ValueError with the message of the first that is false. Callers build the conditions only
+// when device_values_checked().
 using DeviceCondition = std::pair<at::Tensor, std::string>;
 
 inline void check_on_device(const std::vector<DeviceCondition>& conditions) {
@@ -67,7 +76,7 @@ inline DeviceCondition finite_condition(const at::Tensor& t, const char* name) {
 // Raises ValueError (via TORCH_CHECK_VALUE) if any element of a floating tensor is NaN/Inf.
 inline void check_finite(const at::Tensor& t, const char* name) {
   if (!t.is_cpu()) {
-    check_on_device({finite_condition(t, name)});
+    if (device_values_checked()) check_on_device({finite_condition(t, name)});
     return;
   }
   const at::Tensor c = t.contiguous();
@@ -116,7 +125,7 @@ inline void check_like(const at::Tensor& t, const char* name, at::IntArrayRef si
 // Raises ValueError if an index tensor holds values outside [0, upper).
 inline void check_index_range(const at::Tensor& idx, int64_t upper, const char* name) {
   if (!idx.is_cpu()) {
-    if (idx.numel() == 0) return;
+    if (idx.numel() == 0 || !device_values_checked()) return;
     const auto [lo, hi] = at::aminmax(idx);
     check_on_device({{lo.ge(0).logical_and(hi.lt(upper)),
                       std::string(name) + " holds indices outside [0, " + std::to_string(upper) + ")"}});

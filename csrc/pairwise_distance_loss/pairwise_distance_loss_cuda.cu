@@ -25,7 +25,7 @@ at::Tensor pairwise_distance_loss_cuda(const at::Tensor& x_in, const at::Tensor&
   const int64_t B = x.size(0), N = x.size(1);
   check_batch(B);
   if (B == 0) return at::empty({0}, x.options());
-  check_on_device({finite_condition(x, "x"), finite_condition(y, "y")});
+  if (device_values_checked()) check_on_device({finite_condition(x, "x"), finite_condition(y, "y")});
   const LaunchConfig config = row_blocks(N, B);
   at::Tensor partial = at::empty({B, config.grid.x}, x.options().dtype(at::kDouble));
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "pairwise_distance_loss_cuda", [&] {

@@ -15,7 +15,7 @@ from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
 from vrnet_ext.ops import robust_kabsch, soft_match
-from vrnet_ext.ops._checks import check_finite, check_float, check_same, check_shape
+from vrnet_ext.ops._checks import check_all_finite, check_float, check_same, check_shape, trusted_values
 from vrnet_ext.runtime import cpu_has_native_bf16
 
 SEARCH_POINTS = 2 ** 16  # source points the rotation search registers per batch (bounds its memory)
@@ -98,12 +98,13 @@ def _rows(values: torch.Tensor | None, rows: torch.Tensor) -> torch.Tensor | Non
 def _replace_rows(out: VRNetOutput, rows: torch.Tensor, candidate: VRNetOutput) -> None:
     """Where ``candidate`` (one row per entry of ``rows``) agrees more with its RCPs than ``out``'s
     rows ``rows`` do, its rows replace them (every field is batch-first; in place)."""
-    better = candidate.consistency > out.consistency[rows]
-    kept = rows[better]
+    better = candidate.consistency > out.consistency[rows]  # (R,); chosen on the device (no host read)
     for field in fields(VRNetOutput):
         value = getattr(out, field.name)
         if value is not None:
-            setattr(out, field.name, value.index_copy(0, kept, getattr(candidate, field.name)[better]))
+            new = getattr(candidate, field.name)
+            chosen = torch.where(better.view(-1, *[1] * (new.dim() - 1)), new, value.index_select(0, rows))
+            setattr(out, field.name, value.index_copy(0, rows, chosen))
 
 
 def procrustes_weights(confidence_logits: torch.Tensor) -> torch.Tensor:
@@ -135,7 +136,10 @@ class VRNet(nn.Module):
 
         The VCPs and the matched target features come from the streamed ``ops.soft_match``
         (memory O((N + M) c)); the (B, N, M) matching matrix is built only with
-        ``return_matching=True`` (L0 in training, pictures).
+        ``return_matching=True`` (L0 in training, pictures). Both clouds are checked for NaN / Inf
+        with one host synchronisation on a GPU (none inside ``vrnet_ext.ops.trusted_values()``, where
+        the caller vouches for them); everything after runs inside ``trusted_values``, without one
+        (but for the data-dependent second look and rotation search, where configured).
         """
         check_float(src, "src")
         check_float(tgt, "tgt")
@@ -148,9 +152,16 @@ class VRNet(nn.Module):
         if src.dtype != weight_dtype:
             raise TypeError(f"src has dtype {src.dtype} but the model's weights are {weight_dtype}: "
                             f"pass src.to({weight_dtype}) or convert the model with model.to({src.dtype})")
-        check_finite(src, "src")
-        check_finite(tgt, "tgt")
+        check_all_finite({"src": src, "tgt": tgt})
         backend = backend or self.config.backend
+        if torch.compiler.is_compiling():
+            return self._estimate(src, tgt, backend, return_matching)
+        with trusted_values():  # every tensor below comes from the checked clouds through the ops
+            return self._estimate(src, tgt, backend, return_matching)
+
+    def _estimate(self, src: torch.Tensor, tgt: torch.Tensor, backend: str, return_matching: bool) -> VRNetOutput:
+        """The forward on checked clouds: the passes, then in eval mode the second look and the
+        rotation search where configured."""
         out, tgt_features = self._passes(src, tgt, backend, return_matching)
         out.start_rotation = torch.eye(3, dtype=src.dtype, device=src.device).expand(src.shape[0], 3, 3)
         out.second_pass = torch.zeros(src.shape[0], dtype=torch.bool, device=src.device)

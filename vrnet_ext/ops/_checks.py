@@ -1,5 +1,16 @@
-"""Argument checks shared by every op and its reference: errors name the argument."""
+"""Argument checks shared by every op and its reference: errors name the argument.
+
+Checks that read tensor values (NaN / Inf, index ranges, signs of weights) cost a host
+synchronisation on a GPU. They are skipped while ``torch.compile`` traces (a check is a branch on
+the data) and inside :func:`trusted_values`, for values that come from checked inputs through the
+ops (VRNet's forward checks its clouds once and runs inside). The compiled kernels check CPU
+tensors in C++ always (no synchronisation there, and their memory accesses rely on it).
+"""
 from __future__ import annotations
+
+import threading
+from contextlib import contextmanager
+from typing import Iterator
 
 import torch
 
@@ -64,18 +75,62 @@ def check_same(tensors: dict[str, torch.Tensor]) -> None:
             raise TypeError(f"{name} has dtype {t.dtype} but {names[0]} has {first.dtype}")
 
 
+_TRUST = threading.local()  # depth: how many trusted_values() regions this thread is in
+
+
+def values_checked() -> bool:
+    """Whether checks that read tensor values run here: not while compiling, nor inside
+    :func:`trusted_values` (in this thread)."""
+    return not torch.compiler.is_compiling() and not getattr(_TRUST, "depth", 0)
+
+
+@contextmanager
+def trusted_values(active: bool = True) -> Iterator[None]:
+    """Inside (this thread, ``active``): the ops skip the checks that read tensor values (NaN / Inf,
+    index ranges, signs of weights), in Python and, on accelerators, in the compiled kernels; on a
+    GPU each is a host synchronisation. For tensors that come from checked inputs through the ops
+    only: the kernels' memory accesses rely on finite points and indices in range. The backward of
+    an op called inside runs trusted too."""
+    if not active:
+        yield
+        return
+    from vrnet_ext._extension import has_extension
+
+    compiled = has_extension()
+    _TRUST.depth = getattr(_TRUST, "depth", 0) + 1
+    if compiled:
+        from vrnet_ext import _C
+
+        _C._suspend_value_checks(1)
+    try:
+        yield
+    finally:
+        _TRUST.depth -= 1
+        if compiled:
+            _C._suspend_value_checks(-1)
+
+
 def check_finite(t: torch.Tensor, name: str) -> None:
     """Eager-mode NaN/Inf check for the references (the compiled kernels check in C++)."""
-    if torch.compiler.is_compiling():
-        return
-    if not bool(torch.isfinite(t).all()):
+    if values_checked() and not bool(torch.isfinite(t).all()):
         raise ValueError(f"{name} contains NaN or Inf values")
 
 
-def check_index_range(idx: torch.Tensor, upper: int, name: str) -> None:
-    if torch.compiler.is_compiling() or idx.numel() == 0:
+def check_all_finite(tensors: dict[str, torch.Tensor]) -> None:
+    """:func:`check_finite` of every tensor with one synchronisation (one fetch of all the flags)."""
+    if not values_checked():
         return
-    if int(idx.min()) < 0 or int(idx.max()) >= upper:
+    flags = torch.stack([torch.isfinite(t).all() for t in tensors.values()])
+    if not bool(flags.all()):
+        raise ValueError(f"{next(name for name, finite in zip(tensors, flags.tolist()) if not finite)} contains NaN "
+                         f"or Inf values")
+
+
+def check_index_range(idx: torch.Tensor, upper: int, name: str) -> None:
+    if not values_checked() or idx.numel() == 0:
+        return
+    low, high = torch.aminmax(idx)
+    if not bool((low >= 0) & (high < upper)):
         raise ValueError(f"{name} holds indices outside [0, {upper})")
 
 

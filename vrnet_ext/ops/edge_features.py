@@ -5,7 +5,7 @@ import torch
 
 from vrnet_ext._extension import has_extension, use_extension
 from vrnet_ext.ops._checks import (check_float, check_index, check_index_range, check_same, check_shape,
-                                   float32_region, promote_low_precision)
+                                   float32_region, promote_low_precision, trusted_values, values_checked)
 
 
 def validate_graph(values: torch.Tensor, idx: torch.Tensor, values_name: str) -> None:
@@ -77,10 +77,12 @@ if has_extension():
         x, idx = inputs
         ctx.save_for_backward(idx)
         ctx.num_points = x.shape[2]
+        ctx.trusted = not values_checked()  # indices checked (or trusted) by the forward
 
     def _edge_features_backward(ctx, grad_out):
         (idx,) = ctx.saved_tensors
-        return torch.ops.vrnet_ext.edge_features_backward(grad_out, idx, ctx.num_points), None
+        with trusted_values(ctx.trusted):
+            return torch.ops.vrnet_ext.edge_features_backward(grad_out, idx, ctx.num_points), None
 
     torch.library.register_autograd(
         "vrnet_ext::edge_features", _edge_features_backward, setup_context=_edge_features_setup_context

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import float32_region, promote_low_precision
+from vrnet_ext.ops._checks import float32_region, promote_low_precision, trusted_values, values_checked
 from vrnet_ext.ops.edge_features import gather_neighbours, validate_graph
 
 REDUCTIONS = ("max", "min", "sum", "mean")
@@ -67,10 +67,12 @@ if has_extension():
         ctx.save_for_backward(idx, output[1])
         ctx.reduce = reduce
         ctx.num_values = values.shape[2]
+        ctx.trusted = not values_checked()  # indices checked (or trusted) by the forward
 
     def _gather_reduce_backward(ctx, grad_out, _grad_arg):
         idx, arg = ctx.saved_tensors
-        grad = torch.ops.vrnet_ext.gather_reduce_backward(grad_out, idx, arg, ctx.reduce, ctx.num_values)
+        with trusted_values(ctx.trusted):
+            grad = torch.ops.vrnet_ext.gather_reduce_backward(grad_out, idx, arg, ctx.reduce, ctx.num_values)
         return grad, None, None
 
     torch.library.register_autograd(

@@ -21,7 +21,7 @@ import torch
 
 from vrnet_ext._extension import has_extension, use_extension
 from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
-                                   float32_region, promote_low_precision)
+                                   float32_region, promote_low_precision, values_checked)
 
 ROBUST_KERNELS = ("cauchy", "geman_mcclure", "welsch")
 MAX_ROBUST_ITERATIONS = 1000  # the compiled op's kMaxRobustIterations
@@ -65,7 +65,7 @@ def kabsch_reference(src: torch.Tensor, tgt: torch.Tensor, weights: torch.Tensor
     if weights is None:
         weights = torch.ones(src.shape[:2], dtype=src.dtype, device=src.device)
     check_finite(weights, "weights")
-    if not torch.compiler.is_compiling():
+    if values_checked():
         if bool((weights < 0).any()):
             raise ValueError("weights must be non-negative")
         if bool((weights.sum(1) <= 0).any()):

@@ -11,7 +11,7 @@ import torch
 
 from vrnet_ext._extension import has_extension, use_extension
 from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
-                                   float32_region, promote_low_precision)
+                                   float32_region, promote_low_precision, trusted_values, values_checked)
 
 
 def _validate(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool) -> None:
@@ -35,25 +35,42 @@ def _validate(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool
                          f"{' (self excluded)' if exclude_self else ''}, got {k}")
 
 
+def _smallest(dist2: torch.Tensor, k: int) -> torch.Tensor:
+    """(..., M) squared distances -> (..., k) indices of the k smallest, ascending, ties by lower
+    index, without a branch on the data (no host synchronisation on a GPU).
+
+    float32: non-negative floats order as their bit patterns (NaN, sign cleared, above +inf), so a
+    key of the distance's bits above the index's is unique and one ``topk`` over the keys orders
+    ties by index. float64 leaves no bits for the index: ``topk``, the candidates in index order, a
+    stable sort by distance, and rows where more points tie with the k-th distance than fit sorted
+    whole (every row while compiling or inside ``trusted_values``, else only those: one check)."""
+    if dist2.dtype == torch.float32:
+        count = dist2.shape[-1]
+        index_bits = max(1, (count - 1).bit_length())
+        keys = dist2.view(torch.int32).to(torch.int64).bitwise_and_(0x7FFFFFFF).bitwise_left_shift_(index_bits)
+        keys.bitwise_or_(torch.arange(count, device=dist2.device))
+        return keys.topk(k, dim=-1, largest=False, sorted=True).values.bitwise_and_((1 << index_bits) - 1)
+    values, idx = dist2.topk(k, dim=-1, largest=False, sorted=True)
+    idx = idx.sort(dim=-1).values
+    idx = idx.gather(-1, dist2.gather(-1, idx).sort(dim=-1, stable=True).indices)
+    crowded = (dist2 <= values[..., -1:]).sum(-1) > k
+    if not values_checked():
+        lowest = dist2.sort(dim=-1, stable=True).indices[..., :k]
+        return torch.where(crowded.unsqueeze(-1), lowest, idx)
+    if bool(crowded.any()):
+        idx[crowded] = dist2[crowded].sort(dim=-1, stable=True).indices[..., :k]
+    return idx
+
+
 def knn_reference(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool = False):
-    """Pure-PyTorch kNN: the full (B, N, M) distance matrix, then ``topk``; ties by lower index."""
+    """Pure-PyTorch kNN: the full (B, N, M) distance matrix, then the k smallest; ties by lower index."""
     check_finite(query, "query")
     check_finite(ref, "ref")
     dist2 = torch.cdist(query, ref).square()
     if exclude_self:
         eye = torch.eye(ref.shape[1], dtype=torch.bool, device=ref.device)
         dist2 = dist2.masked_fill(eye, float("inf"))
-    values, idx = dist2.detach().topk(k, dim=-1, largest=False, sorted=True)
-    # Deterministic ties: order equal distances by index, and where more points tie with the
-    # k-th distance than fit, keep the lowest indices (stable sort of those rows).
-    idx = idx.sort(dim=-1).values
-    idx = idx.gather(-1, dist2.detach().gather(-1, idx).sort(dim=-1, stable=True).indices)
-    crowded = (dist2.detach() <= values[..., -1:]).sum(-1) > k
-    if torch.compiler.is_compiling():  # no branch on the data while compiling: every row is sorted
-        lowest = dist2.detach().sort(dim=-1, stable=True).indices[..., :k]
-        idx = torch.where(crowded.unsqueeze(-1), lowest, idx)
-    elif bool(crowded.any()):
-        idx[crowded] = dist2.detach()[crowded].sort(dim=-1, stable=True).indices[..., :k]
+    idx = _smallest(dist2.detach(), k)
     return dist2.gather(-1, idx), idx
 
 
@@ -101,11 +118,13 @@ if has_extension():
     def _knn_setup_context(ctx, inputs, output):
         query, ref, _, _ = inputs
         ctx.save_for_backward(query, ref, output[1])
+        ctx.trusted = not values_checked()  # the forward's indices: in range
 
     def _knn_backward(ctx, grad_dist2, _grad_idx):
         query, ref, idx = ctx.saved_tensors
         first_order_only("knn", grad_dist2, query, ref)
-        grad_query, grad_ref = torch.ops.vrnet_ext.knn_backward(grad_dist2, query, ref, idx)
+        with trusted_values(ctx.trusted):
+            grad_query, grad_ref = torch.ops.vrnet_ext.knn_backward(grad_dist2, query, ref, idx)
         return grad_query, grad_ref, None, None
 
     torch.library.register_autograd("vrnet_ext::knn", _knn_backward, setup_context=_knn_setup_context)

@@ -20,7 +20,7 @@ import torch
 
 from vrnet_ext._extension import has_extension, use_extension
 from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
-                                   float32_region, promote_low_precision)
+                                   float32_region, promote_low_precision, values_checked)
 
 
 DENSE_BLOCK_MAX_SCORES = 1 << 26  # scores per dense block off the CPU: 256 MB per float32 copy
@@ -63,7 +63,7 @@ def soft_match_reference(query: torch.Tensor, key: torch.Tensor, values: torch.T
     """Dense pure-PyTorch soft matching (builds the (B, N, M) score matrix)."""
     scores = torch.bmm(query, key.transpose(1, 2)) * scale
     lse = torch.logsumexp(scores, dim=-1)
-    if not torch.compiler.is_compiling() and not bool(torch.isfinite(lse).all()):
+    if values_checked() and not bool(torch.isfinite(lse).all()):
         raise ValueError(f"soft_match scores overflow: scale * query . key is not finite (scale {scale})")
     out = torch.bmm(torch.softmax(scores, dim=-1), values)
     return SoftMatch(out, lse, scores.argmax(dim=-1))
