@@ -17,7 +17,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from conftest import requires_ext
 from test_model import small_model
 from vrnet_ext import load_pretrained, ops
-from vrnet_ext.ops._checks import trusted_values
+from vrnet_ext.ops import trusted_values
 
 HOST_READS = {"aten._local_scalar_dense.default", "aten.nonzero.default", "aten.is_nonzero.default",
               "aten.equal.default", "aten.masked_select.default", "aten._unique2.default",

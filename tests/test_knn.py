@@ -4,7 +4,7 @@ import torch
 from conftest import (DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext,
                       tolerances, under_each_cpu_dispatch)
 from vrnet_ext import ops
-from vrnet_ext.ops._checks import trusted_values
+from vrnet_ext.ops import trusted_values
 
 
 def assert_knn_matches(dist, idx, query, ref, k, exclude_self=False):

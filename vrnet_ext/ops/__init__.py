@@ -1,5 +1,7 @@
 """Public ops. Each takes ``backend="ext"`` (compiled kernel, the default) or ``"torch"``
-(the pure-PyTorch reference, same signature)."""
+(the pure-PyTorch reference, same signature). ``trusted_values()``: a region in which they skip
+the checks that read tensor values (``__all__`` lists the ops only)."""
+from vrnet_ext.ops._checks import trusted_values
 from vrnet_ext.ops.attention import attention
 from vrnet_ext.ops.edge_features import edge_features
 from vrnet_ext.ops.edge_norm_max import edge_norm_max
