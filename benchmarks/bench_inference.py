@@ -13,6 +13,9 @@ the rotation angle error (degrees; not the paper's Euler-angle RMSE(R)) and RMSE
 so a faster variant can be seen to keep the numbers. "x reference": against the reference backend
 with everything in float32 (the plain-PyTorch model); "x same precision": against the reference
 backend with the same Transformer precision, where that variant was timed too ("–" where not).
+On a GPU, ``ext, CUDA graphs`` replays the compiled backend's forward as CUDA graphs
+(:class:`vrnet_ext.model.cuda_graphs.CudaGraphForward`, one captured per batch size before the
+timing; every pair then takes the model's second look, chosen on the device).
 Peak memory: the process's peak resident set after the run (all variants); on a GPU
 (``--device cuda``, clock reads after a device synchronisation) also the peak of torch's CUDA
 allocator.
@@ -27,6 +30,7 @@ does the reference's products; the "GFLOP/s" column is pairs/s times the referen
 from __future__ import annotations
 
 import argparse
+import functools
 import resource
 import statistics
 import sys
@@ -41,9 +45,11 @@ from vrnet_ext.geometry.metrics import rotation_error_deg
 from vrnet_ext.model.pretrained import load_pretrained
 from outputs import cpu_description, write_outputs  # benchmarks/, the script's folder
 
-# name: (backend, transformer_precision)
-VARIANTS = {"torch": ("torch", "fp32"), "torch, bf16 Transformer": ("torch", "bf16"),
-            "ext": ("ext", "fp32"), "ext, bf16 Transformer": ("ext", "bf16")}
+# name: (backend, transformer_precision, replayed as CUDA graphs)
+VARIANTS = {"torch": ("torch", "fp32", False), "torch, bf16 Transformer": ("torch", "bf16", False),
+            "ext": ("ext", "fp32", False), "ext, bf16 Transformer": ("ext", "bf16", False),
+            "ext, CUDA graphs": ("ext", "fp32", True)}
+GRAPHED = {name for name, settings in VARIANTS.items() if settings[2]}
 SAME_PRECISION_REFERENCE = {"fp32": "torch", "bf16": "torch, bf16 Transformer"}
 
 
@@ -60,12 +66,23 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def run_pass(model, pairs: dict[str, torch.Tensor], batch: int, backend: str, transformer_precision: str):
+def run_pass(model, pairs: dict[str, torch.Tensor], batch: int, backend: str, transformer_precision: str,
+             graphs: bool, graphed: dict):
+    """One pass over the pairs -> their rotations and translations. ``graphs``: through a
+    :class:`CudaGraphForward` kept in ``graphed`` per (backend, precision): captured in the first
+    pass at each batch size, replayed after."""
     model.config.transformer_precision = transformer_precision
+    forward = functools.partial(model, backend=backend)
+    if graphs:
+        from vrnet_ext.model.cuda_graphs import CudaGraphForward
+
+        if (backend, transformer_precision) not in graphed:
+            graphed[backend, transformer_precision] = CudaGraphForward(model, backend)
+        forward = graphed[backend, transformer_precision]
     rotations, translations = [], []
     with torch.no_grad():
         for start in range(0, len(pairs["src"]), batch):
-            out = model(pairs["src"][start:start + batch], pairs["tgt"][start:start + batch], backend=backend)
+            out = forward(pairs["src"][start:start + batch], pairs["tgt"][start:start + batch])
             rotations.append(out.rotation.float())
             translations.append(out.translation.float())
     synchronize(pairs["src"].device)
@@ -125,12 +142,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     parser.add_argument("--json", default=None, help="write the record to this JSON file (none: print only)")
     parser.add_argument("--markdown", default=None, help="write the table to this Markdown file (none: print only)")
-    parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
-                        help="variants to time, beside the reference (torch)")
+    parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=None,
+                        help="variants to time, beside the reference (torch); default: all (CUDA graphs on a GPU)")
     args = parser.parse_args(argv)
-    needed = set(args.variants) | {"torch"}
-    variants = {name: settings for name, settings in VARIANTS.items() if name in needed}
     device = torch.device(args.device)
+    asked = args.variants or [name for name in VARIANTS if device.type == "cuda" or name not in GRAPHED]
+    if device.type != "cuda" and GRAPHED & set(asked):
+        parser.error(f"--variants {', '.join(sorted(GRAPHED & set(asked)))}: CUDA graphs need --device cuda")
+    needed = set(asked) | {"torch"}
+    variants = {name: settings for name, settings in VARIANTS.items() if name in needed}
+    graphed: dict = {}
     torch.set_num_threads(args.threads)
     model = load_pretrained(args.model).eval().to(device)
     pairs = load_pairs(args.pairs, args.data_dir, device)
@@ -139,8 +160,10 @@ def main(argv: list[str] | None = None) -> None:
     gemm_rate = matmul_rate(device)
     seconds: dict[tuple[str, int], list[float]] = {}
     accuracy: dict[str, dict[str, float]] = {}
-    for variant, settings in variants.items():  # warm-up and accuracy
-        R, t = run_pass(model, pairs, max(args.batches), *settings)
+    for variant, settings in variants.items():  # warm-up (graphs: captured at every batch size) and accuracy
+        for batch in args.batches if settings[2] else ():
+            run_pass(model, pairs, batch, *settings, graphed)
+        R, t = run_pass(model, pairs, max(args.batches), *settings, graphed)
         accuracy[variant] = {
             "rms_angle_deg": float(rotation_error_deg(R, pairs["rotation"]).square().mean().sqrt()),
             "rmse_t": float((t - pairs["translation"]).norm(dim=-1).square().mean().sqrt())}
@@ -148,7 +171,7 @@ def main(argv: list[str] | None = None) -> None:
         for batch in args.batches:
             for variant, settings in variants.items():
                 start = time.perf_counter()
-                run_pass(model, pairs, batch, *settings)
+                run_pass(model, pairs, batch, *settings, graphed)
                 seconds.setdefault((variant, batch), []).append(time.perf_counter() - start)
                 print(f"batch {batch:>3}, {variant}: {count / seconds[(variant, batch)][-1]:.1f} pairs/s",
                       file=sys.stderr, flush=True)

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -422,6 +424,27 @@ def test_the_second_pass_keeps_the_more_consistent_pass_of_each_pair():
     assert src.grad is not None and torch.isfinite(src.grad).all() and src.grad[expected_second].abs().sum() > 0
     model.train()  # training sees the configured passes only
     assert not model(src, tgt).second_pass.any()
+
+
+def test_the_second_look_chosen_on_the_device_matches_the_host_choice():
+    """A CUDA graph cannot branch on which pairs are due: every pair looks again and the choice is
+    made on the device; the result is the host choice's."""
+    src, tgt = turned_pairs()
+    model = small_model(consistency_radius=1.0).eval()
+    with torch.no_grad():
+        below = float(model(src, tgt).consistency.sort().values[-2])
+        model.config = replace(model.config, second_pass_below=below)
+        results = []
+        for every in (False, True):
+            out = model(src, tgt)
+            first = small_model(consistency_radius=1.0).eval()(src, tgt)
+            model._second_looks(src, tgt, first, model.config.backend, False, None, every=every)
+            results.append(first)
+    host, device = results
+    assert torch.equal(host.second_pass, device.second_pass) and host.second_pass.any()
+    assert torch.equal(out.second_pass, host.second_pass)
+    for name in ("rotation", "translation", "consistency", "rcp"):
+        torch.testing.assert_close(getattr(device, name), getattr(host, name), rtol=1e-4, atol=1e-5)
 
 
 def _looked_twice(model, src, tgt, start):

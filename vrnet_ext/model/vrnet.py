@@ -95,10 +95,14 @@ def _rows(values: torch.Tensor | None, rows: torch.Tensor) -> torch.Tensor | Non
     return None if values is None else values[rows]
 
 
-def _replace_rows(out: VRNetOutput, rows: torch.Tensor, candidate: VRNetOutput) -> None:
+def _replace_rows(out: VRNetOutput, rows: torch.Tensor, candidate: VRNetOutput,
+                  allowed: torch.Tensor | None = None) -> None:
     """Where ``candidate`` (one row per entry of ``rows``) agrees more with its RCPs than ``out``'s
-    rows ``rows`` do, its rows replace them (every field is batch-first; in place)."""
+    rows ``rows`` do (and ``allowed`` (R,), if given, holds), its rows replace them (every field is
+    batch-first; in place)."""
     better = candidate.consistency > out.consistency[rows]  # (R,); chosen on the device (no host read)
+    if allowed is not None:
+        better = better & allowed
     for field in fields(VRNetOutput):
         value = getattr(out, field.name)
         if value is not None:
@@ -168,10 +172,8 @@ class VRNet(nn.Module):
         if self.training:
             return out
         if self.config.second_pass_below > 0:
-            retry = (out.consistency < self.config.second_pass_below).nonzero().squeeze(1)
-            if retry.numel():
-                _replace_rows(out, retry, self._second_look(src[retry], tgt[retry], _rows_of(out, retry), backend,
-                                                            return_matching, _rows(tgt_features, retry)))
+            capturing = src.is_cuda and torch.cuda.is_current_stream_capturing()  # a CUDA graph: no branch on data
+            self._second_looks(src, tgt, out, backend, return_matching, tgt_features, every=capturing)
         if self.config.rotation_search_below > 0:
             self._rotation_search(src, tgt, out, backend, return_matching, tgt_features)
         return out
@@ -197,6 +199,22 @@ class VRNet(nn.Module):
         """(B,) share of the source points whose RCP lies within ``consistency_radius`` of R src + t:
         how far a pair's RCPs agree with its estimate."""
         return correct_match_ratio(rcp, src, rotation, translation, self.config.consistency_radius).to(src.dtype)
+
+    def _second_looks(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
+                      return_matching: bool, tgt_features: torch.Tensor | None, *, every: bool) -> None:
+        """The pairs whose consistency is below ``second_pass_below`` take a second look, kept where
+        it agrees more (in place). ``every``: all pairs look again and the choice is made on the
+        device (no host read of which pairs are due; the cost of a look for every pair)."""
+        due = out.consistency < self.config.second_pass_below
+        if every:
+            rows = torch.arange(src.shape[0], device=src.device)
+            _replace_rows(out, rows, self._second_look(src, tgt, out, backend, return_matching, tgt_features),
+                          allowed=due)
+            return
+        retry = due.nonzero().squeeze(1)
+        if retry.numel():
+            _replace_rows(out, retry, self._second_look(src[retry], tgt[retry], _rows_of(out, retry), backend,
+                                                        return_matching, _rows(tgt_features, retry)))
 
     def _second_look(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
                      return_matching: bool, tgt_features: torch.Tensor | None) -> VRNetOutput:
