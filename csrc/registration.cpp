@@ -13,15 +13,6 @@ TORCH_LIBRARY(vrnet_ext, m) {
 #undef VRNET_DEFINE
 }
 
-namespace vrnet {
-
-int& value_checks_suspended() {
-  static thread_local int depth = 0;
-  return depth;
-}
-
-}  // namespace vrnet
-
 namespace {
 
 // _suspend_value_checks(delta): vrnet_ext.ops.trusted_values() entering (+1) or leaving (-1).

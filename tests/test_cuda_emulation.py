@@ -303,7 +303,7 @@ def test_kabsch_weight_gradient_terms_stay_double():
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
-@pytest.mark.parametrize("B,N", [(1, 6), (9, 45), (2, 300)])
+@pytest.mark.parametrize("B,N", [(1, 6), (9, 45), (2, 300), (1, 1029)])
 @pytest.mark.parametrize("kernel", ["cauchy", "geman_mcclure", "welsch"])
 def test_robust_kabsch(dtype, B, N, kernel):
     src = torch.randn(B, N, 3, dtype=dtype)

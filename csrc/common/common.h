@@ -51,7 +51,10 @@ void parallel_ranges(int64_t total, int64_t grain, const F& fn) {
 // host synchronisations. vrnet_ext.ops.trusted_values() suspends them in its thread (this depth,
 // set through vrnet_ext._C) for values that come from checked inputs through the ops. CPU tensors
 // are always checked: no synchronisation there, and the CPU kernels' memory accesses rely on it.
-int& value_checks_suspended();  // defined in registration.cpp
+inline int& value_checks_suspended() {
+  static thread_local int depth = 0;
+  return depth;
+}
 
 inline bool device_values_checked() { return value_checks_suspended() == 0; }
 

@@ -63,8 +63,8 @@ std::tuple<at::Tensor, at::Tensor> robust_kabsch_cuda(const at::Tensor& src_in, 
   at::Tensor residuals = at::empty({B, scratch_per_problem}, src.options().dtype(at::kDouble));
   at::Tensor robust_weights = at::empty({B, scratch_per_problem}, src.options().dtype(at::kDouble));
   AT_DISPATCH_FLOATING_TYPES(src.scalar_type(), "robust_kabsch_cuda", [&] {
-    launch<robust_kabsch_kernel<scalar_t>>(per_problem_warp(B), src, tgt, weights, B, N, options, residuals,
-                                           robust_weights, R, t);
+    launch<robust_kabsch_kernel<scalar_t>>(LaunchConfig{dim3(blocks_for(B, 1)), dim3(kRobustThreads), 0}, src, tgt,
+                                           weights, B, N, options, residuals, robust_weights, R, t);
   });
   return {R, t};
 }

@@ -4,8 +4,8 @@
 // record. (2) One thread per problem solves the 3x3 problem with the routine shared with the CPU
 // kernel (kabsch/procrustes.h) - and in the backward differentiates it. (3) Backward only: one warp
 // per problem writes the per-point gradients; the weight gradient's terms stay in double (computed
-// twice rather than kept in the output dtype). robust_kabsch runs (1) and (2) and its reweighting
-// steps in one warp per problem.
+// twice rather than kept in the output dtype). robust_kabsch runs (1) and (2) and every reweighting
+// step in one block per problem, the residuals' median by a radix select in shared memory.
 #pragma once
 
 #include "common/cuda_device.cuh"
@@ -37,16 +37,64 @@ constexpr int64_t kGradDoubles = sizeof(ProcrustesGrad) / sizeof(double);
 static_assert(sizeof(Moments) == 17 * sizeof(double) && sizeof(ProcrustesGrad) == 15 * sizeof(double),
               "the stage buffers hold these structs as plain doubles");
 
-// One warp's reduction of one problem's moments (x, y: N points; w: N weights of any floating type).
-// All 32 lanes must call it; every lane gets the record.
-template <typename scalar_t, typename weight_t>
-__device__ Moments warp_moments(const scalar_t* x, const scalar_t* y, const weight_t* w, int64_t N, int lane) {
+// The threads that reduce one problem: one warp (stages 1 and 3) ...
+struct WarpGroup {
+  int rank;  // the lane
+
+  __device__ int size() const { return 32; }
+  __device__ double max(double v) const { return warp_max(v); }
+  __device__ void sum(double* values, int count) const {
+    for (int i = 0; i < count; ++i) values[i] = warp_sum(values[i]);
+  }
+};
+
+constexpr int kRobustThreads = 128;  // robust_kabsch: threads per problem (one block)
+constexpr int kRobustWarps = kRobustThreads / 32;
+constexpr int kMostSums = 9;  // values one BlockGroup::sum call reduces at most
+
+// ... or a whole block (robust_kabsch): warp totals, then the warps' totals added in warp order by
+// every thread (each gets the same bits). `scratch` holds kRobustWarps * kMostSums shared doubles.
+struct BlockGroup {
+  double* scratch;
+
+  __device__ int size() const { return kRobustThreads; }
+  __device__ void sum(double* values, int count) const {
+    const int warp = threadIdx.x / 32;
+    for (int i = 0; i < count; ++i) values[i] = warp_sum(values[i]);
+    if (threadIdx.x % 32 == 0)
+      for (int i = 0; i < count; ++i) scratch[warp * kMostSums + i] = values[i];
+    __syncthreads();
+    for (int i = 0; i < count; ++i) {
+      double total = 0;
+      for (int w = 0; w < kRobustWarps; ++w) total += scratch[w * kMostSums + i];
+      values[i] = total;
+    }
+    __syncthreads();  // the scratch is free again
+  }
+  __device__ double max(double v) const {
+    v = warp_max(v);
+    if (threadIdx.x % 32 == 0) scratch[threadIdx.x / 32] = v;
+    __syncthreads();
+    double largest = scratch[0];
+    for (int w = 1; w < kRobustWarps; ++w) largest = scratch[w] > largest ? scratch[w] : largest;
+    __syncthreads();
+    return largest;
+  }
+};
+
+// One group's reduction of one problem's moments (x, y: N points; w: N weights of any floating type),
+// each thread taking the points rank, rank + size, ... . Every thread of the group must call it and
+// gets the record.
+template <typename Group, typename scalar_t, typename weight_t>
+__device__ Moments group_moments(const Group& group, int rank, const scalar_t* x, const scalar_t* y,
+                                 const weight_t* w, int64_t N) {
+  const int stride = group.size();
   double wmax = 0;
-  for (int64_t i = lane; i < N; i += 32) wmax = double(w[i]) > wmax ? double(w[i]) : wmax;
+  for (int64_t i = rank; i < N; i += stride) wmax = double(w[i]) > wmax ? double(w[i]) : wmax;
   Moments m;
-  m.wscale = warp_max(wmax);
+  m.wscale = group.max(wmax);
   double s[7] = {0, 0, 0, 0, 0, 0, 0};
-  for (int64_t i = lane; i < N; i += 32) {
+  for (int64_t i = rank; i < N; i += stride) {
     const double wi = w[i] / m.wscale;
     s[0] += wi;
     for (int a = 0; a < 3; ++a) {
@@ -54,19 +102,20 @@ __device__ Moments warp_moments(const scalar_t* x, const scalar_t* y, const weig
       s[4 + a] += wi * double(y[3 * i + a]);
     }
   }
-  for (int i = 0; i < 7; ++i) s[i] = warp_sum(s[i]);
+  group.sum(s, 7);
   m.wsum = s[0];
   for (int a = 0; a < 3; ++a) {
     m.src_c[a] = s[1 + a] / m.wsum;
     m.tgt_c[a] = s[4 + a] / m.wsum;
   }
   double h[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
-  for (int64_t i = lane; i < N; i += 32) {
+  for (int64_t i = rank; i < N; i += stride) {
     const double wi = w[i] / m.wscale / m.wsum;
     for (int a = 0; a < 3; ++a)
       for (int c = 0; c < 3; ++c) h[3 * a + c] += wi * (x[3 * i + a] - m.src_c[a]) * (y[3 * i + c] - m.tgt_c[c]);
   }
-  for (int i = 0; i < 9; ++i) m.H[i] = warp_sum(h[i]);
+  group.sum(h, 9);
+  for (int i = 0; i < 9; ++i) m.H[i] = h[i];
   return m;
 }
 
@@ -77,58 +126,86 @@ __global__ void kabsch_moments_kernel(const scalar_t* __restrict__ src, const sc
   const int64_t b = static_cast<int64_t>(blockIdx.x) * kKabschWarpsPerBlock + threadIdx.x / 32;
   const int lane = threadIdx.x % 32;
   if (b >= B) return;  // whole warps exit together
-  const Moments m = warp_moments(src + b * N * 3, tgt + b * N * 3, weights + b * N, N, lane);
+  const Moments m = group_moments(WarpGroup{lane}, lane, src + b * N * 3, tgt + b * N * 3, weights + b * N, N);
   if (lane == 0) moments[b] = m;
 }
 
-// The k-th smallest (0-based) of one problem's N non-negative values `v`, exactly: a bisection over
-// their bit patterns (ordered as the values for non-negative doubles), counting with the warp.
-__device__ inline double warp_select(const double* v, int64_t N, int64_t k, int lane) {
-  double largest = 0;
-  for (int64_t i = lane; i < N; i += 32) largest = v[i] > largest ? v[i] : largest;
-  long long lo = 0, hi = __double_as_longlong(warp_max(largest));
-  while (lo < hi) {
-    const long long mid = lo + (hi - lo) / 2;
-    double at_most = 0;
-    for (int64_t i = lane; i < N; i += 32) at_most += __double_as_longlong(v[i]) <= mid ? 1.0 : 0.0;
-    if (warp_sum(at_most) >= double(k + 1)) {
-      hi = mid;
-    } else {
-      lo = mid + 1;
+// The k-th smallest (0-based) of one problem's N non-negative values `v`, exactly: a radix select
+// over their bit patterns (ordered as the values for non-negative doubles), 8 bits a pass from the
+// top. Each pass counts, in `histogram` (256 shared counters), the digits of the values that share
+// the digits chosen so far; the first warp scans the counts and picks the digit holding the k-th,
+// handing it and the rank left within it over through `chosen` (2 shared words). Every thread of
+// the block calls it and gets the value.
+__device__ inline double block_select(const double* v, int64_t N, int64_t k, unsigned int* histogram,
+                                      unsigned long long* chosen) {
+  unsigned long long prefix = 0, mask = 0, rank = static_cast<unsigned long long>(k);
+  for (int shift = 56; shift >= 0; shift -= 8) {
+    for (int i = threadIdx.x; i < 256; i += kRobustThreads) histogram[i] = 0;
+    __syncthreads();
+    for (int64_t i = threadIdx.x; i < N; i += kRobustThreads) {
+      const unsigned long long key = static_cast<unsigned long long>(__double_as_longlong(v[i]));
+      if ((key & mask) == prefix) atomicAdd(&histogram[(key >> shift) & 255u], 1u);
     }
+    __syncthreads();
+    if (threadIdx.x < 32) {  // lane l scans the digits 8 l .. 8 l + 7
+      const int lane = threadIdx.x;
+      unsigned int counts[8], own = 0;
+      for (int j = 0; j < 8; ++j) own += counts[j] = histogram[8 * lane + j];
+      unsigned int through = own;  // inclusive prefix sum over the lanes
+      for (int offset = 1; offset < 32; offset <<= 1) {
+        const unsigned int below = __shfl_up_sync(kFullWarp, through, offset);
+        if (lane >= offset) through += below;
+      }
+      const unsigned long long before = through - own;
+      if (before <= rank && rank < through) {  // exactly one lane: the k-th lies in its digits
+        unsigned long long left = rank - before;
+        int digit = 8 * lane;
+        for (int j = 0; j < 8 && left >= counts[j]; ++j, ++digit) left -= counts[j];
+        chosen[0] = static_cast<unsigned long long>(digit);
+        chosen[1] = left;
+      }
+    }
+    __syncthreads();  // the next pass writes `chosen` only after its own two barriers
+    prefix |= chosen[0] << shift;
+    mask |= 255ull << shift;
+    rank = chosen[1];
   }
-  return __longlong_as_double(lo);
+  return __longlong_as_double(static_cast<long long>(prefix));
 }
 
-// robust_kabsch: one warp per problem runs the weighted solve and every reweighting step (as the
-// CPU kernel's robust_solve); each lane keeps its own points' residuals and weights in the (B, N)
-// double buffers, every lane solves the 3x3 problem itself (the same inputs: the same result).
+// robust_kabsch: one block per problem runs the weighted solve and every reweighting step (as the
+// CPU kernel's robust_solve); each thread keeps its own points' residuals and weights in the (B, N)
+// double buffers, every thread solves the 3x3 problem itself (the same inputs: the same result).
 template <typename scalar_t>
 __global__ void robust_kabsch_kernel(const scalar_t* __restrict__ src, const scalar_t* __restrict__ tgt,
                                      const scalar_t* __restrict__ weights, int64_t B, int64_t N,
                                      RobustOptions options, double* __restrict__ residuals,
                                      double* __restrict__ robust_weights, scalar_t* __restrict__ R,
                                      scalar_t* __restrict__ t) {
-  const int64_t b = static_cast<int64_t>(blockIdx.x) * kKabschWarpsPerBlock + threadIdx.x / 32;
-  const int lane = threadIdx.x % 32;
-  if (b >= B) return;  // whole warps exit together
+  VRNET_SHARED(double, scratch, kRobustWarps * kMostSums);
+  VRNET_SHARED(unsigned int, histogram, 256);
+  VRNET_SHARED(unsigned long long, chosen, 2);
+  const int64_t b = blockIdx.x;
+  const int rank = threadIdx.x;
+  const BlockGroup block{scratch};
   const scalar_t *x = src + b * N * 3, *y = tgt + b * N * 3, *w = weights + b * N;
   double *residual = residuals + b * N, *weight = robust_weights + b * N;
-  Procrustes p = warp_moments(x, y, w, N, lane).unsolved();
+  Procrustes p = group_moments(block, rank, x, y, w, N).unsolved();
   p.solve_rotation();
   for (int64_t step = 0; step < options.iterations; ++step) {
-    for (int64_t i = lane; i < N; i += 32) residual[i] = procrustes_residual(p, x + 3 * i, y + 3 * i);
-    const double pair_scale = robust_pair_scale(options, warp_select(residual, N, (N - 1) / 2, lane));
+    for (int64_t i = rank; i < N; i += kRobustThreads) residual[i] = procrustes_residual(p, x + 3 * i, y + 3 * i);
+    const double median = block_select(residual, N, (N - 1) / 2, histogram, chosen);
+    const double pair_scale = robust_pair_scale(options, median);
     double largest = 0;
-    for (int64_t i = lane; i < N; i += 32) {
+    for (int64_t i = rank; i < N; i += kRobustThreads) {
       weight[i] = double(w[i]) * robust_weight(options.kernel, residual[i] / pair_scale);
       largest = weight[i] > largest ? weight[i] : largest;
     }
-    if (!(warp_max(largest) > 0)) break;
-    p = warp_moments(x, y, weight, N, lane).unsolved();
+    if (!(block.max(largest) > 0)) break;
+    p = group_moments(block, rank, x, y, weight, N).unsolved();
     p.solve_rotation();
   }
-  if (lane == 0) p.write(R + 9 * b, t + 3 * b);
+  if (rank == 0) p.write(R + 9 * b, t + 3 * b);
 }
 
 template <typename scalar_t>
