@@ -347,48 +347,32 @@ def test_pairwise_distance_loss(dtype, B, N):
     assert run_both("pairwise_distance_loss", x, y[:, :1]) == (None, None)
 
 
-class EmulatedGatherReduce(torch.autograd.Function):
-    """gather_reduce with the emulated CUDA kernels forward and backward."""
-
-    @staticmethod
-    def forward(ctx, values, idx, reduce):
-        CASES["gather_reduce"] += 1
-        out, arg = emu_op("gather_reduce")(values, idx, reduce)
-        ctx.save_for_backward(idx, arg)
-        ctx.reduce, ctx.num_values = reduce, values.shape[2]
-        return out
-
-    @staticmethod
-    def backward(ctx, grad):
-        CASES["gather_reduce_backward"] += 1
-        idx, arg = ctx.saved_tensors
-        return emu_op("gather_reduce_backward")(grad.contiguous(), idx, arg, ctx.reduce, ctx.num_values), None, None
-
-
+@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("running", [False, True])
-@pytest.mark.parametrize("B,O,N,k", [(1, 1, 5, 5), (2, 7, 70, 9)])
-def test_edge_norm_max_composite_on_cuda_kernels(running, B, O, N, k):
-    """CUDA has no fused edge_norm_max kernel: it runs the composite of gather_reduce calls (two
-    launches, closed-form statistics, no edge tensor). Here the composite on the emulated kernels
-    against the CPU's fused op, outputs and gradients."""
-    module = importlib.import_module("vrnet_ext.ops.edge_norm_max")
-
-    projections = torch.randn(B, 2 * O, N, dtype=torch.float64, requires_grad=True)
+@pytest.mark.parametrize("B,O,N,k", [(1, 1, 5, 5), (2, 7, 70, 9), (1, 40, 130, 3)])
+def test_edge_norm_max(dtype, running, B, O, N, k):
+    """Forward and backward against the CPU's fused op: tiles across batches, channels past a
+    block's 32, negative BN weights (the min over the neighbours), a NaN in one channel, values far
+    from the origin in another."""
+    projections = torch.randn(B, 2 * O, N, dtype=dtype) * 2
+    projections[:, -1] += 1e4
+    if O > 2:
+        projections[0, 1, 3] = float("nan")
     idx = torch.randint(0, N, (B, N, k))
-    weight = torch.randn(O, dtype=torch.float64, requires_grad=True)
-    bias = torch.randn(O, dtype=torch.float64, requires_grad=True)
-    stats = (torch.randn(O, dtype=torch.float64), torch.rand(O, dtype=torch.float64) + 0.5) if running else (None, None)
-    args = (projections, idx, weight, bias, *stats, 1e-5, 0.2)
-    expected = module.edge_norm_max(*args)
-    got = module._edge_norm_max_composite(*args, gather=EmulatedGatherReduce.apply)
-    for a, b in zip(expected, got):
-        torch.testing.assert_close(b, a, **tolerances(torch.float64))
-    projection = torch.randn(expected[0].shape, dtype=torch.float64)
-    inputs = (projections, weight, bias)
-    grads_expected = torch.autograd.grad((expected[0] * projection).sum(), inputs)
-    grads_got = torch.autograd.grad((got[0] * projection).sum(), inputs)
-    for a, b in zip(grads_expected, grads_got):
-        torch.testing.assert_close(b, a, rtol=1e-8, atol=1e-9)
+    weight = torch.randn(O, dtype=dtype)
+    bias = torch.randn(O, dtype=dtype)
+    stats = (torch.randn(O, dtype=dtype), torch.rand(O, dtype=dtype) + 0.5) if running else (None, None)
+    tol = {key: value * 10 for key, value in tolerances(dtype).items()}  # float64 statistics of `dtype` values
+    for args in ((projections, idx, weight, bias), (non_contiguous(projections), idx, None, None)):
+        expected, got = run_both("edge_norm_max", *args, *stats, 1e-5, 0.2)
+        for a, b in zip(expected, got):
+            torch.testing.assert_close(b, a, equal_nan=True, **({} if a.dtype == torch.int32 else tol))
+    out, mean, var, arg = expected
+    grad = torch.randn(B, O, N, dtype=dtype)
+    assert_same("edge_norm_max_backward", grad, projections, idx, arg, weight, bias, mean, var, not running, 1e-5, 0.2,
+                scale=100)
+    assert run_both("edge_norm_max_backward", grad, projections, idx, arg + k, weight, bias, mean, var, not running,
+                    1e-5, 0.2) == (None, None)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from conftest import DTYPES, compile_fullgraph, non_contiguous, opcheck, requires_ext, under_each_cpu_dispatch
-from vrnet_ext.ops.edge_norm_max import _edge_norm_max_composite, edge_norm_max, edge_norm_max_reference
+from vrnet_ext.ops.edge_norm_max import edge_norm_max, edge_norm_max_reference
 
 
 def make_inputs(B, O, N, k, dtype, offset=0.0, affine=True, running=False, negative=True):
@@ -36,18 +36,17 @@ def forward_and_grads(impl, projections, idx, weight, bias, running_mean, runnin
 @pytest.mark.parametrize("running", [False, True])
 @pytest.mark.parametrize("affine", [True, False])
 @pytest.mark.parametrize("B,O,N,k", [(1, 1, 2, 1), (1, 3, 17, 17), (3, 5, 33, 4), (2, 64, 129, 20)])
-def test_matches_reference_and_composite(device, dtype, running, affine, B, O, N, k):
+def test_matches_reference(device, dtype, running, affine, B, O, N, k):
     inputs = make_inputs(B, O, N, k, dtype, affine=affine, running=running)
     grad = torch.randn(B, O, N, dtype=dtype)
     expected = forward_and_grads(edge_norm_max_reference, *inputs, grad)
-    for impl in (edge_norm_max, _edge_norm_max_composite):
-        got = forward_and_grads(impl, *inputs, grad)
-        for name, g, e in zip(("out", "mean", "var", "grad projections", "grad weight", "grad bias"), got, expected):
-            if e is None:
-                assert g is None, name
-                continue
-            torch.testing.assert_close(g, e, **tolerance(dtype), msg=lambda m: f"{impl.__name__} {name}: {m}")
-        assert not any(t.requires_grad for t in (got[1], got[2], expected[1], expected[2]))  # statistics, every path
+    got = forward_and_grads(edge_norm_max, *inputs, grad)
+    for name, g, e in zip(("out", "mean", "var", "grad projections", "grad weight", "grad bias"), got, expected):
+        if e is None:
+            assert g is None, name
+            continue
+        torch.testing.assert_close(g, e, **tolerance(dtype), msg=lambda m: f"{name}: {m}")
+    assert not any(t.requires_grad for t in (got[1], got[2], expected[1], expected[2]))  # statistics, both paths
 
 
 @requires_ext
@@ -70,8 +69,6 @@ def test_gradcheck_and_opcheck(device, running):
     leaves = tuple(t.requires_grad_() for t in (projections, weight, bias))
     assert torch.autograd.gradcheck(
         lambda p, w, b: edge_norm_max(p, idx, w, b, running_mean, running_var)[0], leaves)
-    if device.type != "cpu":
-        return  # the op has a CPU kernel only: other devices run the composite, checked above
     args = (projections.detach().float().requires_grad_(), idx, weight.detach().float().requires_grad_(),
             bias.detach().float().requires_grad_(),
             None if running_mean is None else running_mean.float(),
@@ -80,15 +77,28 @@ def test_gradcheck_and_opcheck(device, running):
 
 
 @requires_ext
+def test_running_statistics_backward_keeps_a_nan_to_its_own_edges(device):
+    """With running statistics nothing flows through them: a NaN value reaches only the gradients
+    of the edges it wins, as in the reference (not every neighbour term of its channel)."""
+    inputs = list(make_inputs(2, 4, 40, 5, torch.float64, running=True))
+    inputs[0][0, 1, 7] = float("nan")
+    grad = torch.randn(2, 4, 40, dtype=torch.float64)
+    got = forward_and_grads(edge_norm_max, *inputs, grad)
+    expected = forward_and_grads(edge_norm_max_reference, *inputs, grad)
+    for g, e in zip(got, expected):
+        torch.testing.assert_close(g, e, rtol=1e-9, atol=1e-9, equal_nan=True)
+    assert torch.isfinite(got[3][:, 1]).float().mean() > 0.9
+
+
+@requires_ext
 def test_statistics_accurate_far_from_the_origin(device):
     """Values ~1e4 with unit spread: the variance must not cancel (float32 in, float64 reference)."""
     projections, idx, weight, bias, _, _ = make_inputs(4, 8, 200, 10, torch.float32, offset=1e4)
     ref_out, ref_mean, ref_var = edge_norm_max_reference(projections.double(), idx, weight.double(), bias.double())
-    for impl in (edge_norm_max, _edge_norm_max_composite):  # the fused kernel, and what devices without it run
-        out, mean, var = impl(projections, idx, weight, bias, None, None, 1e-5, 0.2)
-        torch.testing.assert_close(var.double(), ref_var, rtol=1e-5, atol=0)
-        torch.testing.assert_close(mean.double(), ref_mean, rtol=1e-7, atol=0)
-        torch.testing.assert_close(out.double(), ref_out, rtol=1e-5, atol=1e-5)
+    out, mean, var = edge_norm_max(projections, idx, weight, bias, None, None, 1e-5, 0.2)
+    torch.testing.assert_close(var.double(), ref_var, rtol=1e-5, atol=0)
+    torch.testing.assert_close(mean.double(), ref_mean, rtol=1e-7, atol=0)
+    torch.testing.assert_close(out.double(), ref_out, rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.parametrize("value", [0.0, 0.1, 3.7, 1e4])
@@ -159,15 +169,6 @@ def test_bad_input(device, backend):
     for args, kwargs, error, match in cases:
         with pytest.raises(error, match=match):
             edge_norm_max(*args, backend=backend, **kwargs)
-
-
-@requires_ext
-def test_composite_checks_indices_before_indexing(device):
-    """Devices without the fused kernel run the composite: the gather_reduce op must see idx before
-    torch's scatter does (on a GPU an index out of range there is a device-side assert)."""
-    projections, idx = torch.randn(2, 8, 10), torch.randint(0, 10, (2, 10, 3))
-    with pytest.raises(ValueError, match="outside"):
-        _edge_norm_max_composite(projections, idx + 10, None, None, None, None, 1e-5, 0.2)
 
 
 @requires_ext

@@ -62,7 +62,7 @@ inline void check_edge_norm_max_inputs(const at::Tensor& projections, const at::
 // edge_norm_max_backward(grad_out, projections, idx, arg, weight, bias, mean, var, batch_stats, eps,
 // negative_slope): grad_out and arg (B, O, N) (arg: int32, the winning slot in [0, k)), mean and var
 // (O,) float64 as the forward returned them (the mean of a constant channel is exact, so its
-// deviations are exactly 0). A CPU check: the only kernel is the CPU one.
+// deviations are exactly 0).
 inline void check_edge_norm_max_backward_inputs(const at::Tensor& grad, const at::Tensor& projections,
                                                 const at::Tensor& idx, const at::Tensor& arg,
                                                 const c10::optional<at::Tensor>& weight,
@@ -86,9 +86,15 @@ inline void check_edge_norm_max_backward_inputs(const at::Tensor& grad, const at
   TORCH_CHECK_VALUE(arg.sizes() == grad.sizes(), "arg must have shape ", grad.sizes(), ", got ", arg.sizes());
   TORCH_CHECK_VALUE(idx.size(1) * idx.size(2) <= std::numeric_limits<int32_t>::max(),
                     "idx has too many edges per batch for the backward (N * k must be < 2^31), got ", idx.sizes());
+  const int64_t k = idx.size(2);
+  if (!arg.is_cpu()) {
+    if (arg.numel() == 0 || !device_values_checked()) return;
+    const auto [lo, hi] = at::aminmax(arg);
+    check_on_device({{lo.ge(0).logical_and(hi.lt(k)), "arg holds slots outside [0, " + std::to_string(k) + ")"}});
+    return;
+  }
   const at::Tensor slots = arg.contiguous();
   const int32_t* p = slots.const_data_ptr<int32_t>();
-  const int64_t k = idx.size(2);
   std::atomic<bool> bad{false};
   parallel_ranges(slots.numel(), 1 << 16, [&](int64_t begin, int64_t end) {
     bool local = false;

@@ -403,14 +403,20 @@ void backward_kernel(const scalar_t* G, const scalar_t* P, const int64_t* I, con
         for (int64_t o = 0; o < O; ++o) deviation_sum[o] += (row[o] - shift_a[o]) + centre[o];
       }
       const scalar_t* g_own = gh.data() + (t.batch * N + p) * O;
-      for (int64_t o = 0; o < O; ++o)
-        gp[p * 2 * O + O + o] = g_own[o] + k * per_edge[o] + per_deviation[o] * deviation_sum[o];
+      for (int64_t o = 0; o < O; ++o) {  // running statistics: no term through them (not even 0 * a NaN)
+        const scalar_t through_stats = k * per_edge[o] + per_deviation[o] * deviation_sum[o];
+        gp[p * 2 * O + O + o] = batch_stats ? g_own[o] + through_stats : g_own[o];
+      }
       for (int64_t o = 0; o < O; ++o) grad_a[o] = 0, centre[o] = (own[o] - shift_a[o]) - rest[o];
       for (int64_t e = off[p]; e < off[p + 1]; ++e) {
         const int64_t n = incoming[e] / k, j = incoming[e] % k;
         const scalar_t* b_row = points + n * 2 * O + O;
         const scalar_t* g_n = gh.data() + (t.batch * N + n) * O;
         const int32_t* slot_n = arg + (t.batch * N + n) * O;
+        if (!batch_stats) {
+          for (int64_t o = 0; o < O; ++o) grad_a[o] += slot_n[o] == j ? g_n[o] : scalar_t(0);
+          continue;
+        }
         accumulate_incoming_edge(grad_a.data(), centre.data(), b_row, shift_b.data(), per_edge.data(),
                                  per_deviation.data(), g_n, slot_n, static_cast<int32_t>(j), O);
       }

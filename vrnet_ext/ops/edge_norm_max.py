@@ -11,11 +11,11 @@ with the statistics of the (B, N, k) edges of each channel (batch statistics, bi
 the normalisation and the LeakyReLU are monotone, so the max over j is taken of ``a`` where
 ``weight_o >= 0`` and the min where it is negative; the batch statistics follow from per-point sums.
 
-Three implementations: the compiled CPU kernel (two or three parallel regions per call with tasks
-the threads claim, so it keeps its speed beside a busy process; it reads ``projections`` fastest
-point-major, i.e. stored as (B, N, 2O), and returns point-major outputs), a composite of
-``gather_reduce`` calls for devices without that kernel (closed-form statistics, no edge tensor
-either), and the materialising reference.
+Two implementations: the compiled kernels (on the CPU two or three parallel regions per call with
+tasks the threads claim, so it keeps its speed beside a busy process; on CUDA three launches
+forward and three backward, per-tile sums in double combined in tile order; both read
+``projections`` fastest point-major, i.e. stored as (B, N, 2O), and return point-major outputs),
+and the materialising reference.
 """
 from __future__ import annotations
 
@@ -25,7 +25,6 @@ from torch.nn import functional as F
 from vrnet_ext._extension import has_extension, use_extension
 from vrnet_ext.ops._checks import check_float, first_order_only, float32_region, promote_low_precision
 from vrnet_ext.ops.edge_features import gather_neighbours, validate_graph
-from vrnet_ext.ops.gather_reduce import gather_reduce
 
 EdgeNormMaxResult = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
@@ -82,51 +81,6 @@ def edge_norm_max_reference(projections: torch.Tensor, idx: torch.Tensor, weight
     return out.max(dim=-1).values, mean.detach(), var.detach()
 
 
-def _edge_norm_max_composite(projections: torch.Tensor, idx: torch.Tensor, weight: torch.Tensor | None,
-                             bias: torch.Tensor | None, running_mean: torch.Tensor | None,
-                             running_var: torch.Tensor | None, eps: float, negative_slope: float,
-                             gather=gather_reduce) -> EdgeNormMaxResult:
-    """For devices without the fused kernel: ``gather_reduce`` calls and closed-form statistics.
-
-    ``gather`` is the gather_reduce to use (the tests pass the emulated CUDA kernels).
-
-    With ``deg[m]`` the in-degree of point m and ``s[n] = sum_j a[idx[n, j]]``,
-    ``sum z = sum_n (s[n] + k b[n])`` and ``sum z^2 = sum_m deg[m] a[m]^2 + 2 sum_n b[n] s[n] + k sum_n b[n]^2``.
-    With batch statistics everything is computed about detached per-channel shifts (the batch
-    means of a and b), which leave the variance, the output and their gradients unchanged and keep
-    float32 from cancelling on values far from 0: the max commutes with the shift, and
-    ``z - mean = z_c - mean_c``.
-    """
-    channels = projections.shape[1] // 2
-    a, b = projections[:, :channels], projections[:, channels:]
-    if running_mean is None:
-        B, N, k = idx.shape
-        count = B * N * k
-        a_shift = a.detach().mean(dim=(0, 2), keepdim=True)
-        b_shift = b.detach().mean(dim=(0, 2), keepdim=True)
-        a_c, b_c = a - a_shift, b - b_shift
-        neighbour_sum = gather(a_c, idx, "sum")  # first: the op checks idx before torch indexes with it
-        degree = torch.zeros(B, 1, N, dtype=a.dtype, device=a.device)
-        degree.scatter_add_(2, idx.reshape(B, 1, N * k), torch.ones(B, 1, N * k, dtype=a.dtype, device=a.device))
-        total = neighbour_sum.sum(dim=(0, 2)) + k * b_c.sum(dim=(0, 2))
-        total_sq = ((degree * a_c.square()).sum(dim=(0, 2)) + 2 * (b_c * neighbour_sum).sum(dim=(0, 2))
-                    + k * b_c.square().sum(dim=(0, 2)))
-        mean_c = total / count
-        var = (total_sq / count - mean_c.square()).clamp_min(0)
-        mean = mean_c + (a_shift + b_shift).flatten()
-    else:  # given statistics: nothing to shift by
-        a_c, b_c = a, b
-        mean_c = mean = running_mean
-        var = running_var
-    direction = torch.ones(channels, dtype=a.dtype, device=a.device)
-    if weight is not None:
-        direction = torch.where(weight.detach() >= 0, 1.0, -1.0).to(a.dtype)
-    direction = direction.view(1, -1, 1)
-    extreme_c = direction * gather(a_c * direction, idx, "max")
-    out = F.leaky_relu(_normalise(extreme_c + b_c, mean_c, var, weight, bias, eps), negative_slope)
-    return out, mean.detach(), var.detach()
-
-
 def edge_norm_max(projections: torch.Tensor, idx: torch.Tensor, weight: torch.Tensor | None = None,
                   bias: torch.Tensor | None = None, running_mean: torch.Tensor | None = None,
                   running_var: torch.Tensor | None = None, eps: float = 1e-5, negative_slope: float = 0.2,
@@ -154,12 +108,10 @@ def edge_norm_max(projections: torch.Tensor, idx: torch.Tensor, weight: torch.Te
     weight, bias, running_mean, running_var = (
         None if t is None else t.to(projections.dtype) for t in channel_tensors.values())
     args = (projections, idx, weight, bias, running_mean, running_var, float(eps), float(negative_slope))
-    if use_extension(backend, projections.device) and projections.device.type == "cpu":  # no CUDA kernel yet
+    if use_extension(backend, projections.device):
         out, mean, var, _ = torch.ops.vrnet_ext.edge_norm_max(*args)  # float64 statistics (for the backward)
         return out, mean.to(projections.dtype), var.to(projections.dtype)
     with float32_region(projections):
-        if use_extension(backend, projections.device):
-            return _edge_norm_max_composite(*args)
         return edge_norm_max_reference(*args)
 
 
