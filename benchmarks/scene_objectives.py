@@ -151,13 +151,15 @@ def main(argv: list[str] | None = None) -> None:
         for k in range(1, args.rounds + 1):
             begin = time.perf_counter()
             poses = step(scans, normals, poses, settings)
-            rows.append({"refinement": name, "round": k, **_errors(poses, truth), "seconds": time.perf_counter() - begin})
+            seconds = time.perf_counter() - begin
+            rows.append({"refinement": name, "round": k, **_errors(poses, truth), "seconds": seconds})
             print(f"{name} round {k}: {rows[-1]['max_rotation_deg']:.2f} deg / {rows[-1]['max_translation']:.3f}",
                   flush=True)
     moved = truth_equilibrium(scans, truth, settings)
     lines = [f"{args.scene}, {len(files)} scans ({cpu_description()}, {time.strftime('%Y-%m-%d')}): each refinement "
              f"from the robust pose graph's poses, errors against the ground truth (degrees / metres).", "",
-             "| refinement | round | RMSE | largest | translation per scan | s / round |", "|---|---:|---:|---:|---|---:|"]
+             "| refinement | round | RMSE | largest | translation per scan | s / round |",
+             "|---|---:|---:|---:|---|---:|"]
     for row in rows:
         lines.append(f"| {row['refinement']} | {row['round']} | {row['rmse_rotation_deg']:.2f} / "
                      f"{row['rmse_translation']:.3f} | {row['max_rotation_deg']:.2f} / {row['max_translation']:.3f} | "

@@ -92,6 +92,36 @@ def test_svd3x3_and_kabsch(dtype):
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("B,N", [(1, 6), (64, 768), (3, 5000)])
+def test_robust_kabsch_matches_cpu(dtype, B, N):
+    src = torch.randn(B, N, 3, dtype=dtype)
+    tgt = src.flip(2) + 0.01 * torch.randn(B, N, 3, dtype=dtype)
+    tgt[:, : N // 3] += torch.randn(B, N // 3, 3, dtype=dtype)
+    weights = torch.rand(B, N, dtype=dtype) + 0.05
+    tol = {key: value * 10 for key, value in tolerances(dtype).items()}
+    for kernel in ("cauchy", "geman_mcclure", "welsch"):
+        cpu = ops.robust_kabsch(src, tgt, weights, 20, kernel)
+        cuda = ops.robust_kabsch(src.cuda(), tgt.cuda(), weights.cuda(), 20, kernel)
+        for a, b in zip(cpu, cuda):
+            torch.testing.assert_close(b.cpu(), a, **tol)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("running", [False, True])
+@pytest.mark.parametrize("B,O,N,k", [(1, 1, 5, 5), (28, 64, 1024, 20), (3, 40, 130, 3)])
+def test_edge_norm_max_matches_cpu(dtype, running, B, O, N, k):
+    projections = torch.randn(B, 2 * O, N, dtype=dtype) * 2
+    idx = torch.randint(0, N, (B, N, k))
+    weight, bias = torch.randn(O, dtype=dtype), torch.randn(O, dtype=dtype)
+    stats = (torch.randn(O, dtype=dtype), torch.rand(O, dtype=dtype) + 0.5) if running else (None, None)
+
+    def op(p, w, b):
+        return ops.edge_norm_max(p, idx.to(p.device), w, b, *(None if t is None else t.to(p.device) for t in stats))
+
+    assert_parity(op, projections, weight, bias)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("B,N", [(1, 2), (3, 37), (2, 1029)])
 def test_pairwise_distance_loss(dtype, B, N):
     x, y = torch.randn(B, N, 3, dtype=dtype), torch.randn(B, N, 3, dtype=dtype)
@@ -106,7 +136,8 @@ def test_backward_is_deterministic():
     runs = []
     for _ in range(2):
         loss = (ops.edge_features(x, idx).sin().sum() + ops.gather_reduce(x, idx, "max").sum()
-                + ops.knn(points, points, 16)[0].sum() + ops.kabsch(points, points.flip(1))[0].sum())
+                + ops.knn(points, points, 16)[0].sum() + ops.kabsch(points, points.flip(1))[0].sum()
+                + ops.edge_norm_max(x, idx)[0].sin().sum())
         runs.append(torch.autograd.grad(loss, (x, points)))
     for a, b in zip(*runs):
         assert torch.equal(a, b)

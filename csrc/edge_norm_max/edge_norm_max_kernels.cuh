@@ -156,7 +156,8 @@ __global__ void edge_norm_max_output_kernel(const scalar_t* __restrict__ P, cons
   const int64_t p = i / O, o = i % O;
   const double scale = weight_of(weight, o) * invstd_of(var, o, eps);
   const double shifted = bias != nullptr ? static_cast<double>(bias[o]) : 0.0;
-  const double h = scale * (static_cast<double>(out[i]) + static_cast<double>(P[p * 2 * O + O + o]) - mean[o]) + shifted;
+  const double centred = static_cast<double>(out[i]) + static_cast<double>(P[p * 2 * O + O + o]) - mean[o];
+  const double h = scale * centred + shifted;
   out[i] = static_cast<scalar_t>(leaky_relu(h, slope));
 }
 
@@ -196,7 +197,8 @@ __global__ void edge_norm_max_winners_kernel(const scalar_t* __restrict__ G, con
 // Backward (2): one thread per channel. grad_weight, grad_bias (O,); what every edge's z gets through
 // the statistics: per_edge + per_deviation * (z - mean) (zero with running statistics).
 template <typename scalar_t>
-__global__ void edge_norm_max_channel_grads_kernel(const double* __restrict__ tile_g, const double* __restrict__ tile_gx,
+__global__ void edge_norm_max_channel_grads_kernel(const double* __restrict__ tile_g,
+                                                   const double* __restrict__ tile_gx,
                                                    const scalar_t* __restrict__ weight, const double* __restrict__ var,
                                                    int64_t points, int64_t O, int64_t k, double eps, bool batch_stats,
                                                    scalar_t* __restrict__ grad_weight, scalar_t* __restrict__ grad_bias,
