@@ -161,7 +161,8 @@ def test_launch_errors_are_python_errors():
 @pytest.mark.parametrize("B,N,M,C,k,exclude", [
     (1, 1, 1, 3, 1, False), (2, 301, 257, 3, 20, False), (1, 50, 50, 3, 49, True), (3, 97, 130, 3, 129, False),
     (2, 37, 53, 5, 17, False), (1, 129, 100, 64, 8, False), (1, 40, 40, 1, 40, False), (1, 60, 60, 8, 10, True),
-    (1, 70, 90, 16, 70, False), (0, 5, 5, 3, 2, False), (1, 0, 5, 3, 2, False),
+    (1, 70, 90, 16, 70, False), (0, 5, 5, 3, 2, False), (1, 0, 5, 3, 2, False), (2, 45, 300, 33, 1, False),
+    (1, 40, 70, 128, 20, True), (1, 30, 40, 200, 20, False),
 ])
 def test_knn(dtype, B, N, M, C, k, exclude):
     query = torch.randn(B, N, C, dtype=dtype)

@@ -1,4 +1,5 @@
-// Torch glue of the CUDA kNN op (kernels: knn_kernels.cuh). C = 3: the tiled exact scan. Other C:
+// Torch glue of the CUDA kNN op (kernels: knn_kernels.cuh). C = 3, and rows of up to 128 floats
+// (64 doubles) with k <= 32: the tiled exact scan. Larger C or k:
 // cuBLAS dot products of the clouds centred on the reference mean, over bounded chunks (never the
 // N x M matrix), merged into per-query candidate buffers, then re-ranked by exact distance with an
 // exhaustive scan where the rounding of the expanded formula could matter (the CPU's definition).
@@ -61,6 +62,28 @@ void knn_by_sorting(const at::Tensor& query, const at::Tensor& ref, int64_t k, b
   }
 }
 
+constexpr int64_t kTiledMaxK = 32;          // knn_tiled_kernel: register buffers up to 32 slots ...
+constexpr int64_t kTiledMaxRowBytes = 512;  // ... and query rows of up to 128 floats / 64 doubles in registers
+
+// C > 3 rows that fit in registers: the exact tiled scan with the smallest buffer and row that fit.
+template <typename scalar_t>
+void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self, at::Tensor& dist,
+               at::Tensor& idx) {
+  const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2);
+  const auto run = [&](auto kmax, auto cmax) {
+    launch<knn_tiled_kernel<scalar_t, decltype(kmax)::value, decltype(cmax)::value>>(
+        per_query(N, B), query, ref, N, M, C, k, exclude_self, dist, idx);
+  };
+  const auto with_rows = [&](auto kmax) {
+    if (C <= 32) run(kmax, std::integral_constant<int, 32>{});
+    else if (C <= 64) run(kmax, std::integral_constant<int, 64>{});
+    else if constexpr (sizeof(scalar_t) == 4) run(kmax, std::integral_constant<int, 128>{});
+  };
+  if (k <= 8) with_rows(std::integral_constant<int, 8>{});
+  else if (k <= 16) with_rows(std::integral_constant<int, 16>{});
+  else with_rows(std::integral_constant<int, 32>{});
+}
+
 template <typename scalar_t>
 void knn_features(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self, at::Tensor& dist,
                   at::Tensor& idx) {
@@ -119,6 +142,8 @@ std::tuple<at::Tensor, at::Tensor> knn_cuda(const at::Tensor& query_in, const at
         launch<knn3_kernel<scalar_t, decltype(kmax)::value>>(per_query(N, B), query, ref, N, M, k, exclude_self, dist,
                                                              idx);
       });
+    } else if (k <= kTiledMaxK && C * static_cast<int64_t>(sizeof(scalar_t)) <= kTiledMaxRowBytes) {
+      knn_tiled<scalar_t>(query, ref, k, exclude_self, dist, idx);
     } else {
       knn_features<scalar_t>(query, ref, k, exclude_self, dist, idx);
     }

@@ -1,6 +1,7 @@
 // CUDA kNN kernels. knn3_kernel (C = 3): one thread per query scans the reference cloud in
 // shared-memory tiles and keeps its top-k in a register-resident sorted buffer (RegisterTopK; exact
-// differences, as the CPU grid search). Other C, as the CPU's GEMM-tiled search: knn_chunk_kernel
+// differences, as the CPU grid search); knn_tiled_kernel does the same for feature rows of up to
+// 128 float (64 double) values and k <= 32. Larger rows, as the CPU's GEMM-tiled search: knn_chunk_kernel
 // merges chunks of dot products of the centred clouds into per-query candidate buffers,
 // knn_rerank_kernel re-ranks them by exact distance, and knn_exact_rows_kernel scans exhaustively
 // the rows where the approximation could have dropped a true neighbour. The backward kernels gather
@@ -89,6 +90,55 @@ __device__ inline scalar_t knn_exact_sq_dist(const scalar_t* q, const scalar_t* 
   }
   return add_rn(add_rn(add_rn(partial[0], partial[1]), add_rn(partial[2], partial[3])),
                 add_rn(add_rn(partial[4], partial[5]), add_rn(partial[6], partial[7])));
+}
+
+constexpr int kKnnTileValues = 4096;  // reference values per shared-memory tile (C > 3): C * refs
+
+// Other C up to CMAX (and k <= KMAX): knn3_kernel's scan with C values a point. The query's values
+// stay in registers (loops unrolled to CMAX, channels past C skipped), the reference cloud passes
+// through shared memory in tiles of kKnnTileValues / C points, and every distance is
+// knn_exact_sq_dist's (the same partial sums in the same order): the CPU's exact distances, bit for
+// bit, at any offset from the origin, and no re-ranking.
+template <typename scalar_t, int KMAX, int CMAX>
+__global__ void knn_tiled_kernel(const scalar_t* __restrict__ query, const scalar_t* __restrict__ ref, int64_t N,
+                                 int64_t M, int64_t C, int64_t k, bool exclude_self, scalar_t* __restrict__ dist_out,
+                                 int64_t* __restrict__ idx_out) {
+  VRNET_SHARED(scalar_t, tile, kKnnTileValues);
+  const int64_t b = blockIdx.y;
+  const int64_t n = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  const bool active = n < N;
+  const int64_t tile_points = kKnnTileValues / C;
+  RegisterTopK<scalar_t, KMAX> top;
+  top.reset(static_cast<int32_t>(M));
+  scalar_t worst = top.worst();
+  scalar_t q[CMAX];
+  VRNET_UNROLL
+  for (int c = 0; c < CMAX; ++c) q[c] = active && c < C ? query[(b * N + n) * C + c] : scalar_t(0);
+  const int64_t self = exclude_self ? n : -1;
+  for (int64_t r0 = 0; r0 < M; r0 += tile_points) {
+    const int64_t count = M - r0 < tile_points ? M - r0 : tile_points;
+    __syncthreads();
+    for (int64_t t = threadIdx.x; t < count * C; t += blockDim.x) tile[t] = ref[(b * M + r0) * C + t];
+    __syncthreads();
+    if (!active) continue;
+    for (int64_t j = 0; j < count; ++j) {
+      const scalar_t* r = tile + j * C;
+      scalar_t partial[8] = {0, 0, 0, 0, 0, 0, 0, 0};  // channel c into partial c % 8, as knn_exact_sq_dist
+      VRNET_UNROLL
+      for (int c = 0; c < CMAX; ++c)
+        if (c < C) {
+          const scalar_t diff = sub_rn(q[c], r[c]);
+          partial[c % 8] = add_rn(partial[c % 8], mul_rn(diff, diff));
+        }
+      const scalar_t d = add_rn(add_rn(add_rn(partial[0], partial[1]), add_rn(partial[2], partial[3])),
+                                add_rn(add_rn(partial[4], partial[5]), add_rn(partial[6], partial[7])));
+      if (d <= worst && r0 + j != self) {
+        top.push(d, static_cast<int32_t>(r0 + j));
+        worst = top.worst();
+      }
+    }
+  }
+  if (active) knn_store(top, k, dist_out + (b * N + n) * k, idx_out + (b * N + n) * k);
 }
 
 // Merges one chunk of dot products dots[b, j, n] = ref_c[b, r0 + j] . query_c[b, q0 + n] (clouds
