@@ -79,6 +79,19 @@ def test_bench_global_fit_times_both_fits_on_the_same_descriptors(tmp_path):
 
 
 @pytest.mark.skipif(not (LIDAR / "source.ply").exists(), reason=f"LiDAR pair not found under {LIDAR}")
+def test_bench_register_device_compares_with_the_cpu_in_the_same_run(tmp_path):
+    from conftest import DATA_DIR
+
+    if not (DATA_DIR / "scenes" / "3dmatch_redkitchen").exists():
+        pytest.skip(f"kitchen scans not found under {DATA_DIR / 'scenes'}")
+    run([str(ROOT / "benchmarks" / "bench_register_device.py"), "--data", str(DATA_DIR / "scenes"), "--pairs",
+         "kitchen 4->0", "--repeats", "1", "--json", "device.json", "--markdown", "device.md"], tmp_path)
+    (row,) = json.loads((tmp_path / "device.json").read_text())["rows"]
+    assert row["method"] == "default" and row["repeatable"] and row["vs_cpu_rotation_deg"] == 0.0
+    assert row["truth"]["rotation_error_deg"] < 5 and row["peak_gpu_mb"] is None
+    assert "kitchen 4->0 | default" in (tmp_path / "device.md").read_text()
+
+
 def test_bench_large_scene_and_bench_register_run_on_the_lidar_pair(tmp_path):
     run([str(ROOT / "benchmarks" / "bench_large_scene.py"), "--pairs", "LiDAR", "--methods", "fpfh", "--budgets", "2GB",
          "--skip-synthetic", "--memory-sizes", "1000", "--json", "large.json", "--markdown", "large.md"], tmp_path)
