@@ -104,4 +104,27 @@ inline void check_edge_norm_max_backward_inputs(const at::Tensor& grad, const at
   TORCH_CHECK_VALUE(!bad.load(), "arg holds slots outside [0, ", k, ")");
 }
 
+// An optional per-channel tensor, contiguous, or an undefined tensor (a null pointer to a kernel).
+inline at::Tensor contiguous_or_undefined(const c10::optional<at::Tensor>& t) {
+  return t.has_value() ? t->contiguous() : at::Tensor();
+}
+
+// The backward's arguments checked, in the point-major (B, N, .) layout both kernels read (copies
+// of the (B, ., N) arguments; free for the forward's own outputs); weight and bias undefined when
+// not given.
+struct EdgeNormMaxBackwardArgs {
+  at::Tensor grad, points, arg, idx, mean, var, weight, bias;
+};
+
+inline EdgeNormMaxBackwardArgs checked_edge_norm_max_backward_args(
+    const at::Tensor& grad, const at::Tensor& projections, const at::Tensor& idx, const at::Tensor& arg,
+    const c10::optional<at::Tensor>& weight, const c10::optional<at::Tensor>& bias, const at::Tensor& mean,
+    const at::Tensor& var, double eps, double negative_slope) {
+  check_edge_norm_max_backward_inputs(grad, projections, idx, arg, weight, bias, mean, var, eps);
+  check_negative_slope(negative_slope);
+  return {grad.transpose(1, 2).contiguous(), projections.transpose(1, 2).contiguous(), arg.transpose(1, 2).contiguous(),
+          idx.contiguous(), mean.contiguous(), var.contiguous(), contiguous_or_undefined(weight),
+          contiguous_or_undefined(bias)};
+}
+
 }  // namespace vrnet

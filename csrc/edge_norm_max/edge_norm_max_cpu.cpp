@@ -271,11 +271,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> edge_norm_max_cpu(
   check_negative_slope(negative_slope);
   const at::Tensor points = projections_in.transpose(1, 2).contiguous();  // (B, N, 2O); free if point-major
   const at::Tensor idx = idx_in.contiguous();
-  const auto contiguous = [](const c10::optional<at::Tensor>& t) {
-    return t.has_value() ? t->contiguous() : at::Tensor();
-  };
-  const at::Tensor weight = contiguous(weight_in), bias = contiguous(bias_in);
-  const at::Tensor running_mean = contiguous(running_mean_in), running_var = contiguous(running_var_in);
+  const at::Tensor weight = contiguous_or_undefined(weight_in), bias = contiguous_or_undefined(bias_in);
+  const at::Tensor running_mean = contiguous_or_undefined(running_mean_in);
+  const at::Tensor running_var = contiguous_or_undefined(running_var_in);
   const Layout L{points.size(0), points.size(2) / 2, points.size(1), idx.size(2)};
   at::Tensor out = at::empty({L.B, L.N, L.O}, points.options());
   at::Tensor arg = at::empty({L.B, L.N, L.O}, points.options().dtype(at::kInt));
@@ -429,15 +427,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> edge_norm_max_backward_cpu(
     const at::Tensor& grad_in, const at::Tensor& projections_in, const at::Tensor& idx_in, const at::Tensor& arg_in,
     const c10::optional<at::Tensor>& weight_in, const c10::optional<at::Tensor>& bias_in, const at::Tensor& mean_in,
     const at::Tensor& var_in, bool batch_stats, double eps, double negative_slope) {
-  check_edge_norm_max_backward_inputs(grad_in, projections_in, idx_in, arg_in, weight_in, bias_in, mean_in, var_in,
-                                      eps);
-  check_negative_slope(negative_slope);
-  // point-major (B, N, .) copies of the (B, ., N) arguments; free for the forward's own layout
-  const at::Tensor grad = grad_in.transpose(1, 2).contiguous(), points = projections_in.transpose(1, 2).contiguous();
-  const at::Tensor arg = arg_in.transpose(1, 2).contiguous(), idx = idx_in.contiguous();
-  const at::Tensor mean = mean_in.contiguous(), var = var_in.contiguous();
-  const at::Tensor weight = weight_in.has_value() ? weight_in->contiguous() : at::Tensor();
-  const at::Tensor bias = bias_in.has_value() ? bias_in->contiguous() : at::Tensor();
+  const EdgeNormMaxBackwardArgs a = checked_edge_norm_max_backward_args(
+      grad_in, projections_in, idx_in, arg_in, weight_in, bias_in, mean_in, var_in, eps, negative_slope);
+  const at::Tensor &grad = a.grad, &points = a.points, &arg = a.arg, &idx = a.idx, &mean = a.mean, &var = a.var;
+  const at::Tensor &weight = a.weight, &bias = a.bias;
   const Layout L{points.size(0), points.size(2) / 2, points.size(1), idx.size(2)};
   at::Tensor grad_points = at::empty(points.sizes(), points.options());
   at::Tensor grad_weight = at::empty({L.O}, points.options());

@@ -14,10 +14,6 @@ LaunchConfig tile_blocks(int64_t points, int64_t O) {
   return {dim3(blocks_for(O, kTileChannels), blocks_for(points, kTilePoints)), dim3(kTileChannels, kTileRows), 0};
 }
 
-at::Tensor defined_or_empty(const c10::optional<at::Tensor>& t) {
-  return t.has_value() ? t->contiguous() : at::Tensor();
-}
-
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> edge_norm_max_cuda(
     const at::Tensor& projections_in, const at::Tensor& idx_in, const c10::optional<at::Tensor>& weight_in,
     const c10::optional<at::Tensor>& bias_in, const c10::optional<at::Tensor>& running_mean_in,
@@ -27,7 +23,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> edge_norm_max_cuda(
   VRNET_CUDA_GUARD(projections_in);
   const at::Tensor points = projections_in.transpose(1, 2).contiguous();  // (B, N, 2O); free if point-major
   const at::Tensor idx = idx_in.contiguous();
-  const at::Tensor weight = defined_or_empty(weight_in), bias = defined_or_empty(bias_in);
+  const at::Tensor weight = contiguous_or_undefined(weight_in), bias = contiguous_or_undefined(bias_in);
   const int64_t B = points.size(0), N = points.size(1), O = points.size(2) / 2, k = idx.size(2);
   const bool batch_stats = !running_mean_in.has_value();
   at::Tensor out = at::empty({B, N, O}, points.options());
@@ -57,15 +53,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> edge_norm_max_backward_cuda(
     const at::Tensor& grad_in, const at::Tensor& projections_in, const at::Tensor& idx_in, const at::Tensor& arg_in,
     const c10::optional<at::Tensor>& weight_in, const c10::optional<at::Tensor>& bias_in, const at::Tensor& mean_in,
     const at::Tensor& var_in, bool batch_stats, double eps, double negative_slope) {
-  check_edge_norm_max_backward_inputs(grad_in, projections_in, idx_in, arg_in, weight_in, bias_in, mean_in, var_in,
-                                      eps);
-  check_negative_slope(negative_slope);
   VRNET_CUDA_GUARD(projections_in);
-  // point-major (B, N, .) copies of the (B, ., N) arguments; free for the forward's own layout
-  const at::Tensor grad = grad_in.transpose(1, 2).contiguous(), points = projections_in.transpose(1, 2).contiguous();
-  const at::Tensor arg = arg_in.transpose(1, 2).contiguous(), idx = idx_in.contiguous();
-  const at::Tensor mean = mean_in.contiguous(), var = var_in.contiguous();
-  const at::Tensor weight = defined_or_empty(weight_in), bias = defined_or_empty(bias_in);
+  const EdgeNormMaxBackwardArgs a = checked_edge_norm_max_backward_args(
+      grad_in, projections_in, idx_in, arg_in, weight_in, bias_in, mean_in, var_in, eps, negative_slope);
+  const at::Tensor &grad = a.grad, &points = a.points, &arg = a.arg, &idx = a.idx, &mean = a.mean, &var = a.var;
+  const at::Tensor &weight = a.weight, &bias = a.bias;
   const int64_t B = points.size(0), N = points.size(1), O = points.size(2) / 2, k = idx.size(2);
   at::Tensor grad_points = at::empty(points.sizes(), points.options());
   at::Tensor grad_weight = at::empty({O}, points.options()), grad_bias = at::empty({O}, points.options());
