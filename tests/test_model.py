@@ -463,7 +463,13 @@ def _looked_twice(model, src, tgt, start):
             torch.maximum(consistency2, first.consistency))
 
 
-def test_the_rotation_search_keeps_the_most_consistent_start_of_each_doubtful_pair():
+def _nearest_median(src, tgt, rotation, translation):
+    """Brute force in float64: the median distance from R src + t to the nearest target point."""
+    moved = src.double() @ rotation.double().mT + translation.double()[:, None]
+    return torch.cdist(moved, tgt.double()).min(dim=-1).values.median(dim=-1).values
+
+
+def test_the_rotation_search_keeps_the_start_that_brings_each_doubtful_pair_closest():
     from vrnet_ext.geometry.transforms import cube_rotations
 
     src, tgt = turned_pairs()
@@ -472,12 +478,12 @@ def test_the_rotation_search_keeps_the_most_consistent_start_of_each_doubtful_pa
     with torch.no_grad():
         first = plain(src, tgt)
         runs = [_looked_twice(plain, src, tgt, g) for g in starts[1:]]
-    consistency = torch.stack([run[2] for run in runs], dim=1)  # (B, 23)
-    best = consistency.argmax(dim=1)
+    distance = torch.stack([_nearest_median(src, tgt, run[0], run[1]) for run in runs], dim=1)  # (B, 23)
+    best = distance.argmin(dim=1)
     below = float(first.consistency.sort().values[-2])  # every pair but the most consistent one searches
     searched = first.consistency < below
-    turned = searched & (consistency.max(dim=1).values > first.consistency)
-    assert turned.any() and (searched & ~turned).any(), "the pairs must exercise both outcomes"
+    turned = searched & (distance.min(dim=1).values < _nearest_median(src, tgt, first.rotation, first.translation))
+    assert turned.any(), "some searched pair must take a start (a kept row: the second-pass tests)"
     found_R = torch.stack([runs[int(b)][0][i] for i, b in enumerate(best)])
     found_t = torch.stack([runs[int(b)][1][i] for i, b in enumerate(best)])
     model = small_model(consistency_radius=1.0, rotation_search_below=below).eval()
@@ -508,7 +514,8 @@ def test_the_rotation_search_takes_only_the_pairs_the_second_pass_left_doubtful(
         out = both(src, tgt)
     left = after_second.consistency >= below  # not searched: exactly the second pass's rows
     torch.testing.assert_close(out.rotation[left], after_second.rotation[left])
-    assert (out.consistency >= after_second.consistency).all()  # a search only ever keeps a better row
+    closer = _nearest_median(src, tgt, out.rotation, out.translation)  # a search only ever keeps a closer row
+    assert (closer <= _nearest_median(src, tgt, after_second.rotation, after_second.translation) + 1e-6).all()
     assert torch.equal(out.start_rotation[left], torch.eye(3).expand(int(left.sum()), 3, 3))
 
 

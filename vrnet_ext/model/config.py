@@ -59,8 +59,9 @@ class VRNetConfig:
       share is registered again from its source turned by each of the 23 other rotations of a cube
       (:func:`vrnet_ext.geometry.transforms.cube_rotations`: every rotation lies within 63 degrees of
       one of them), a few pairs' starts per batch, each start followed by a second look from its
-      estimate (kept where its RCPs agree more); the start whose RCPs then agree most with its
-      estimate is kept where they agree more than with the estimate so far (not in the paper; 0:
+      estimate (kept where its RCPs agree more); the start whose estimate brings the source closest
+      to the target (the median distance to the nearest target point) is kept where it brings it
+      closer than the estimate so far (not in the paper; 0:
       never; eval mode only). A model trained on the protocol's rotations (each Euler angle in
       [0, 45] degrees) fails on most other motions; with the search it registers rotations from all
       of SO(3), at 23 x (iterations + 1) more passes (46 with one pass) for each pair it searches and

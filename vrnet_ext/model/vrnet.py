@@ -14,7 +14,7 @@ from vrnet_ext.model.config import VRNetConfig
 from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
-from vrnet_ext.ops import robust_kabsch, soft_match
+from vrnet_ext.ops import knn, robust_kabsch, soft_match
 from vrnet_ext.ops._checks import check_all_finite, check_float, check_same, check_shape, trusted_values
 from vrnet_ext.runtime import cpu_has_native_bf16
 
@@ -96,19 +96,29 @@ def _rows(values: torch.Tensor | None, rows: torch.Tensor) -> torch.Tensor | Non
 
 
 def _replace_rows(out: VRNetOutput, rows: torch.Tensor, candidate: VRNetOutput,
-                  allowed: torch.Tensor | None = None) -> None:
-    """Where ``candidate`` (one row per entry of ``rows``) agrees more with its RCPs than ``out``'s
-    rows ``rows`` do (and ``allowed`` (R,), if given, holds), its rows replace them (every field is
-    batch-first; in place)."""
-    better = candidate.consistency > out.consistency[rows]  # (R,); chosen on the device (no host read)
-    if allowed is not None:
-        better = better & allowed
+                  better: torch.Tensor | None = None) -> None:
+    """Where ``better`` (R,) holds (default: where ``candidate``, one row per entry of ``rows``,
+    agrees more with its RCPs than ``out``'s rows ``rows`` do), the candidate's rows replace them
+    (every field is batch-first; in place; chosen on the device, no host read)."""
+    if better is None:
+        better = candidate.consistency > out.consistency[rows]
     for field in fields(VRNetOutput):
         value = getattr(out, field.name)
         if value is not None:
             new = getattr(candidate, field.name)
             chosen = torch.where(better.view(-1, *[1] * (new.dim() - 1)), new, value.index_select(0, rows))
             setattr(out, field.name, value.index_copy(0, rows, chosen))
+
+
+def nearest_median(src: torch.Tensor, tgt: torch.Tensor, rotation: torch.Tensor,
+                   translation: torch.Tensor) -> torch.Tensor:
+    """(B,) the median distance from each point of R src + t to its nearest target point: how close
+    an estimate brings the clouds, whatever the RCPs say (robust to up to half the source without
+    a counterpart)."""
+    with torch.autocast(src.device.type, enabled=False):
+        moved = move(src, rotation, translation).contiguous()
+    dist2, _ = knn(moved, tgt.to(moved.dtype).contiguous(), 1)
+    return dist2[..., 0].median(dim=1).values
 
 
 def procrustes_weights(confidence_logits: torch.Tensor) -> torch.Tensor:
@@ -208,8 +218,8 @@ class VRNet(nn.Module):
         due = out.consistency < self.config.second_pass_below
         if every:
             rows = torch.arange(src.shape[0], device=src.device)
-            _replace_rows(out, rows, self._second_look(src, tgt, out, backend, return_matching, tgt_features),
-                          allowed=due)
+            again = self._second_look(src, tgt, out, backend, return_matching, tgt_features)
+            _replace_rows(out, rows, again, better=(again.consistency > out.consistency) & due)
             return
         retry = due.nonzero().squeeze(1)
         if retry.numel():
@@ -236,8 +246,9 @@ class VRNet(nn.Module):
         """Registers the pairs whose consistency is still below ``rotation_search_below`` again from
         the source turned by each other rotation of the cube (:func:`cube_rotations`), a few pairs'
         turns per batch, each start followed by a second look (kept where its RCPs agree more); the
-        start whose RCPs then agree most with its estimate replaces ``out``'s rows (in place) where
-        they agree more than ``out``'s."""
+        start whose estimate brings the source closest to the target (:func:`nearest_median`)
+        replaces ``out``'s rows (in place) where it brings it closer than ``out``'s (between starts,
+        the RCPs' agreement misjudges noisy pairs)."""
         retry = (out.consistency < self.config.rotation_search_below).nonzero().squeeze(1)
         starts = torch.as_tensor(cube_rotations()[1:], dtype=src.dtype, device=src.device)  # (S, 3, 3)
         count = starts.shape[0]
@@ -255,9 +266,11 @@ class VRNet(nn.Module):
             every = torch.arange(rows.numel(), device=src.device)
             _replace_rows(found, every, self._second_look(src[rows], tgt[rows], found, backend, return_matching,
                                                           features))
-            best = found.consistency.view(chunk.numel(), count).argmax(dim=1)
+            distance = nearest_median(src[rows], tgt[rows], found.rotation, found.translation)
+            best = distance.view(chunk.numel(), count).argmin(dim=1)
             chosen = torch.arange(chunk.numel(), device=src.device) * count + best
-            _replace_rows(out, chunk, _rows_of(found, chosen))
+            so_far = nearest_median(src[chunk], tgt[chunk], out.rotation[chunk], out.translation[chunk])
+            _replace_rows(out, chunk, _rows_of(found, chosen), better=distance[chosen] < so_far)
 
     def _features(self, src: torch.Tensor, tgt: torch.Tensor, backend: str,
                   tgt_features: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
