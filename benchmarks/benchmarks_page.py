@@ -48,6 +48,8 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "finetune_pv_upc_symmetric": "Fine-tuning PV / UPC on symmetric rotations on a CPU, on validation pairs (`vrnet train --rotation-range symmetric`, `vrnet eval --partition val`)",
     "finetune_rs_upc_symmetric": "Fine-tuning RS / UPC on symmetric rotations on a CPU, on validation pairs (`vrnet train --rotation-range symmetric`, `vrnet eval --partition val`)",
     "finetune_pv_nd_symmetric": "Fine-tuning PV / ND on symmetric rotations on a CPU, on validation pairs (`vrnet train --rotation-range symmetric`)",
+    "rotations_nearest": "ModelNet40 beyond the protocol's rotations, the rotation search keeping the start that brings the source closest to the target (`modelnet40_rotations.py` over `modelnet40_tables.py --methods vrnet --max-items 100 --rotation-range symmetric|so3 [--swap] --rotation-search-below 0|0.1`; the model-alone rows as in `rotations`)",
+    "rotation_search_criteria": "How the rotation search should choose among its starts, on validation pairs (`rotation_search_criteria.py`)",
     "rotations_whole_splits": "ModelNet40 with each angle in [-45, 45] degrees on whole test splits, four cells alone and with the rotation search (`modelnet40_rotations.py` over `modelnet40_tables.py --methods vrnet --rotation-range symmetric --rotation-search-below 0|0.1`)",
     "memory_plan": "Memory planner: predicted vs measured peaks (`bench_memory_plan.py`)",
     "memory_plan_refit": "Memory planner refitted as upper bounds, with a 3,000,000-point pair (`bench_memory_plan.py`)",

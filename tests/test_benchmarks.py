@@ -237,6 +237,15 @@ def test_modelnet40_tables_draw_the_rotation_range_and_search_only_in_the_vrnet_
         assert row["methods"]["vrnet"]["RMSE(R)"] < 1.0, row
 
 
+@requires_modelnet
+def test_rotation_search_criteria_scores_every_start_on_validation_pairs(tmp_path):
+    run([str(ROOT / "benchmarks" / "rotation_search_criteria.py"), "--models", "vrnet-pv-upc-rcp", "--pairs", "2",
+         "--data-dir", str(MODELNET_DIR), "--json", "criteria.json"], tmp_path)
+    (row,) = json.loads((tmp_path / "criteria.json").read_text())["rows"]
+    assert row["cell"] == "PV / UPC" and row["pairs"] == 2
+    assert all(0 <= row[criterion] <= row["oracle"] for criterion in ("consistency", "median_nn", "fitness_0.05"))
+
+
 def test_modelnet40_rotations_puts_each_cells_estimates_side_by_side(tmp_path):
     """Runs alone and with the search, on two kinds of pairs: one row per cell and kind, both
     estimates in it; a cell measured by two models is refused."""
