@@ -1,3 +1,5 @@
+import importlib
+
 import pytest
 import torch
 
@@ -86,10 +88,12 @@ def test_ties_broken_by_lower_index(device, C):
 
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("trusted", [False, True])
-def test_reference_orders_crowded_ties_by_index(dtype, trusted):
+def test_reference_orders_crowded_ties_by_index(dtype, trusted, monkeypatch):
     """7 shuffled copies of 6 points: rows where more points tie with the k-th distance than fit
     keep the lowest indices, as a stable sort of the distances does, inside trusted_values (no
-    branch on the data) as outside; queries far from the origin too."""
+    branch on the data) as outside, the float32 keys in one chunk or several; queries far from the
+    origin too."""
+    knn_module = importlib.import_module("vrnet_ext.ops.knn")
     g = torch.Generator().manual_seed(3)
     base = torch.randn(2, 6, 5, dtype=dtype, generator=g)
     ref = base.repeat(1, 7, 1)[:, torch.randperm(42, generator=g)] + 1e3
@@ -99,6 +103,9 @@ def test_reference_orders_crowded_ties_by_index(dtype, trusted):
     scores = torch.cdist(query, ref).square()
     assert torch.equal(idx, torch.sort(scores, dim=-1, stable=True).indices[..., :10])
     assert torch.equal(dist, scores.gather(-1, idx))
+    monkeypatch.setattr(knn_module, "KEY_CHUNK_ELEMENTS", 3 * 42)  # float32 keys in chunks of 3 rows
+    with trusted_values(trusted):
+        assert torch.equal(ops.knn(query, ref, 10, backend="torch")[1], idx)
 
 
 @requires_ext

@@ -35,6 +35,9 @@ def _validate(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool
                          f"{' (self excluded)' if exclude_self else ''}, got {k}")
 
 
+KEY_CHUNK_ELEMENTS = 1 << 24  # _smallest's int64 keys per chunk of rows (128 MB)
+
+
 def _smallest(dist2: torch.Tensor, k: int) -> torch.Tensor:
     """(..., M) squared distances -> (..., k) indices of the k smallest, ascending, ties by lower
     index, without a branch on the data (no host synchronisation on a GPU).
@@ -47,9 +50,14 @@ def _smallest(dist2: torch.Tensor, k: int) -> torch.Tensor:
     if dist2.dtype == torch.float32:
         count = dist2.shape[-1]
         index_bits = max(1, (count - 1).bit_length())
-        keys = dist2.view(torch.int32).to(torch.int64).bitwise_and_(0x7FFFFFFF).bitwise_left_shift_(index_bits)
-        keys.bitwise_or_(torch.arange(count, device=dist2.device))
-        return keys.topk(k, dim=-1, largest=False, sorted=True).values.bitwise_and_((1 << index_bits) - 1)
+        rows = dist2.reshape(-1, count)
+        chunk = max(1, KEY_CHUNK_ELEMENTS // count)  # the int64 keys of a few rows at a time, not of all
+        smallest = []
+        for start in range(0, len(rows), chunk):
+            keys = rows[start:start + chunk].view(torch.int32).to(torch.int64).bitwise_and_(0x7FFFFFFF)
+            keys.bitwise_left_shift_(index_bits).bitwise_or_(torch.arange(count, device=dist2.device))
+            smallest.append(keys.topk(k, dim=-1, largest=False, sorted=True).values.bitwise_and_((1 << index_bits) - 1))
+        return torch.cat(smallest).view(*dist2.shape[:-1], k)
     values, idx = dist2.topk(k, dim=-1, largest=False, sorted=True)
     idx = idx.sort(dim=-1).values
     idx = idx.gather(-1, dist2.gather(-1, idx).sort(dim=-1, stable=True).indices)
