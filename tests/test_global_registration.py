@@ -289,6 +289,54 @@ def test_the_default_checks_a_confident_first_estimate_with_a_second_one(monkeyp
     assert {"initial (fpfh)", "initial (vrnet)"} <= set(checked.seconds)
 
 
+def test_the_default_goes_on_when_its_first_estimator_finds_nothing(monkeypatch):
+    """Spatial consistency finding no consistent matches (a ValueError with ``--method sc2``) does not
+    end the default: the next member estimates, the others are brought in as for a doubtful fit,
+    and the result says which found nothing and why; only when every member finds nothing does the
+    error reach the caller, naming each."""
+    from vrnet_ext.registration import GlobalEstimator
+    from vrnet_ext.registration.global_estimators import Adaptive
+
+    class Nothing(GlobalEstimator):
+        name = "sc2"
+
+        def estimate_pair(self, pair, seed):
+            raise ValueError("no consistent matches")
+
+    case = WrongFirst()
+    case.estimator = Nothing()
+    case.install(monkeypatch)
+    settings = IcpSettings(points=6000)
+    rescued = register(case.src, case.tgt, global_points=3000, icp_settings=settings)
+    assert rescued.method == "auto" and rescued.start in ("fpfh", "vrnet"), rescued
+    assert transform_errors(rescued.T_target_source, case.truth)["rotation_error_deg"] < 1.0
+    assert rescued.selection.startswith("sc2 found no estimate (no consistent matches); refined from each"), \
+        rescued.selection
+    assert {"initial (vrnet)"} <= set(rescued.seconds) and "ended too" in rescued.selection, rescued
+    monkeypatch.setattr(Adaptive, "member", lambda auto, name, device=None: Nothing())
+    with pytest.raises(ValueError, match="sc2 found no estimate .*; fpfh found no estimate .*; vrnet found no"):
+        register(case.src, case.tgt, global_points=3000, icp_settings=settings)
+
+
+def test_when_no_two_agree_the_arbiter_decides_unless_a_fit_explains_the_whole_source(monkeypatch):
+    """No two refinements ended together: the arbiter's (the scene model's) is kept, since on a small
+    overlap the best fit is often a piece slid onto a large surface; but a refinement that fits
+    about all of the source (WHOLE_FIT) is kept over it."""
+    import vrnet_ext.registration.pipeline as pipeline
+    from vrnet_ext.registration import RegistrationResult
+
+    def refinement(fitness: float) -> RegistrationResult:
+        return RegistrationResult(T_target_source=np.eye(4), initial=np.eye(4), method="auto", icp_step="point_to_plane",
+                                  iterations=5, converged=True, fitness=fitness, inlier_rmse=0.01, correspondences=10)
+
+    monkeypatch.setattr(pipeline, "_same_alignment", lambda problem, a, b: False)
+    partial = {"sc2": refinement(0.6), "fpfh": refinement(0.3), "vrnet": refinement(0.4)}
+    assert pipeline._agreed(None, partial, "sc2", "vrnet")[::2] == ("vrnet", False)
+    whole = {"sc2": refinement(pipeline.WHOLE_FIT + 0.05), "fpfh": refinement(0.3), "vrnet": refinement(0.5)}
+    winner, why, agreed = pipeline._agreed(None, whole, "sc2", "vrnet")
+    assert (winner, agreed) == ("sc2", False) and "the best fit, sc2's" in why, why
+
+
 def test_the_default_takes_a_scene_model_only():
     from vrnet_ext.model import VRNet, VRNetConfig
     from vrnet_ext.registration import make_global_estimator

@@ -14,7 +14,7 @@ from vrnet_ext import ops
 from vrnet_ext.cli import main
 from vrnet_ext import load_pretrained
 from vrnet_ext.geometry.io import read_points, read_transform, write_ply
-from vrnet_ext.geometry.preprocessing import voxel_downsample
+from vrnet_ext.geometry.preprocessing import point_spacing, voxel_downsample
 from vrnet_ext.registration import (IcpFailure, IcpSettings, ObjectNetwork, PointCounts, ScanPair, icp, register,
                                     transform_errors)
 from vrnet_ext.registration.refinement import TargetReach
@@ -563,12 +563,16 @@ def test_one_far_point_does_not_make_a_room_a_line():
     assert any("src lies on a line" in w for w in register(line, line + [0.05, 0, 0], method="icp").warnings)
 
 
-def test_a_low_fitness_on_sparse_clouds_says_so_and_names_the_remedy():
-    """Clouds sparser than ICP's reach (they came downsampled): the low fitness is not taken for a
-    doubtful result; the warning names the clouds' spacing and the voxel size that fits it."""
+def test_sparse_clouds_are_refined_at_their_spacing_and_a_finer_voxel_names_the_remedy():
+    """Clouds sparser than ICP's point count asks for (they came downsampled): the voxel chosen is
+    their spacing, so the fit counts the points within reach of a neighbour; a ``voxel_size`` given
+    finer than that gets a low-fitness note that is not taken for a doubtful result: it names the
+    clouds' spacing and the voxel size that fits it."""
     src, tgt = room(seed=0), apply(motion(3.0, [0.02, 0.0, 0.0]), room(seed=1))
     result = register(src, tgt, method="icp")
-    (note,) = [w for w in result.warnings if w.startswith("low fitness")]
+    assert result.fitness > 0.5 and not [w for w in result.warnings if w.startswith("low fitness")], result.warnings
+    fine = register(src, tgt, method="icp", icp_settings=IcpSettings(voxel_size=point_spacing(tgt) / 5))
+    (note,) = [w for w in fine.warnings if w.startswith("low fitness")]
     assert "point spacing" in note and "voxel_size=" in note and "may be wrong" not in note, note
     spacing = float(note.split("voxel_size=")[1])
     refined = register(src, tgt, method="icp", icp_settings=IcpSettings(voxel_size=spacing))

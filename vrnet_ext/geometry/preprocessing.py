@@ -33,33 +33,65 @@ CLOSE_ENOUGH = 0.9  # voxel_size_for stops once the count is within this share o
 DISTINCT = 1e-9     # points closer than this share of a scan's extent count as one (its distinct points)
 
 
-def voxel_size_for(points: np.ndarray, target_points: int) -> float:
-    """A voxel edge that leaves at most ``target_points`` of a scan, and at least 90 % of them
-    where the search gets there within 30 tries.
+SPACING_SAMPLE = 2000  # points whose nearest neighbours measure a cloud's spacing (evenly strided)
+
+
+def point_spacing(points: np.ndarray | torch.Tensor, backend: str = "ext") -> float:
+    """The median distance from a point of ``points`` (N >= 2, 3) to its nearest other point, over an
+    even sample of at most :data:`SPACING_SAMPLE` of them: the cloud's resolution."""
+    points = torch.as_tensor(points)
+    picked = points[:: max(1, len(points) // SPACING_SAMPLE)]
+    dist2, _ = ops.knn(picked[None], points[None], 2, backend=backend)
+    return float(dist2[0, :, 1].sqrt().median())
+
+
+def voxel_size_for(points: np.ndarray | torch.Tensor, target_points: int) -> float:
+    """A voxel edge that leaves at most ``target_points`` of a scan (N, 3), and at least 90 % of them
+    where the search gets there within 30 tries — never finer than the spacing of the points it
+    leaves (:func:`point_spacing`): the radii counted in voxels (FPFH's, ICP's reach) then reach
+    a point's neighbours on a sparse scan too (an object's range scan of a few thousand points,
+    a scan that came downsampled), where a count alone would ask for an edge below its resolution.
+    Downsampled at a count's edge, a dense scan's points lie 0.6-0.85 edges apart, so the floor
+    leaves it alone. ``points``: an array, or a tensor on any device, where the search then counts
+    the voxels (on a GPU each count is a few kernels, not a pass over the scan on the host).
 
     The scale is the diagonal of the scan's box without its two most extreme points at each end of
     each axis, so one or two stray points far away (a reflection, a bad range reading) do not make
     the voxels coarse. A first guess comes from the voxel count at a hundredth of that diagonal and
     surface scaling (V ~ 1/size^2); the search then steps by that scaling, and bisects (in log
     size) once it has edges on both sides of the target. A scan of no more than ``target_points``
-    points keeps about all of its distinct points: a thousandth of that diagonal where that keeps 90 %
-    of them, else (a dense scan) the edge the search finds for their count, so asking for more points
-    never leaves fewer."""
+    points keeps about all of its distinct points (but for the floor): a thousandth of that
+    diagonal where that keeps 90 % of them, else (a dense scan) the edge the search finds for their
+    count, so asking for more points never leaves fewer."""
     if target_points < 1:
         raise ValueError(f"target_points must be >= 1, got {target_points}")
+    points = torch.as_tensor(points)
+    edge = _edge_for_count(points, target_points)
+    left = ops.voxel_downsample(points, edge)
+    return max(edge, point_spacing(left)) if len(left) > 1 else edge
+
+
+def _voxels(points: torch.Tensor, size: float) -> int:
+    """How many voxels of edge ``size`` the points (N, 3) occupy."""
+    return ops.voxel_downsample(points, size).shape[0]
+
+
+def _edge_for_count(points: torch.Tensor, target_points: int) -> float:
+    """:func:`voxel_size_for` without the spacing floor."""
     trim = min(STRAY_POINTS, (len(points) - 1) // 2)
-    ordered = np.partition(points, [trim, len(points) - 1 - trim], axis=0)
-    extent = float(np.linalg.norm(ordered[len(points) - 1 - trim] - ordered[trim])) or 1.0
+    low = torch.kthvalue(points, trim + 1, dim=0).values  # (kthvalue counts from 1)
+    high = torch.kthvalue(points, len(points) - trim, dim=0).values
+    extent = float(torch.linalg.vector_norm(high - low)) or 1.0
     if len(points) <= target_points:
-        distinct = len(voxel_downsample(points, extent * DISTINCT))
-        if len(voxel_downsample(points, extent / 1000.0)) >= CLOSE_ENOUGH * distinct:
+        distinct = _voxels(points, extent * DISTINCT)
+        if _voxels(points, extent / 1000.0) >= CLOSE_ENOUGH * distinct:
             return extent / 1000.0
         target_points = distinct  # dense, e.g. a LiDAR scan near its sensor
     coarse = extent / 100.0
-    size = coarse * (len(voxel_downsample(points, coarse)) / target_points) ** 0.5
+    size = coarse * (_voxels(points, coarse) / target_points) ** 0.5
     fits, too_fine = None, None  # the finest edge known to leave <= target points; an edge known to leave more
     for _ in range(30):
-        count = len(voxel_downsample(points, size))
+        count = _voxels(points, size)
         if count <= target_points:
             fits = size if fits is None else min(fits, size)
             if count >= CLOSE_ENOUGH * target_points:

@@ -311,9 +311,18 @@ class Adaptive(GlobalEstimator):
         return self.member(self.members[0]).peak_mb(largest_scan, counts)
 
     def estimate_pair(self, pair, seed):
-        estimate = self.member(self.members[0], pair.device).estimate_pair(pair, seed)
-        estimate.method = self.name
-        return estimate
+        """The first member's estimate; where it finds none (ValueError), the next one's: ``start``
+        names the member that answered, ``selection`` says which found none and why."""
+        failures = []
+        for name in self.members:
+            try:
+                estimate = self.member(name, pair.device).estimate_pair(pair, seed)
+            except ValueError as error:
+                failures.append(f"{name} found no estimate ({error})")
+                continue
+            estimate.method, estimate.start, estimate.selection = self.name, name, "; ".join(failures)
+            return estimate
+        raise ValueError("; ".join(failures))
 
     def fallbacks(self, pair: ScanPair, budget_bytes: int | None = None,
                   names: Sequence[str] | None = None) -> tuple[dict[str, GlobalEstimator], list[str]]:

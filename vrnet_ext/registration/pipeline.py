@@ -27,6 +27,7 @@ LOW_FITNESS = 0.2  # below this share of source points with a target point withi
 SPARSE = 1.5  # a reach below this many point spacings of the target cannot judge the overlap
 FITNESS_TIE = 0.005  # refinements whose fitness differs by less converged to the same fit
 ESTIMATE_SLACK = 2.0  # global voxels a robust fit's estimate may lie from the refinement it agrees with (its inlier bound)
+WHOLE_FIT = 0.9  # a refinement fitting this share of the source explains about all of it (no small overlap slid)
 
 
 @dataclass(frozen=True)
@@ -196,7 +197,7 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
     refined, failures = _refine(problem, pair, starts, run, seconds)
     selection = ""
     if hasattr(run.estimator, "fallbacks"):
-        reason, checked = doubt(refined.get(own)), ()
+        reason, checked = estimate.selection or doubt(refined.get(own)), ()
         checker = getattr(run.estimator, "checker", None)
         if reason is None and checker is not None:
             check, _ = run.estimator.fallbacks(pair, run.max_memory, (checker,))
@@ -207,13 +208,13 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
                 refined.update(more)
         if reason:
             fallbacks, left_out = run.estimator.fallbacks(pair, run.max_memory, [
-                member for member in run.estimator.members[1:] if member not in checked])
+                member for member in run.estimator.members[1:] if member not in checked and member != own])
             warnings += left_out
             others = _fallback_starts(fallbacks, pair, run, seconds)
             more, more_failures = _refine(problem, pair, others, run, seconds)
             refined.update(more)
             failures += more_failures
-            selection = f"{own} {reason}; " if refined else ""
+            selection = (f"{reason}; " if estimate.selection else f"{own} {reason}; ") if refined else ""
     if not refined:
         warnings.append(f"{'; '.join(failures)}; returning the unrefined initial estimate")
         return RegistrationResult(fitness=0.0, **unrefined)
@@ -261,7 +262,8 @@ def _agreed(problem: IcpProblem, refined: dict[str, RegistrationResult], own: st
     """The refinement to keep when several estimators ran, why, and whether two starts agreed on it:
     the best fit among those where the most other starts ended too (:func:`_same_alignment`); when no
     two agree, ``arbiter``'s (the default's scene model: fitness favours alignments that slide a small
-    overlap onto a large surface), else the best fit."""
+    overlap onto a large surface), unless the best fit explains about the whole source (at least
+    :data:`WHOLE_FIT` of it), else the best fit."""
     fits = ", ".join(f"{start} {result.fitness:.1%}" for start, result in refined.items())
     support = {start: [other for other in refined if other != start
                        and _same_alignment(problem, refined[other].T_target_source, refined[start].T_target_source)]
@@ -270,9 +272,9 @@ def _agreed(problem: IcpProblem, refined: dict[str, RegistrationResult], own: st
     if most > 0:
         winner = _best_fit({start: refined[start] for start in refined if len(support[start]) == most}, own)
         return winner, f"refined from each ({fits}): {winner}'s, where {' and '.join(support[winner])} ended too", True
-    if arbiter in refined:
-        return arbiter, f"refined from each ({fits}): no two ended together; {arbiter}'s, the arbiter's", False
     winner = _best_fit(refined, own)
+    if arbiter in refined and refined[winner].fitness < WHOLE_FIT:
+        return arbiter, f"refined from each ({fits}): no two ended together; {arbiter}'s, the arbiter's", False
     return winner, f"refined from each ({fits}): no two ended together; the best fit, {winner}'s", False
 
 
@@ -343,7 +345,7 @@ def _global_starts(pair: ScanPair, run: RegistrationRun, seconds: dict[str, floa
     name = getattr(estimator, "name", GlobalEstimator.name)
     estimate = _as_estimate(name, _estimate(estimator, pair, run.seed))
     seconds["initial"] = time.perf_counter() - start
-    starts = {getattr(estimator, "members", (name,))[0]: estimate.T_target_source}
+    starts = {estimate.start if hasattr(estimator, "members") else name: estimate.T_target_source}
     for other in getattr(estimator, "also_start_from", ()):
         start = time.perf_counter()
         starts[other] = _as_estimate(other, make_global_estimator(other, backend=run.backend)
@@ -364,7 +366,7 @@ def _icp_problem(pair: ScanPair, run: RegistrationRun, seconds: dict[str, float]
     """Both scans voxel-downsampled for ICP and prepared once for every start, the reach resolved;
     the ICP point counts go into ``points``."""
     start = time.perf_counter()
-    voxel = run.icp.voxel_size if run.icp.voxel_size is not None else voxel_size_for(pair.tgt.points,
+    voxel = run.icp.voxel_size if run.icp.voxel_size is not None else voxel_size_for(pair.tgt.tensor,
                                                                                       pair.counts.icp_points)
     src_icp, tgt_icp = pair.src.downsampled(voxel), pair.tgt.downsampled(voxel)
     points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))

@@ -10,8 +10,9 @@ from functools import cached_property
 import numpy as np
 import torch
 
+from vrnet_ext import ops
 from vrnet_ext.geometry.features import ScanView, describe
-from vrnet_ext.geometry.preprocessing import voxel_downsample, voxel_size_for
+from vrnet_ext.geometry.preprocessing import voxel_size_for
 from vrnet_ext.registration.counts import PointCounts
 
 CPU = torch.device("cpu")
@@ -27,10 +28,17 @@ class PreparedScan:
     _downsampled: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
     _views: dict[float, ScanView] = field(default_factory=dict, repr=False)
 
+    @cached_property
+    def tensor(self) -> torch.Tensor:
+        """``points`` as a tensor on ``device`` (copied there once; on the CPU, the array's memory):
+        the scan that voxel edges are searched and voxels averaged on."""
+        return torch.as_tensor(self.points, device=self.device)
+
     def downsampled(self, voxel: float) -> np.ndarray:
-        """(V, 3) float64: the centroid of the points in each ``voxel``-edged cell."""
+        """(V, 3) float64: the centroid of the points in each ``voxel``-edged cell (computed on
+        ``device``)."""
         if voxel not in self._downsampled:
-            self._downsampled[voxel] = voxel_downsample(self.points, voxel)
+            self._downsampled[voxel] = ops.voxel_downsample(self.tensor, voxel).cpu().numpy()
         return self._downsampled[voxel]
 
     def view(self, voxel: float) -> ScanView:
@@ -66,7 +74,7 @@ class ScanPair:
     def global_voxel(self) -> float:
         """The voxel edge that leaves the target about ``counts.global_points`` points (the global
         estimators' feature radii are multiples of it), unless fixed by ``voxel``."""
-        return self.voxel if self.voxel is not None else voxel_size_for(self.tgt.points, self.counts.global_points)
+        return self.voxel if self.voxel is not None else voxel_size_for(self.tgt.tensor, self.counts.global_points)
 
     def global_views(self) -> tuple[ScanView, ScanView]:
         """Both scans at :attr:`global_voxel`, with their FPFH descriptors."""

@@ -16,6 +16,7 @@ from vrnet_ext.registration.icp_steps import make_icp_step
 from vrnet_ext.names import DEFAULT_ICP_STEP, ICP_STEPS
 from vrnet_ext.registration.counts import PointCounts
 from vrnet_ext.registration.result import RegistrationResult
+from vrnet_ext.geometry.preprocessing import point_spacing
 from vrnet_ext.geometry.transforms import apply
 
 
@@ -152,13 +153,9 @@ class IcpProblem:
                                   points={"source": src_t.shape[1], "target": tgt_t.shape[1]})
 
 
-    def spacing(self, sample: int = 2000) -> float:
-        """The median distance from a target point to its nearest other target point (over an even
-        sample of at most ``sample`` points): the target's resolution."""
-        tgt = self.tgt[0]
-        picked = tgt[:: max(1, len(tgt) // sample)]
-        dist2, _ = ops.knn(picked[None], tgt[None], 2, backend=self.backend)
-        return float(dist2[0, :, 1].sqrt().median())
+    def spacing(self) -> float:
+        """The target's resolution (:func:`~vrnet_ext.geometry.preprocessing.point_spacing`)."""
+        return point_spacing(self.tgt[0], self.backend)
 
     def degeneracy(self, transform: np.ndarray) -> str | None:
         """A warning when the pairs within reach under ``transform`` (4, 4) leave directions of the
