@@ -4,6 +4,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import MODELNET_DIR, help_defaults_are_clean, requires_modelnet
@@ -408,8 +409,26 @@ def test_bench_default_runs_every_method_on_a_cut_pair_and_draws_the_calibration
     if not (DATA_DIR / "scenes" / "real_pairs" / "MANIFEST.tsv").exists():
         pytest.skip(f"real pairs not found under {DATA_DIR / 'scenes'}")
     run([str(ROOT / "benchmarks" / "bench_default.py"), "--data", str(DATA_DIR / "scenes" / "real_pairs"), "--seeds", "1",
-         "--sets", "cuts", "--cuts", "1", "--limit", "1", "--json", "default.json", "--markdown", "default.md",
-         "--plot", "doubt.png"], tmp_path)
+         "--sets", "cuts", "scans", "--cuts", "1", "--scans", "1", "--limit", "1", "--json", "default.json",
+         "--markdown", "default.md", "--plot", "doubt.png"], tmp_path)
     record = json.loads((tmp_path / "default.json").read_text())
-    assert {r["method"] for r in record["runs"]} == {"auto", "sc2", "fpfh", "vrnet"}
-    assert all(r["set"] == "cuts" for r in record["runs"]) and (tmp_path / "doubt.png").stat().st_size > 0
+    assert {r["method"] for r in record["runs"]} == {"auto", "sc2", "fpfh", "vrnet"} and len(record["runs"]) == 8
+    assert {r["set"] for r in record["runs"]} == {"cuts", "scans"} and (tmp_path / "doubt.png").stat().st_size > 0
+    assert [(row["set"], row["seed"]) for row in record["per_seed"]] == [("cuts", 0), ("scans", 0)]
+
+
+def test_a_synthetic_range_scan_sees_the_near_surface_once_per_pixel():
+    """bench_default's range scans: of two parallel planes one behind the other, a camera facing them
+    sees the near one only, at most one point per pixel, in its own frame (z along its view)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from bench_default import camera_at, range_scan
+
+    rng = np.random.default_rng(0)
+    grid = np.stack(np.meshgrid(np.linspace(-0.5, 0.5, 201), np.linspace(-0.5, 0.5, 201), [0.0]), -1).reshape(-1, 3)
+    near, far = grid + [0.0, 0.0, 1.0], grid + [0.0, 0.0, 1.5]
+    camera = camera_at(np.zeros(3), np.array([0.0, 0.0, 1.0]), rng)
+    pixel = 0.01  # radians: about two grid steps at 1 m
+    scan = range_scan(np.concatenate([far, near]), camera, pixel, rng)
+    assert np.abs(scan[:, 2] - 1.0).max() < 0.05  # every point on the near plane, depth 1 m along the view
+    pixels = (1.0 / pixel) ** 2  # the near plane's area in pixels (about 4 grid points each)
+    assert 0.9 * pixels < len(scan) < 1.1 * pixels, len(scan)
