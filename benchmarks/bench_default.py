@@ -221,6 +221,7 @@ def record_of(result, truth: np.ndarray, outdoor: bool, scale: float, seconds: f
     success = errors["rotation_error_deg"] < max_re and errors["translation_error"] < scale * max_te
     return {"success": bool(success), **errors,
             "fitness": result.fitness, "converged": result.converged, "warnings": result.warnings,
+            "consensus": result.consensus, "rival_consensus": result.rival_consensus,
             "start": result.start, "selection": result.selection, "seconds": seconds,
             "transform": np.asarray(result.T_target_source).tolist()}
 
@@ -262,37 +263,47 @@ def check_outcome(auto: dict) -> str:
     return "check apart" if "ended apart from ICP from" in auto["selection"] else "doubtful fit"
 
 
+RIVAL_EDGES = (0.0, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.5)  # bins of the rival share in the picture
+
+
+def _right_by_bin(ax, values: np.ndarray, success: np.ndarray, edges, threshold: float, doubt: str) -> None:
+    """One calibration panel: each result (1 = right) against ``values``, the share right per bin of
+    ``edges`` (its count above), and the test's ``threshold`` (``doubt`` labels it)."""
+    jitter = np.random.default_rng(0).uniform(-0.03, 0.03, len(values))
+    ax.scatter(np.minimum(values, edges[-1]), success + jitter, s=8, c=np.where(success, "tab:green", "tab:red"),
+               alpha=0.5, label="one pair (1 = right)")
+    for low, high in zip(edges[:-1], edges[1:]):
+        inside = (values >= low) & (values < high)
+        if inside.any():
+            ax.plot([low, high], [success[inside].mean()] * 2, color="black", linewidth=2)
+            ax.annotate(f"{inside.sum()}", ((low + high) / 2, success[inside].mean() + 0.03), ha="center", fontsize=7)
+    ax.plot([], [], color="black", linewidth=2, label="share right in the bin (n above)")
+    ax.axvline(threshold, color="tab:blue", linestyle="--", label=doubt)
+    ax.set_ylabel("right (rotation and translation within thresholds)")
+    ax.set_ylim(-0.1, 1.15)
+    ax.legend(loc="lower right", fontsize=8)
+
+
 def plot(records: list[dict], path: str) -> None:
     """Left: the share of ``sc2`` results that are right against the fitness of their refinement (the
-    doubt threshold marked). Right: the share right of ``sc2``'s results by what the default then did
-    (refinement doubtful; confident and the second estimator's check agreed; confident and it landed
-    elsewhere)."""
+    doubt threshold marked). Middle: the share right of ``sc2``'s results by what the default then
+    did (refinement doubtful; confident and the second estimator's check agreed; confident and it
+    landed elsewhere). Right: the share of the default's results that are right against its rival
+    alignment's support (matches consistent with the best other alignment, as a share of the
+    estimate's; the ambiguity warning's threshold marked)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from vrnet_ext.registration.pipeline import LOW_FITNESS
+    from vrnet_ext.registration.pipeline import AMBIGUOUS, LOW_FITNESS
 
     first = [r for r in records if r["method"] == "sc2"]
-    fitness = np.array([r["fitness"] for r in first])
-    success = np.array([r["success"] for r in first])
-    edges = np.array([0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6, 1.0])
-    fig, (ax, check) = plt.subplots(1, 2, figsize=(12, 4.5), gridspec_kw={"width_ratios": [2, 1]})
-    jitter = np.random.default_rng(0).uniform(-0.03, 0.03, len(first))
-    ax.scatter(fitness, success + jitter, s=8, c=np.where(success, "tab:green", "tab:red"), alpha=0.5,
-               label="one pair (1 = right)")
-    for low, high in zip(edges[:-1], edges[1:]):
-        inside = (fitness >= low) & (fitness < high)
-        if inside.any():
-            ax.plot([low, high], [success[inside].mean()] * 2, color="black", linewidth=2)
-            ax.annotate(f"{inside.sum()}", ((low + high) / 2, success[inside].mean() + 0.03), ha="center", fontsize=7)
-    ax.plot([], [], color="black", linewidth=2, label="share right in the bin (n above)")
-    ax.axvline(LOW_FITNESS, color="tab:blue", linestyle="--", label=f"doubt below {LOW_FITNESS} (or ICP not converged)")
+    fig, (ax, check, rival) = plt.subplots(1, 3, figsize=(18, 4.5), gridspec_kw={"width_ratios": [2, 1, 1.6]})
+    _right_by_bin(ax, np.array([r["fitness"] for r in first]), np.array([r["success"] for r in first]),
+                  (0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6, 1.0), LOW_FITNESS,
+                  f"doubt below {LOW_FITNESS} (or ICP not converged)")
     ax.set_xlabel("fitness of the refinement from sc2 (share of source points with a target point within reach)")
-    ax.set_ylabel("right (rotation and translation within thresholds)")
-    ax.set_ylim(-0.1, 1.15)
-    ax.legend(loc="lower right", fontsize=8)
     ax.set_title("sc2's fit against being right")
     runs = {(r["set"], r["pair"], r["seed"]): r for r in first}
     outcome = {key: check_outcome(r) for r in records if r["method"] == "auto"
@@ -310,6 +321,12 @@ def plot(records: list[dict], path: str) -> None:
     check.set_ylim(0, 1.15)
     check.set_ylabel("share of sc2's results that are right")
     check.set_title("What the default did with sc2's refinement")
+    measured = [r for r in records if r["method"] == "auto" and r.get("consensus", 0) > 0]
+    _right_by_bin(rival, np.array([r["rival_consensus"] / r["consensus"] for r in measured]),
+                  np.array([r["success"] for r in measured]), RIVAL_EDGES, AMBIGUOUS,
+                  f"ambiguity warning from {AMBIGUOUS}")
+    rival.set_xlabel("rival alignment's consistent matches / the estimate's")
+    rival.set_title("The default's result against its rival's support")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 

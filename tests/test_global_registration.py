@@ -337,6 +337,46 @@ def test_when_no_two_agree_the_arbiter_decides_unless_a_fit_explains_the_whole_s
     assert (winner, agreed) == ("sc2", False) and "the best fit, sc2's" in why, why
 
 
+def test_spatial_consistency_measures_the_best_other_alignment():
+    """Matches that two different motions explain half each: the fit keeps one half, and the same fit
+    on the matches it left out finds the other (a rival as well supported); matches of one motion
+    among outliers leave no rival of that size."""
+    from vrnet_ext.registration import SpatialConsistency
+
+    rng = np.random.default_rng(0)
+    src = torch.as_tensor(rng.uniform(-1.0, 1.0, size=(400, 3)))
+    first, second = (torch.as_tensor(motion(angle, shift)) for angle, shift in ((30.0, [0.2, 0.0, 0.1]),
+                                                                                (-70.0, [1.0, 0.5, 0.0])))
+    moved = lambda T, p: p @ T[:3, :3].T + T[:3, 3]
+    two = torch.cat([moved(first, src[:200]), moved(second, src[200:])])
+    transform, inliers, rival = SpatialConsistency().fit(src, two, voxel=0.01)
+    assert int(inliers.sum()) >= 195 and rival >= 195, (int(inliers.sum()), rival)
+    one = torch.cat([moved(first, src[:200]), torch.as_tensor(rng.uniform(-1.0, 1.0, size=(200, 3)))])
+    transform, inliers, rival = SpatialConsistency().fit(src, one, voxel=0.01)
+    assert int(inliers.sum()) >= 195 and rival < 0.1 * int(inliers.sum()), (int(inliers.sum()), rival)
+    torch.testing.assert_close(transform, first)
+
+
+@pytest.mark.parametrize("rival, half, warned", [(30, True, False), (70, True, True), (70, False, False)])
+def test_a_rival_alignment_nearly_as_well_supported_is_a_warning(rival, half, warned):
+    """The estimate's rival alignment with AMBIGUOUS (0.4) or more of its consistent matches: the
+    result warns that it may be the wrong one of two — unless the refinement fits the whole source
+    (WHOLE_FIT): here the target holds half of the room or all of it."""
+    from vrnet_ext.registration import GlobalEstimator, RegistrationResult
+
+    class Rivalled(GlobalEstimator):
+        def estimate_pair(self, pair, seed):
+            return RegistrationResult.global_estimate(truth, "rivalled", consensus=100, rival_consensus=rival)
+
+    src, room_seen = closed_room(), closed_room(seed=1)
+    truth = motion(75.0, [0.3, -0.2, 0.1])
+    tgt = apply(truth, room_seen[room_seen[:, 0] < 0.0] if half else room_seen)
+    result = register(src, tgt, method=Rivalled(), icp_settings=IcpSettings(points=6000))
+    assert (result.fitness < 0.9) == half and (result.consensus, result.rival_consensus) == (100, rival), result
+    notes = [w for w in result.warnings if w.startswith("ambiguous")]
+    assert bool(notes) == warned and (not notes or f"{rival} consistent feature matches against 100" in notes[0])
+
+
 def test_the_default_takes_a_scene_model_only():
     from vrnet_ext.model import VRNet, VRNetConfig
     from vrnet_ext.registration import make_global_estimator

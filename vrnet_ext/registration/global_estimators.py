@@ -142,7 +142,9 @@ class SpatialConsistency(GlobalEstimator):
     idea of SC^2-PCR): both scans voxel-downsampled to about ``PointCounts.global_points`` points,
     each source point matched to its nearest target feature, correspondences compatible when the
     distances they span agree within 2 voxels, inliers within 2 voxels; ``seeds`` fits of
-    ``consensus`` neighbours."""
+    ``consensus`` neighbours. The same fit on the matches its inliers left out measures the rival
+    alignment (``rival_consensus``: how many matches agree on the best other alignment; scans that
+    repeat themselves, or overlap little, have one nearly as well supported)."""
 
     seeds: int = 100
     consensus: int = 30
@@ -156,13 +158,24 @@ class SpatialConsistency(GlobalEstimator):
     def estimate_pair(self, pair, seed):
         src, tgt = pair.global_views()
         nearest = nearest_features(src.descriptors, tgt.descriptors)
-        transform, inliers = ops.spatial_consistency(src.tensor(), tgt.tensor()[nearest], 2.0 * src.voxel,
-                                                     2.0 * src.voxel, self.seeds, self.consensus)
+        transform, inliers, rival = self.fit(src.tensor(), tgt.tensor()[nearest], src.voxel)
         if int(inliers.sum()) < 3:
             raise ValueError("spatial consistency found no set of 3 or more consistent FPFH matches: the features "
                              "do not match (try another global_points)")
         return RegistrationResult.global_estimate(transform.cpu().numpy(), self.name, int(inliers.sum()),
-                                                  _counts(src, tgt))
+                                                  _counts(src, tgt), rival_consensus=rival)
+
+    def fit(self, src: torch.Tensor, tgt: torch.Tensor, voxel: float) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """Matched points src[i] <-> tgt[i] (K, 3), ``voxel`` the unit of the tolerances -> ((4, 4)
+        float64 transform, (K,) bool inliers, the inlier count of the same fit on the matches
+        those inliers left out: the best other alignment's support, 0 below 3)."""
+        transform, inliers = ops.spatial_consistency(src, tgt, 2.0 * voxel, 2.0 * voxel, self.seeds, self.consensus)
+        left = ~inliers.to(src.device)
+        if int(left.sum()) < 3:
+            return transform, inliers, 0
+        rival = int(ops.spatial_consistency(src[left], tgt[left], 2.0 * voxel, 2.0 * voxel, self.seeds,
+                                            self.consensus)[1].sum())
+        return transform, inliers, rival if rival >= 3 else 0
 
 
 SCENE_PAIRS = 1000  # most confident (source, RCP) pairs the scene model hands to its robust fit

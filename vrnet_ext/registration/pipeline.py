@@ -27,6 +27,7 @@ LOW_FITNESS = 0.2  # below this share of source points with a target point withi
 SPARSE = 1.5  # a reach below this many point spacings of the target cannot judge the overlap
 FITNESS_TIE = 0.005  # refinements whose fitness differs by less converged to the same fit
 ESTIMATE_SLACK = 2.0  # global voxels a robust fit's estimate may lie from the refinement it agrees with (its inlier bound)
+AMBIGUOUS = 0.4  # a rival alignment with this share of the estimate's consistent matches: warn (calibrated)
 WHOLE_FIT = 0.9  # a refinement fitting this share of the source explains about all of it (no small overlap slid)
 
 
@@ -82,9 +83,10 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     ModelNet40 :class:`VRNet` on ``network_points`` subsampled points; default: the shipped scene
     model); ``"fgr"``: FPFH + Fast Global Registration; ``"icp"``: ICP from no motion; ``"auto"``:
     ``"sc2"``, checked by ``"fpfh"``'s estimate (it must land where ICP from ``"sc2"`` ended); when
-    ICP from ``"sc2"`` is doubtful (:func:`doubt`) or the check lands elsewhere, ``"fpfh"`` and
-    ``"vrnet"`` too, ICP from each and the best fit that another confirms kept, else ``"vrnet"``'s
-    (``selection`` says why; a scene ``model`` is used for its ``"vrnet"``). None: ``"vrnet"`` when a model is given, else ``"auto"`` (the default of
+    ``"sc2"`` finds no estimate, ICP from it is doubtful (:func:`doubt`) or the check lands
+    elsewhere, ``"fpfh"`` and ``"vrnet"`` too, ICP from each and the best fit that another confirms
+    kept, else ``"vrnet"``'s unless another fits :data:`WHOLE_FIT` of the source (``selection`` says
+    why; a scene ``model`` is used for its ``"vrnet"``). None: ``"vrnet"`` when a model is given, else ``"auto"`` (the default of
     ``vrnet register`` too).
     icp_settings: the refinement (:class:`IcpSettings`). When the estimator asks for it
     (``also_start_from``: the scene network also starts from ``"sc2"``'s estimate, a ModelNet40 network
@@ -188,10 +190,12 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
     name, step = getattr(run.estimator, "name", GlobalEstimator.name), run.icp.step
     own = next(iter(starts))
     points = {"source": len(src), "target": len(tgt), **estimate.points}
+    matches = dict(consensus=estimate.consensus, rival_consensus=estimate.rival_consensus)
     unrefined = dict(T_target_source=estimate.T_target_source, initial=estimate.T_target_source, method=name,
                      icp_step=step, iterations=0, converged=False, inlier_rmse=float("nan"), correspondences=0,
-                     seconds=seconds, points=points, warnings=warnings, start=own, consensus=estimate.consensus)
+                     seconds=seconds, points=points, warnings=warnings, start=own, **matches)
     if run.icp.max_iterations == 0:
+        warnings += _rival_note(estimate)
         return RegistrationResult(fitness=float("nan"), **unrefined)
     problem = _icp_problem(pair, run, seconds, points)
     refined, failures = _refine(problem, pair, starts, run, seconds)
@@ -217,6 +221,7 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
             selection = (f"{reason}; " if estimate.selection else f"{own} {reason}; ") if refined else ""
     if not refined:
         warnings.append(f"{'; '.join(failures)}; returning the unrefined initial estimate")
+        warnings += _rival_note(estimate)
         return RegistrationResult(fitness=0.0, **unrefined)
     winner = _best_fit(refined, own)
     if selection:
@@ -241,11 +246,28 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
         warnings.append(degenerate)
     if best.fitness < LOW_FITNESS:
         warnings.append(_low_fitness_note(best.fitness, settings.max_distance, problem.spacing()))
+    if best.fitness < WHOLE_FIT:
+        warnings += _rival_note(estimate)
     return RegistrationResult(T_target_source=best.T_target_source, initial=best.initial, method=name, icp_step=step,
                               iterations=best.iterations, converged=best.converged, fitness=best.fitness,
                               inlier_rmse=best.inlier_rmse, correspondences=best.correspondences, seconds=seconds,
-                              points=points, warnings=warnings, start=winner, consensus=estimate.consensus,
-                              selection=selection)
+                              points=points, warnings=warnings, start=winner, selection=selection, **matches)
+
+
+def _rival_note(estimate: RegistrationResult) -> list[str]:
+    """A warning when another alignment is supported by at least :data:`AMBIGUOUS` times as many
+    consistent matches as the global estimate (``rival_consensus``; calibrated on
+    ``benchmarks/bench_default.py``'s pairs, where every result below that share was right).
+    :func:`register_prepared` leaves it out where the refinement fits :data:`WHOLE_FIT` of the
+    source or more: no wrong result of those pairs fitted so much without another warning, and a
+    rival there was mostly the scan sliding along its own surfaces (a discretely symmetric object,
+    which fits whole either way, is not told apart)."""
+    if estimate.consensus <= 0 or estimate.rival_consensus < AMBIGUOUS * estimate.consensus:
+        return []
+    share = estimate.rival_consensus / estimate.consensus
+    return [f"ambiguous: another alignment is supported by {estimate.rival_consensus} consistent feature matches "
+            f"against {estimate.consensus} for the global estimate's ({share:.0%}); where scans repeat themselves or "
+            f"overlap little, the result may be the wrong one"]
 
 
 def _best_fit(refined: dict[str, RegistrationResult], own: str) -> str:

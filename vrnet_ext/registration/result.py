@@ -34,15 +34,18 @@ class RegistrationResult:
     consensus: int = 0      # correspondences the global estimate agreed on (RANSAC / spatial-consistency
                             # inliers, pairs a network used; 0 when it has no such count)
     selection: str = ""     # the default ("auto") only, when it tried its other estimators: why, and their fits
+    rival_consensus: int = 0  # correspondences consistent with another alignment, none of ``consensus``'s
+                              # (spatial consistency's second fit; 0 when none or not measured)
 
     @classmethod
     def global_estimate(cls, T_target_source, method: str, consensus: int = 0,
-                        points: dict[str, int] | None = None) -> "RegistrationResult":
+                        points: dict[str, int] | None = None, rival_consensus: int = 0) -> "RegistrationResult":
         """A global estimate before any refinement: no ICP (icp_step "none", 0 iterations), fitness and
         inlier RMSE not measured (NaN), ``initial`` the identity."""
         return cls(T_target_source=np.asarray(T_target_source, dtype=np.float64), initial=np.eye(4), method=method,
                    icp_step="none", iterations=0, converged=False, fitness=float("nan"), inlier_rmse=float("nan"),
-                   correspondences=0, points=dict(points or {}), start=method, consensus=int(consensus))
+                   correspondences=0, points=dict(points or {}), start=method, consensus=int(consensus),
+                   rival_consensus=int(rival_consensus))
 
     def to_dict(self) -> dict:
         """Every field, the 4x4 matrices as nested lists (for JSON)."""
