@@ -86,8 +86,8 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     ``"sc2"`` finds no estimate, ICP from it is doubtful (:func:`doubt`) or the check lands
     elsewhere, ``"fpfh"`` and ``"vrnet"`` too, ICP from each and the best fit that another confirms
     kept, else ``"vrnet"``'s unless another fits :data:`WHOLE_FIT` of the source (``selection`` says
-    why; a scene ``model`` is used for its ``"vrnet"``). None: ``"vrnet"`` when a model is given, else ``"auto"`` (the default of
-    ``vrnet register`` too).
+    why; a scene ``model`` is used for its ``"vrnet"``). None: ``"vrnet"`` when a model is given,
+    else ``"auto"`` (the default of ``vrnet register`` too).
     icp_settings: the refinement (:class:`IcpSettings`). When the estimator asks for it
     (``also_start_from``: the scene network also starts from ``"sc2"``'s estimate, a ModelNet40 network
     from no motion), ICP runs from each start and the refinement with the higher fitness wins
@@ -388,7 +388,7 @@ def _icp_problem(pair: ScanPair, run: RegistrationRun, seconds: dict[str, float]
     """Both scans voxel-downsampled for ICP and prepared once for every start, the reach resolved;
     the ICP point counts go into ``points``."""
     start = time.perf_counter()
-    voxel = run.icp.voxel_size if run.icp.voxel_size is not None else voxel_size_for(pair.tgt.tensor,
+    voxel = run.icp.voxel_size if run.icp.voxel_size is not None else voxel_size_for(pair.tgt.on_device(),
                                                                                       pair.counts.icp_points)
     src_icp, tgt_icp = pair.src.downsampled(voxel), pair.tgt.downsampled(voxel)
     points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))

@@ -28,17 +28,17 @@ class PreparedScan:
     _downsampled: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
     _views: dict[float, ScanView] = field(default_factory=dict, repr=False)
 
-    @cached_property
-    def tensor(self) -> torch.Tensor:
-        """``points`` as a tensor on ``device`` (copied there once; on the CPU, the array's memory):
-        the scan that voxel edges are searched and voxels averaged on."""
+    def on_device(self) -> torch.Tensor:
+        """``points`` as a tensor on ``device``, where voxel edges are searched and voxels averaged: on
+        the CPU the array's own memory, elsewhere a copy made for the call and not kept (a scene's
+        scans would otherwise all stay on the GPU at full resolution)."""
         return torch.as_tensor(self.points, device=self.device)
 
     def downsampled(self, voxel: float) -> np.ndarray:
         """(V, 3) float64: the centroid of the points in each ``voxel``-edged cell (computed on
         ``device``)."""
         if voxel not in self._downsampled:
-            self._downsampled[voxel] = ops.voxel_downsample(self.tensor, voxel).cpu().numpy()
+            self._downsampled[voxel] = ops.voxel_downsample(self.on_device(), voxel).cpu().numpy()
         return self._downsampled[voxel]
 
     def view(self, voxel: float) -> ScanView:
@@ -74,7 +74,7 @@ class ScanPair:
     def global_voxel(self) -> float:
         """The voxel edge that leaves the target about ``counts.global_points`` points (the global
         estimators' feature radii are multiples of it), unless fixed by ``voxel``."""
-        return self.voxel if self.voxel is not None else voxel_size_for(self.tgt.tensor, self.counts.global_points)
+        return self.voxel if self.voxel is not None else voxel_size_for(self.tgt.on_device(), self.counts.global_points)
 
     def global_views(self) -> tuple[ScanView, ScanView]:
         """Both scans at :attr:`global_voxel`, with their FPFH descriptors."""
