@@ -53,6 +53,7 @@ SINGLE_METHODS = METHODS[1:]  # the built-in methods the default combines
 CUT_RADIUS, CUT_SPACING, CUT_ANGLES = 0.8, 0.5, (24.0, 48.0, 72.0)
 SCAN_RADIUS, SCAN_DISTANCE, OBJECT_SCALE = 0.6, 1.5, 0.2  # the "scans" set (metres before shrinking)
 SETS = ("real", "real turned", "cuts", "crops", "scans")
+TRANSFORM_DECIMALS = 7  # each run's transform as recorded (0.1 um, 1e-5 degrees: the record stays small)
 
 
 def turned(points: np.ndarray, degrees: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -223,7 +224,7 @@ def record_of(result, truth: np.ndarray, outdoor: bool, scale: float, seconds: f
             "fitness": result.fitness, "converged": result.converged, "warnings": result.warnings,
             "consensus": result.consensus, "rival_consensus": result.rival_consensus,
             "start": result.start, "selection": result.selection, "seconds": seconds,
-            "transform": np.asarray(result.T_target_source).tolist()}
+            "transform": np.round(np.asarray(result.T_target_source), TRANSFORM_DECIMALS).tolist()}
 
 
 def summary_rows(records: list[dict]) -> list[dict]:
