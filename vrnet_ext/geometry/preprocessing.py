@@ -66,36 +66,37 @@ def voxel_size_for(points: np.ndarray | torch.Tensor, target_points: int) -> flo
     if target_points < 1:
         raise ValueError(f"target_points must be >= 1, got {target_points}")
     points = torch.as_tensor(points)
-    edge = _edge_for_count(points, target_points)
-    left = ops.voxel_downsample(points, edge)
+    edge, left = _edge_for_count(points, target_points)
+    if left is None:
+        left = ops.voxel_downsample(points, edge)
     return max(edge, point_spacing(left)) if len(left) > 1 else edge
 
 
-def _voxels(points: torch.Tensor, size: float) -> int:
-    """How many voxels of edge ``size`` the points (N, 3) occupy."""
-    return ops.voxel_downsample(points, size).shape[0]
-
-
-def _edge_for_count(points: torch.Tensor, target_points: int) -> float:
-    """:func:`voxel_size_for` without the spacing floor."""
+def _edge_for_count(points: torch.Tensor, target_points: int) -> tuple[float, torch.Tensor | None]:
+    """:func:`voxel_size_for` without the spacing floor -> (the edge, the points downsampled at it,
+    or None where the search did not downsample at that edge)."""
     trim = min(STRAY_POINTS, (len(points) - 1) // 2)
     low = torch.kthvalue(points, trim + 1, dim=0).values  # (kthvalue counts from 1)
     high = torch.kthvalue(points, len(points) - trim, dim=0).values
     extent = float(torch.linalg.vector_norm(high - low)) or 1.0
     if len(points) <= target_points:
-        distinct = _voxels(points, extent * DISTINCT)
-        if _voxels(points, extent / 1000.0) >= CLOSE_ENOUGH * distinct:
-            return extent / 1000.0
+        distinct = len(ops.voxel_downsample(points, extent * DISTINCT))
+        fine = ops.voxel_downsample(points, extent / 1000.0)
+        if len(fine) >= CLOSE_ENOUGH * distinct:
+            return extent / 1000.0, fine
         target_points = distinct  # dense, e.g. a LiDAR scan near its sensor
     coarse = extent / 100.0
-    size = coarse * (_voxels(points, coarse) / target_points) ** 0.5
+    size = coarse * (len(ops.voxel_downsample(points, coarse)) / target_points) ** 0.5
     fits, too_fine = None, None  # the finest edge known to leave <= target points; an edge known to leave more
+    fitting = None  # the points downsampled at ``fits``
     for _ in range(30):
-        count = _voxels(points, size)
+        left = ops.voxel_downsample(points, size)
+        count = len(left)
         if count <= target_points:
-            fits = size if fits is None else min(fits, size)
+            if fits is None or size < fits:
+                fits, fitting = size, left
             if count >= CLOSE_ENOUGH * target_points:
-                return size
+                return size, left
         else:
             too_fine = size if too_fine is None else max(too_fine, size)
         if fits is not None and too_fine is not None:
@@ -105,7 +106,7 @@ def _edge_for_count(points: torch.Tensor, target_points: int) -> float:
         else:
             size *= 1.02 * max(1.0, (count / target_points) ** 0.5) if count > target_points \
                 else max(0.5, (count / target_points) ** 0.5) / 1.02
-    return fits if fits is not None else size
+    return (fits, fitting) if fits is not None else (size, None)
 
 
 def subsample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:

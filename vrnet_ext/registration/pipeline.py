@@ -211,8 +211,9 @@ def register_prepared(pair: ScanPair, run: RegistrationRun) -> RegistrationResul
                                             estimator=check[checker])
                 refined.update(more)
         if reason:
+            members = run.estimator.members  # (those before ``own`` found no estimate)
             fallbacks, left_out = run.estimator.fallbacks(pair, run.max_memory, [
-                member for member in run.estimator.members[1:] if member not in checked and member != own])
+                member for member in members[members.index(own) + 1:] if member not in checked])
             warnings += left_out
             others = _fallback_starts(fallbacks, pair, run, seconds)
             more, more_failures = _refine(problem, pair, others, run, seconds)
