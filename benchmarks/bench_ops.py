@@ -265,10 +265,12 @@ def _voxel_downsample_case(voxel):
     return Case("voxel_downsample", f"scan N=300k voxel={voxel}", make, impls)
 
 
-def _spatial_consistency_case(K, outlier_ratio=0.9, quick=True, skip_torch=None):
+def _spatial_consistency_case(K, outlier_ratio=0.9, quick=True, skip_torch=None, host_column=False):
     """K putative correspondences, ``outlier_ratio`` of them random. Columns: our RANSAC on the same
     correspondences (registration.ransac, 50k hypotheses at most, 0.999 confidence) and Open3D's
-    registration_ransac_based_on_correspondence (the best existing tool installed here)."""
+    registration_ransac_based_on_correspondence (the best existing tool installed here); with
+    ``host_column`` (GPU inputs) the CPU kernel too, the copies to and from the host included (what a
+    registration on the GPU ran before the op had a CUDA kernel)."""
     tolerance = 0.03
 
     def make():
@@ -284,11 +286,16 @@ def _spatial_consistency_case(K, outlier_ratio=0.9, quick=True, skip_torch=None)
 
     impls = {b: (lambda p, q, b=b: ops.spatial_consistency(p, q, tolerance, tolerance, backend=b))
              for b in ("ext", "torch")}
+    if host_column:
+        def on_host(p, q):
+            T, inliers = ops.spatial_consistency(p.cpu(), q.cpu(), tolerance, tolerance)
+            return T.to(p.device), inliers.to(p.device)
+        impls["ext, CPU kernel"] = on_host
 
     def ours_ransac(p, q):
         from vrnet_ext.registration.ransac import ransac
 
-        pairs = torch.arange(p.shape[0]).unsqueeze(1).expand(-1, 2)
+        pairs = torch.arange(p.shape[0], device=p.device).unsqueeze(1).expand(-1, 2)
         return ransac(p, q, pairs, tolerance)
 
     impls["ransac (ours)"] = ours_ransac
@@ -355,6 +362,8 @@ def cuda_cases() -> list[Case]:
         _soft_match_case(28, 768, 512, 515),
         _soft_match_case(1, 16384, 32, 35),  # four blocks of query rows: the recomputing backward
         _soft_match_case(1, 50000, 32, 35, backward=False, skip_torch="the reference needs ~20 GB (50k x 50k)"),
+        _spatial_consistency_case(1000, host_column=True),
+        _spatial_consistency_case(5000, 0.95, skip_torch="the dense reference takes ~20 s per call", host_column=True),
     ]
 
 

@@ -376,6 +376,74 @@ def test_edge_norm_max(dtype, running, B, O, N, k):
                     1e-5, 0.2) == (None, None)
 
 
+@pytest.mark.parametrize("K,ratio,seeds,consensus", [(3, 0.0, 5, 2), (64, 0.5, 5, 2), (130, 0.8, 20, 10),
+                                                     (300, 0.9, 40, 30), (90, 0.3, 200, 500)])
+@pytest.mark.parametrize("tolerance", [0.03, 0.012])  # the graph in float32; in float64 (extent > 128 tolerances)
+def test_spatial_consistency(K, ratio, seeds, consensus, tolerance):
+    """The graph, the seeds (more asked for than there are correspondences), each seed's neighbours
+    (consensus past the degree) and fits as the CPU op's: the same inliers; the refits sum in
+    another order, so the transform agrees to rounding."""
+    from synthetic import correspondences
+
+    p, q, *_ = correspondences(K, ratio, seed=K)
+    expected, got = run_both("spatial_consistency", p, q, tolerance, 0.03, seeds, consensus)
+    assert torch.equal(got[1], expected[1])
+    torch.testing.assert_close(got[0], expected[0], rtol=1e-12, atol=1e-12)
+    assert_same("spatial_consistency", non_contiguous(p), q, tolerance, 0.03, seeds, consensus, scale=1e-3)
+
+
+def test_spatial_consistency_crowded_seeds():
+    """Correspondences crowded within a few tolerances: most candidate seeds lie near a seed of an
+    earlier round or of their own round: at tolerance 0.02, 81 seeds out of 600 candidates (every
+    round of the seeds kernel), 519 turned down; at 0.015, the 100th seed is the 252nd candidate.
+    Fits of 3 correspondences and inlier thresholds near the noise (2.5e-4), so that which seeds are
+    fitted shows in the result; below 3 inliers everywhere (3e-5, 1e-5) the best seed's own fit is
+    returned, not refitted."""
+    from synthetic import correspondences
+
+    p, q, *_ = correspondences(600, 0.5, seed=5)
+    for tolerance, threshold in ((0.02, 2e-4), (0.015, 2e-4), (0.02, 6e-5), (0.02, 3e-5), (0.02, 1e-5)):
+        expected, got = run_both("spatial_consistency", p * 0.05, q * 0.05, tolerance, threshold, 100, 2)
+        assert torch.equal(got[1], expected[1]) and int(got[1].sum()) < 600
+        torch.testing.assert_close(got[0], expected[0], rtol=1e-12, atol=1e-12)
+
+
+def test_spatial_consistency_seeds_after_the_first_round():
+    """600 mutually compatible clutter correspondences within one tolerance of each other (one seed
+    among them: every later candidate, in every round of the seeds kernel, lies near it), then 10 of
+    the true motion: with 2 seeds the second must be a true one, the only fit with 10 inliers."""
+    from scipy.spatial.transform import Rotation
+
+    g = torch.Generator().manual_seed(0)
+    good = torch.rand(10, 3, generator=g, dtype=torch.float64) * 2
+    clutter_p = torch.rand(600, 3, generator=g, dtype=torch.float64) * 0.05 + torch.tensor([3.0, 0, 0]).double()
+    clutter_q = torch.rand(600, 3, generator=g, dtype=torch.float64) * 0.05 + torch.tensor([0, 30.0, 0]).double()
+    R = torch.tensor(Rotation.from_rotvec([0.3, -1.2, 0.8]).as_matrix())
+    p, q = torch.cat([clutter_p, good]), torch.cat([clutter_q, good @ R.T + 0.5])
+    expected, got = run_both("spatial_consistency", p, q, 0.1, 0.002, 2, 8)
+    assert torch.equal(got[1], expected[1]) and torch.equal(got[1].nonzero().flatten(), torch.arange(600, 610))
+    torch.testing.assert_close(got[0][:3, :3], R)
+
+
+def test_spatial_consistency_degenerate_and_bad_input():
+    """No compatible pair (no seed: the identity), identical points, a line, the same errors."""
+    p = torch.rand(70, 3, dtype=torch.float64)
+    assert_same("spatial_consistency", p, torch.rand(70, 3, dtype=torch.float64), 1e-9, 1e-9, 10, 5, exact=True)
+    assert_same("spatial_consistency", p, p + 1.0, 1e-3, 1e-3, 10, 5, scale=1e-3)
+    same = torch.ones(10, 3, dtype=torch.float64)
+    line = torch.linspace(0, 1, 20, dtype=torch.float64)[:, None] * torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64)
+    for points in (same, line):  # rotations about the points fit as well: each must map them onto their targets
+        for T, inliers in run_both("spatial_consistency", points, points + 1.0, 0.01, 0.01, 10, 5):
+            torch.testing.assert_close(points @ T[:3, :3].T + T[:3, 3], points + 1.0)
+            torch.testing.assert_close(T[:3, :3] @ T[:3, :3].T, torch.eye(3, dtype=torch.float64))
+            assert bool(inliers.all())
+    bad = p.clone()
+    bad[3, 1] = math.nan
+    assert run_both("spatial_consistency", bad, p, 0.1, 0.1, 10, 5) == (None, None)
+    assert run_both("spatial_consistency", p.float(), p, 0.1, 0.1, 10, 5) == (None, None)
+    assert run_both("spatial_consistency", p, p, 0.1, 0.1, 0, 5) == (None, None)
+
+
 # --------------------------------------------------------------------------------------------------
 
 def test_every_kernel_ran():

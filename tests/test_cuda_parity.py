@@ -167,3 +167,17 @@ def test_fpfh_match_cpu(dtype):
     cuda = torch.ops.vrnet_ext.fpfh(points.cuda(), normals.cuda(), idx.cuda(), dist2.cuda(), 0.1)
     rows_equal = ((cuda.cpu() - cpu).abs().amax(1) <= (1e-9 if dtype == torch.float64 else 2e-4)).float().mean()
     assert rows_equal > 0.995, rows_equal  # an angle on a bin edge may round into the next bin
+
+
+@pytest.mark.parametrize("K,ratio,tolerance", [(3, 0.0, 0.03), (1000, 0.9, 0.03), (5000, 0.95, 0.03), (4000, 0.8, 0.012)])
+def test_spatial_consistency_matches_cpu(K, ratio, tolerance):
+    """The graph, seeds and seed fits are the CPU kernel's; the refits sum in another order (and nvcc
+    fuses the rotation's products): the same inliers, the transform to rounding."""
+    from synthetic import correspondences
+
+    with torch.device("cpu"):
+        p, q, *_ = correspondences(K, ratio, seed=K)
+    T_cpu, mask_cpu = torch.ops.vrnet_ext.spatial_consistency(p, q, tolerance, 0.03, 100, 30)
+    T, mask = torch.ops.vrnet_ext.spatial_consistency(p.cuda(), q.cuda(), tolerance, 0.03, 100, 30)
+    assert torch.equal(mask.cpu(), mask_cpu)
+    torch.testing.assert_close(T.cpu(), T_cpu, rtol=1e-9, atol=1e-9)

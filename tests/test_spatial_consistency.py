@@ -1,5 +1,7 @@
 """ops.spatial_consistency: recovery under heavy outlier ratios, the compiled op against the dense
-reference (same inliers, same transform), degenerate inputs and named errors."""
+reference (same inliers, same transform), degenerate inputs and named errors, results on the
+inputs' device (the CUDA kernel against the CPU kernel: tests/test_cuda_parity.py, and under the
+emulator: tests/test_cuda_emulation.py)."""
 import math
 import os
 
@@ -147,3 +149,19 @@ def test_copies_of_one_wrong_correspondence_do_not_capture_the_fit(backend):
     torch.testing.assert_close(inliers[:100], distinct[1])
     copies, none = ops.spatial_consistency(p[:1].expand(5, 3), q[:1].expand(5, 3), 0.05, 0.05, backend=backend)
     assert torch.equal(copies, torch.eye(4, dtype=torch.float64)) and not none.any()
+
+
+def test_results_stay_on_the_inputs_device(device):
+    """On the CPU and (with a GPU) on CUDA: the transform and the mask on the inputs' device, the CPU
+    kernel's inliers; copies of correspondences counted once there too."""
+    with torch.device("cpu"):
+        p, q, R, _, inlier = correspondences(400, 0.8)
+    T, mask = ops.spatial_consistency(p.to(device), q.to(device), 0.03, 0.03)
+    assert T.device.type == device.type and mask.device.type == device.type
+    T_cpu, mask_cpu = ops.spatial_consistency(p, q, 0.03, 0.03)
+    assert torch.equal(mask.cpu(), mask_cpu) and rotation_error_deg(T.cpu()[:3, :3], R) < 0.5
+    torch.testing.assert_close(T.cpu(), T_cpu, rtol=1e-9, atol=1e-9)
+    copies = torch.cat([torch.arange(400), torch.zeros(50, dtype=torch.long)])
+    T_copies, mask_copies = ops.spatial_consistency(p[copies].to(device), q[copies].to(device), 0.03, 0.03)
+    assert torch.equal(mask_copies.cpu(), mask_cpu[copies])
+    torch.testing.assert_close(T_copies.cpu(), T_cpu, rtol=1e-9, atol=1e-9)

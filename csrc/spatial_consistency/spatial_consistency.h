@@ -1,4 +1,4 @@
-// Argument checks of the spatial_consistency op (a CPU op: it runs once per registration).
+// Argument checks of the spatial_consistency op, shared by its CPU and CUDA kernels.
 #pragma once
 
 #include "common/common.h"

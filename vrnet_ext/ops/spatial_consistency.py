@@ -18,9 +18,12 @@ CVPR 2022):
 
 Identical correspondences count once (copies would support each other and capture the fit;
 each copy gets its original's inlier flag). Returns the (4, 4) float64 transform taking ``src``
-onto ``tgt`` and the (K,) bool inlier mask (the identity and no inliers when no fit has 3). Deterministic; not differentiable. The compiled
-op keeps the graph as a bitset (K^2 / 8 bytes; at most 32,768 correspondences); the reference
-builds dense matrices (for tests).
+onto ``tgt`` and the (K,) bool inlier mask, both on the inputs' device (no inliers when no fit
+has 3). Deterministic; not differentiable. The compiled op keeps the graph as a bitset (K^2 / 8
+bytes; at most 32,768 correspondences), on the CPU and, for CUDA tensors, on the GPU, where every
+step runs on the device (the graph, the seeds and each seed's fit are the CPU op's; the final
+refits sum in another order, so the transform may differ from the CPU's in its last bits); the
+reference builds dense matrices on the CPU (for tests).
 """
 from __future__ import annotations
 
@@ -144,12 +147,13 @@ def spatial_consistency(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, 
     (both in the points' unit); seeds: at most this many fits; consensus: neighbours per fit.
     """
     _validate(src, tgt, tolerance, inlier_threshold, seeds, consensus)
-    rows = torch.cat([src.detach(), tgt.detach()], 1).double().cpu()
+    rows = torch.cat([src.detach(), tgt.detach()], 1).double()
     first, inverse = _first_occurrences(rows)
     if len(first) == len(rows):
         return _fit(rows[:, :3], rows[:, 3:], backend, tolerance, inlier_threshold, seeds, consensus)
     if len(first) < 3:  # copies of one or two correspondences: no fit
-        return torch.eye(4, dtype=torch.float64), torch.zeros(len(rows), dtype=torch.bool)
+        return (torch.eye(4, dtype=torch.float64, device=rows.device),
+                torch.zeros(len(rows), dtype=torch.bool, device=rows.device))
     T, inliers = _fit(rows[first, :3], rows[first, 3:], backend, tolerance, inlier_threshold, seeds, consensus)
     return T, inliers[inverse]
 
@@ -159,21 +163,24 @@ def _first_occurrences(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     row, its distinct row's position in that list (K,)). Copies of a correspondence are one
     correspondence: counted as many, they would be each other's support and capture the fit."""
     _, inverse = torch.unique(rows, dim=0, return_inverse=True)
-    first = torch.full((int(inverse.max()) + 1,), len(rows), dtype=torch.long)
-    first.scatter_reduce_(0, inverse, torch.arange(len(rows)), reduce="amin")
+    indices = torch.arange(len(rows), device=rows.device)
+    first = torch.full((int(inverse.max()) + 1,), len(rows), dtype=torch.long, device=rows.device)
+    first.scatter_reduce_(0, inverse, indices, reduce="amin")
     order = torch.argsort(first)
     position = torch.empty_like(order)
-    position[order] = torch.arange(len(order))
+    position[order] = indices[:len(order)]
     return first[order], position[inverse]
 
 
 def _fit(p: torch.Tensor, q: torch.Tensor, backend: str, tolerance: float, inlier_threshold: float, seeds: int,
          consensus: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The op on distinct correspondences p, q (K, 3) float64."""
-    if use_extension(backend, torch.device("cpu")):  # a CPU op: once per registration
+    """The op on distinct correspondences p, q (K, 3) float64, on their device."""
+    if use_extension(backend, p.device):
         return torch.ops.vrnet_ext.spatial_consistency(p.contiguous(), q.contiguous(), float(tolerance),
                                                        float(inlier_threshold), int(seeds), int(consensus))
-    return spatial_consistency_reference(p, q, float(tolerance), float(inlier_threshold), int(seeds), int(consensus))
+    T, inliers = spatial_consistency_reference(p, q, float(tolerance), float(inlier_threshold), int(seeds),
+                                               int(consensus))
+    return T.to(p.device), inliers.to(p.device)
 
 
 if has_extension():
