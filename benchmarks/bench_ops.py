@@ -362,6 +362,7 @@ def cuda_cases() -> list[Case]:
         _soft_match_case(28, 768, 512, 515),
         _soft_match_case(1, 16384, 32, 35),  # four blocks of query rows: the recomputing backward
         _soft_match_case(1, 50000, 32, 35, backward=False, skip_torch="the reference needs ~20 GB (50k x 50k)"),
+        _voxel_downsample_case(0.02),
         _spatial_consistency_case(1000, host_column=True),
         _spatial_consistency_case(5000, 0.95, skip_torch="the dense reference takes ~20 s per call", host_column=True),
     ]

@@ -376,6 +376,29 @@ def test_edge_norm_max(dtype, running, B, O, N, k):
                     1e-5, 0.2) == (None, None)
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("N,voxel_size", [(1, 0.1), (500, 0.05), (3000, 0.3), (200, 1e-7)])
+def test_voxel_downsample(dtype, N, voxel_size):
+    """Bit for bit the CPU kernel's: packed cell keys, and (edge 1e-7: cells past 2^21) one sort per
+    axis; duplicate points, a point on a cell border, an offset far from the origin."""
+    points = torch.rand(N, 3, dtype=dtype) * 2 + 1e3
+    if N > 10:
+        points[5] = points[3]
+        points[7, 0] = points[8, 0] + voxel_size
+    assert_same("voxel_downsample", points, voxel_size, exact=True)
+    assert_same("voxel_downsample", non_contiguous(points), voxel_size, exact=True)
+
+
+def test_voxel_downsample_bad_input_same_errors():
+    points = torch.rand(50, 3, dtype=torch.float64)
+    bad = points.clone()
+    bad[7, 2] = math.inf
+    assert run_both("voxel_downsample", bad, 0.1) == (None, None)
+    assert run_both("voxel_downsample", points * 1e10, 1e-300) == (None, None)  # more than 2^62 cells
+    assert run_both("voxel_downsample", points, 0.0) == (None, None)
+    assert run_both("voxel_downsample", points[:, :2], 0.1) == (None, None)
+
+
 @pytest.mark.parametrize("K,ratio,seeds,consensus", [(3, 0.0, 5, 2), (64, 0.5, 5, 2), (130, 0.8, 20, 10),
                                                      (300, 0.9, 40, 30), (90, 0.3, 200, 500)])
 @pytest.mark.parametrize("tolerance", [0.03, 0.012])  # the graph in float32; in float64 (extent > 128 tolerances)

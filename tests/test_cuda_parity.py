@@ -181,3 +181,13 @@ def test_spatial_consistency_matches_cpu(K, ratio, tolerance):
     T, mask = torch.ops.vrnet_ext.spatial_consistency(p.cuda(), q.cuda(), tolerance, 0.03, 100, 30)
     assert torch.equal(mask.cpu(), mask_cpu)
     torch.testing.assert_close(T.cpu(), T_cpu, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("voxel_size", [0.02, 1e-7])  # packed cell keys; one sort per axis
+def test_voxel_downsample_identical_to_cpu(dtype, voxel_size):
+    from vrnet_ext.data.procedural import room_scan
+
+    points = torch.as_tensor(room_scan(50_000, 0)).to(dtype)
+    cpu = torch.ops.vrnet_ext.voxel_downsample(points, voxel_size)
+    assert torch.equal(torch.ops.vrnet_ext.voxel_downsample(points.cuda(), voxel_size).cpu(), cpu)

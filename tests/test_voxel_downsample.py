@@ -25,11 +25,14 @@ def brute_force(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
 @requires_ext
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("N,voxel_size", [(1, 0.1), (2, 10.0), (97, 0.05), (1000, 0.013), (5000, 1e-4), (3000, 7.0)])
-def test_kernel_matches_reference_and_brute_force(dtype, N, voxel_size):
+def test_kernel_matches_reference_and_brute_force(dtype, N, voxel_size, device):
+    """The CPU and the CUDA kernel give the CPU reference's values bit for bit."""
     g = torch.Generator().manual_seed(N)
-    points = (torch.rand(N, 3, generator=g, dtype=torch.float64) * torch.tensor([3.0, 0.5, 1.0]) - 1.7).to(dtype)
-    ext = ops.voxel_downsample(points, voxel_size)
-    assert ext.dtype == dtype
+    points = (torch.rand(N, 3, generator=g, dtype=torch.float64, device="cpu")
+              * torch.tensor([3.0, 0.5, 1.0], device="cpu") - 1.7).to(dtype)
+    ext = ops.voxel_downsample(points.to(device), voxel_size)
+    assert ext.dtype == dtype and ext.device.type == device.type
+    ext = ext.cpu()
     torch.testing.assert_close(ext, voxel_downsample_reference(points, voxel_size), rtol=0, atol=0)
     torch.testing.assert_close(ext.double(), brute_force(points, voxel_size), rtol=0,
                                atol=1e-12 if dtype == torch.float64 else 1e-6)
@@ -48,7 +51,7 @@ def test_awkward_layouts_duplicates_and_cell_borders():
 
 
 @pytest.mark.parametrize("backend", ["ext", "torch"])
-def test_bad_input(backend):
+def test_bad_input(backend, device):
     points = torch.rand(50, 3)
     cases = [((points[:0], 0.1), ValueError, "at least one point"), ((points[:, :2], 0.1), ValueError, "points"),
              ((points.long(), 0.1), TypeError, "points"), ((points, 0.0), ValueError, "voxel_size"),

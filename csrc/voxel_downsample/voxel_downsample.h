@@ -1,5 +1,4 @@
-// Argument checks of the voxel_downsample op (CPU kernel; no CUDA kernel: the Python op falls back
-// to its reference there).
+// Argument checks and limits of the voxel_downsample op, shared by its CPU and CUDA kernels.
 #pragma once
 
 #include <cmath>
@@ -7,6 +6,8 @@
 #include "common/common.h"
 
 namespace vrnet {
+
+constexpr double kMaxCell = 4611686018427387904.0;  // 2^62: cell coordinates must stay below it
 
 // points (N, 3) float with N >= 1; voxel_size finite and > 0.
 inline void check_voxel_downsample_inputs(const at::Tensor& points, double voxel_size) {

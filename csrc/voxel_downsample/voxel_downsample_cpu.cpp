@@ -17,8 +17,6 @@
 namespace vrnet {
 namespace {
 
-constexpr double kMaxCell = 4611686018427387904.0;  // 2^62: cell coordinates must stay below it
-
 inline uint64_t mix(uint64_t h) {  // splitmix64's finaliser
   h ^= h >> 30;
   h *= 0xbf58476d1ce4e5b9ULL;
