@@ -349,6 +349,7 @@ def cuda_cases() -> list[Case]:
     return [
         _knn_case(8, 16384, 3, 20),
         _knn_case(1, 100000, 3, 20, skip_torch="the reference needs ~80 GB (two 100k x 100k matrices)"),
+        _knn_case(1, 50000, 3, 1),  # an ICP iteration's correspondences
         _knn_case(28, 1024, 64, 20),
         _knn_case(8, 4096, 64, 20),
         _graph_case("edge_features", lambda x, i, b: ops.edge_features(x, i, backend=b), 28, 64, 1024, 20),

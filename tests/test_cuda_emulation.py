@@ -182,6 +182,23 @@ def test_knn_far_from_origin_and_ties(C):
     assert_same("knn", non_contiguous(torch.randn(2, 33, C)), torch.randn(2, 45, C), 5, False, exact=True)
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_knn_grid(dtype):
+    """Reference clouds of 8,192 points or more go through the grid (the CPU's layout): a scan with
+    duplicated points (ties), far strays kept apart from the grid, queries inside, beside and far
+    outside it, k from 1 to 64, and a batch of two clouds searching themselves."""
+    from vrnet_ext.data.procedural import room_scan
+
+    ref = torch.as_tensor(room_scan(9000, 0)).to(dtype)
+    ref[100:110] = ref[:10]                                               # exact ties
+    ref[200:205] = torch.tensor([[1e4, 0, 0], [0, -3e3, 5], [40, 40, 40], [-7, 2e3, 1], [0, 0, 9e3]], dtype=dtype)
+    query = torch.cat([ref[::40] + 0.01, torch.tensor([[50.0, 50, 50], [1e4, 1, 1], [-30, 0, 2]], dtype=dtype)])
+    for k in (1, 20, 64):
+        assert_same("knn", query[None], ref[None], k, False, exact=True)
+    pair = torch.stack([ref, ref.flip(0) * 1.5])
+    assert_same("knn", pair, pair, 8, True, exact=True)
+
+
 def test_knn_bad_input_same_errors():
     q = torch.randn(1, 10, 3)
     assert run_both("knn", q, q, 11, False) == (None, None)

@@ -41,7 +41,8 @@ def assert_parity(fn, *inputs, exact_outputs=False):
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
-@pytest.mark.parametrize("B,N,M,k", [(1, 1, 1, 1), (2, 301, 257, 20), (1, 700, 650, 64), (3, 97, 130, 129)])
+@pytest.mark.parametrize("B,N,M,k", [(1, 1, 1, 1), (2, 301, 257, 20), (1, 700, 650, 64), (3, 97, 130, 129),
+                                     (2, 9000, 8192, 1), (1, 20000, 50000, 20)])  # the last two: the grid
 def test_knn_3d_identical_to_cpu(dtype, B, N, M, k):
     """C = 3 uses exact differences on both devices: same distances and indices, bit for bit."""
     query, ref = torch.randn(B, N, 3, dtype=dtype), torch.randn(B, M, 3, dtype=dtype)

@@ -20,6 +20,7 @@
 
 #include "common/common.h"
 #include "common/cpu_dispatch.h"
+#include "knn/grid.h"
 #include "knn/knn.h"
 
 namespace vrnet {
@@ -38,48 +39,38 @@ const std::vector<std::array<int64_t, 3>> kNeighbourOffsets = [] {
 
 // Grid over one reference cloud: points sorted by cell (counting sort) with cell offsets.
 template <typename scalar_t>
-struct Grid {
-  std::array<double, 3> lo{};
-  double cell = 1.0;
-  std::array<int64_t, 3> dims{1, 1, 1};
+struct Grid : GridShape {
   std::vector<int64_t> start;      // (cells + 1) offsets into the sorted arrays
   std::vector<int64_t> order;      // original index of each sorted point (far strays last)
   std::vector<scalar_t> xyz;       // sorted coordinates, 3 per point
   int64_t far_begin = 0;           // order[far_begin:] are the points outside the grid
 
-  int64_t cell_coord(double v, int a) const {
-    const int64_t c = static_cast<int64_t>(std::floor((v - lo[a]) / cell));
-    return std::min(std::max<int64_t>(c, 0), dims[a] - 1);
-  }
-  int64_t cell_id(int64_t cx, int64_t cy, int64_t cz) const { return (cz * dims[1] + cy) * dims[0] + cx; }
-
-  // The box holding every point but far strays: per axis, the 0.1 % and 99.9 % quantiles widened by
-  // half their distance on both sides (the whole bounding box for clouds of under 1,000 points).
-  // One point 100 km away must not stretch the cells over 100 km (a quadratic search).
+  // The box holding every point but far strays (RobustRanks). One point 100 km away must not
+  // stretch the cells over 100 km (a quadratic search).
   static std::array<std::array<double, 2>, 3> robust_box(const scalar_t* pts, int64_t m) {
     std::array<std::array<double, 2>, 3> box;
     std::vector<double> values(m);
+    const RobustRanks ranks(m);
     for (int a = 0; a < 3; ++a) {
       for (int64_t i = 0; i < m; ++i) values[i] = pts[3 * i + a];
-      const int64_t low = m < 1000 ? 0 : m / 1000, high = m < 1000 ? m - 1 : m - 1 - m / 1000;
-      std::nth_element(values.begin(), values.begin() + low, values.end());
-      const double q_low = values[low];
-      std::nth_element(values.begin(), values.begin() + high, values.end());
-      const double q_high = values[high];
-      const double margin = m < 1000 ? 0.0 : 0.5 * (q_high - q_low);
+      std::nth_element(values.begin(), values.begin() + ranks.low, values.end());
+      const double q_low = values[ranks.low];
+      std::nth_element(values.begin(), values.begin() + ranks.high, values.end());
+      const double q_high = values[ranks.high];
+      const double margin = ranks.widen ? 0.5 * (q_high - q_low) : 0.0;
       box[a] = {q_low - margin, q_high + margin};
     }
     return box;
   }
 
-  // Chooses the finest grid (up to 1024 cells per axis) with at most ~2 cells per point, over the
-  // points inside robust_box; the others (far strays) are kept apart and scanned by every search.
+  // The grid (GridShape::fit) over the points inside robust_box; the others (far strays) are kept
+  // apart and scanned by every search.
   void build(const scalar_t* pts, int64_t m) {
     const auto box = robust_box(pts, m);
     std::vector<char> inside(m);
     int64_t inliers = 0;
-    std::array<double, 3> hi{};
-    for (int a = 0; a < 3; ++a) { lo[a] = box[a][1]; hi[a] = box[a][0]; }
+    double low[3], high[3];
+    for (int a = 0; a < 3; ++a) { low[a] = box[a][1]; high[a] = box[a][0]; }
     for (int64_t i = 0; i < m; ++i) {
       bool in = true;
       for (int a = 0; a < 3; ++a) in &= pts[3 * i + a] >= box[a][0] && pts[3 * i + a] <= box[a][1];
@@ -87,36 +78,20 @@ struct Grid {
       if (!in) continue;
       ++inliers;
       for (int a = 0; a < 3; ++a) {
-        lo[a] = std::min(lo[a], static_cast<double>(pts[3 * i + a]));
-        hi[a] = std::max(hi[a], static_cast<double>(pts[3 * i + a]));
+        low[a] = std::min(low[a], static_cast<double>(pts[3 * i + a]));
+        high[a] = std::max(high[a], static_cast<double>(pts[3 * i + a]));
       }
     }
-    if (inliers == 0)
-      for (int a = 0; a < 3; ++a) lo[a] = hi[a] = 0.0;
-    double extent_max = 0.0;
-    for (int a = 0; a < 3; ++a) extent_max = std::max(extent_max, hi[a] - lo[a]);
-    if (!(extent_max > 0.0)) extent_max = 1.0;
-    const double budget = 2.0 * static_cast<double>(inliers) + 1.0;
-    int64_t best = 1;
-    for (int64_t lo_d = 1, hi_d = 1024; lo_d <= hi_d;) {  // largest divisions within budget
-      const int64_t d = (lo_d + hi_d) / 2;
-      double total = 1.0;
-      for (int a = 0; a < 3; ++a)
-        total *= std::max(1.0, std::ceil((hi[a] - lo[a]) / (extent_max / d)));
-      if (total <= budget) { best = d; lo_d = d + 1; } else { hi_d = d - 1; }
-    }
-    cell = extent_max / best * (1.0 + 1e-9);
-    for (int a = 0; a < 3; ++a)
-      dims[a] = std::max<int64_t>(1, static_cast<int64_t>(std::ceil((hi[a] - lo[a]) / cell)));
-    const int64_t cells = dims[0] * dims[1] * dims[2];
+    static_cast<GridShape&>(*this) = GridShape::fit(low, high, inliers);
+    const int64_t cell_count = cells();
     std::vector<int64_t> cid(m);
-    start.assign(cells + 1, 0);
+    start.assign(cell_count + 1, 0);
     for (int64_t i = 0; i < m; ++i) {
       if (!inside[i]) continue;
       cid[i] = cell_id(cell_coord(pts[3 * i], 0), cell_coord(pts[3 * i + 1], 1), cell_coord(pts[3 * i + 2], 2));
       ++start[cid[i] + 1];
     }
-    for (int64_t c = 0; c < cells; ++c) start[c + 1] += start[c];
+    for (int64_t c = 0; c < cell_count; ++c) start[c + 1] += start[c];
     std::vector<int64_t> fill(start.begin(), start.end() - 1);
     order.resize(m);
     xyz.resize(3 * m);
@@ -137,18 +112,6 @@ struct Grid {
     top.push(dx * dx + dy * dy + dz * dz, j);
   }
 
-  // Squared distance from q to the box of cell (x, y, z) (0 inside it).
-  double cell_distance_sq(const scalar_t* q, int64_t x, int64_t y, int64_t z) const {
-    const int64_t cell_xyz[3] = {x, y, z};
-    double total = 0;
-    for (int a = 0; a < 3; ++a) {
-      const double low = lo[a] + cell_xyz[a] * cell;
-      const double gap = std::max({0.0, low - q[a], q[a] - (low + cell)});
-      total += gap * gap;
-    }
-    return total;
-  }
-
   // Exact kNN of one query by visiting cube shells of cells around the query's cell until no
   // unvisited cell can hold a point closer than the current k-th candidate. A cell whose box lies
   // farther than the current k-th candidate is skipped, and the 26 neighbours of the query's cell
@@ -158,11 +121,10 @@ struct Grid {
   void search(const scalar_t* q, int64_t self, TopK<scalar_t>& top, std::vector<std::pair<double, int64_t>>& shell) const {
     for (int64_t p = far_begin; p < static_cast<int64_t>(order.size()); ++p) push(q, p, self, top);
     const int64_t c[3] = {cell_coord(q[0], 0), cell_coord(q[1], 1), cell_coord(q[2], 2)};
-    double outside_sq[3], outside_sq_total = 0;  // squared distance from q to the grid's extent, per axis
+    double outside[3], outside_total = 0;  // squared distance from q to the grid's extent, per axis
     for (int a = 0; a < 3; ++a) {
-      const double gap = std::max({0.0, lo[a] - q[a], q[a] - (lo[a] + dims[a] * cell)});
-      outside_sq[a] = gap * gap;
-      outside_sq_total += outside_sq[a];
+      outside[a] = outside_sq(q, a);
+      outside_total += outside[a];
     }
     for (int64_t r = 0;; ++r) {
       const int64_t z0 = std::max<int64_t>(c[2] - r, 0), z1 = std::min(c[2] + r, dims[2] - 1);
@@ -201,7 +163,7 @@ struct Grid {
       double bound_sq = std::numeric_limits<double>::infinity();
       bool more = false;
       for (int a = 0; a < 3; ++a) {
-        const double others_sq = outside_sq_total - outside_sq[a];
+        const double others_sq = outside_total - outside[a];
         if (c[a] - r > 0) {
           more = true;
           const double gap = std::max(0.0, q[a] - (lo[a] + (c[a] - r) * cell));

@@ -1,12 +1,17 @@
-// Torch glue of the CUDA kNN op (kernels: knn_kernels.cuh). C = 3, and rows of up to 128 floats
-// (64 doubles) with k <= 32: the tiled exact scan. Larger C or k:
+// Torch glue of the CUDA kNN op (kernels: knn_kernels.cuh). C = 3 with at least kGridMinRef
+// reference points: the CPU's uniform grid (its box and edge read once per cloud: one host
+// synchronisation), the points sorted by cell on the device, one thread per query searching it.
+// Smaller C = 3 clouds, and rows of up to 128 floats (64 doubles) with k <= 32: the tiled exact scan. Larger C or k:
 // cuBLAS dot products of the clouds centred on the reference mean, over bounded chunks (never the
 // N x M matrix), merged into per-query candidate buffers, then re-ranked by exact distance with an
 // exhaustive scan where the rounding of the expanded formula could matter (the CPU's definition).
 // k > 64: bounded chunks of query rows, exact distances sorted (stable). Same results and
 // tie-breaking (ascending distance, then lower index) as the CPU kernel.
+#include <ATen/ops/amax.h>
+#include <ATen/ops/amin.h>
 #include <ATen/ops/bmm.h>
 #include <ATen/ops/empty.h>
+#include <ATen/ops/where.h>
 #include <ATen/ops/sub.h>
 #include <ATen/ops/zeros_like.h>
 #include <torch/library.h>
@@ -60,6 +65,45 @@ void knn_by_sorting(const at::Tensor& query, const at::Tensor& ref, int64_t k, b
     dist.narrow(1, q0, count).copy_(sorted.narrow(-1, 0, k));
     idx.narrow(1, q0, count).copy_(order.narrow(-1, 0, k));
   }
+}
+
+constexpr int64_t kGridMinRef = 8192;  // C = 3 reference clouds of this size or more: the grid search
+
+// One cloud (query (N, 3), ref (M, 3)) through the grid of knn/grid.h, laid out as the CPU lays it
+// out: the robust box from the reference's quantiles (in double), the grid over the points inside
+// it, the points sorted by cell (stable: as the CPU's counting sort), the far strays last.
+template <typename scalar_t>
+void knn_grid_one(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self, at::Tensor dist,
+                  at::Tensor idx) {
+  const int64_t N = query.size(0), M = ref.size(0);
+  const at::Tensor points = ref.to(at::kDouble);
+  const RobustRanks ranks(M);
+  at::Tensor box_low, box_high;
+  if (ranks.widen) {
+    const at::Tensor sorted = std::get<0>(points.sort(/*dim=*/0, /*descending=*/false));
+    const at::Tensor q_low = sorted.select(0, ranks.low), q_high = sorted.select(0, ranks.high);
+    const at::Tensor margin = q_high.sub(q_low).mul(0.5);
+    box_low = q_low.sub(margin), box_high = q_high.add(margin);
+  } else {
+    box_low = at::amin(points, 0), box_high = at::amax(points, 0);
+  }
+  const at::Tensor inside = points.ge(box_low).logical_and(points.le(box_high)).all(1).contiguous();
+  const at::Tensor column = inside.unsqueeze(1);
+  const double inf = std::numeric_limits<double>::infinity();
+  const at::Tensor fetched = at::cat({at::where(column, points, inf).amin(0), at::where(column, points, -inf).amax(0),
+                                      inside.sum().to(at::kDouble).reshape({1})}).cpu();
+  const double* host = fetched.const_data_ptr<double>();
+  const int64_t inliers = static_cast<int64_t>(host[6]);
+  const GridShape grid = GridShape::fit(host, host + 3, inliers);
+  at::Tensor cell = at::empty({M}, ref.options().dtype(at::kLong));
+  launch<knn_grid_cells_kernel<scalar_t>>(per_item(M), ref, inside, M, grid, cell);
+  const auto [sorted_cell, order] = cell.sort(/*stable=*/true, /*dim=*/0, /*descending=*/false);
+  const at::Tensor start = at::searchsorted(sorted_cell, at::arange(grid.cells() + 1, cell.options())).contiguous();
+  const at::Tensor xyz = ref.index_select(0, order).contiguous();
+  dispatch_kmax(k, [&](auto kmax) {
+    launch<knn_grid_kernel<scalar_t, decltype(kmax)::value>>(per_item(N), query, xyz, order.contiguous(), start,
+                                                             inliers, grid, N, M, k, exclude_self, dist, idx);
+  });
 }
 
 constexpr int64_t kTiledMaxK = 32;          // knn_tiled_kernel: register buffers up to 32 slots ...
@@ -137,7 +181,11 @@ std::tuple<at::Tensor, at::Tensor> knn_cuda(const at::Tensor& query_in, const at
     return {dist, idx};
   }
   AT_DISPATCH_FLOATING_TYPES(query.scalar_type(), "knn_cuda", [&] {
-    if (C == 3) {
+    if (C == 3 && M >= kGridMinRef) {
+      for (int64_t b = 0; b < B; ++b)
+        knn_grid_one<scalar_t>(query.select(0, b), ref.select(0, b), k, exclude_self, dist.select(0, b),
+                               idx.select(0, b));
+    } else if (C == 3) {
       dispatch_kmax(k, [&](auto kmax) {
         launch<knn3_kernel<scalar_t, decltype(kmax)::value>>(per_query(N, B), query, ref, N, M, k, exclude_self, dist,
                                                              idx);

@@ -4,13 +4,16 @@
 // 128 float (64 double) values and k <= 32. Larger rows, as the CPU's GEMM-tiled search: knn_chunk_kernel
 // merges chunks of dot products of the centred clouds into per-query candidate buffers,
 // knn_rerank_kernel re-ranks them by exact distance, and knn_exact_rows_kernel scans exhaustively
-// the rows where the approximation could have dropped a true neighbour. The backward kernels gather
-// per output (the reference side through the inverse graph), so they are deterministic.
+// the rows where the approximation could have dropped a true neighbour. For large 3-D reference
+// clouds, knn_grid_kernel searches the CPU's uniform grid (knn/grid.h; the points sorted by cell by
+// the glue) instead of scanning every point. The backward kernels gather per output (the reference
+// side through the inverse graph), so they are deterministic.
 #pragma once
 
 #include <limits>
 
 #include "common/cuda_device.cuh"
+#include "knn/grid.h"
 #include "knn/topk.h"
 
 namespace vrnet {
@@ -68,6 +71,83 @@ __global__ void knn3_kernel(const scalar_t* __restrict__ query, const scalar_t* 
     }
   }
   if (active) knn_store(top, k, dist_out + (b * N + n) * k, idx_out + (b * N + n) * k);
+}
+
+// The cell of each reference point (cells(): a far stray, outside the grid's box).
+template <typename scalar_t>
+__global__ void knn_grid_cells_kernel(const scalar_t* __restrict__ ref, const bool* __restrict__ inside, int64_t M,
+                                      GridShape grid, int64_t* __restrict__ cell) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= M) return;
+  const scalar_t* p = ref + 3 * i;
+  cell[i] = inside[i] ? grid.cell_id(grid.cell_coord(p[0], 0), grid.cell_coord(p[1], 1), grid.cell_coord(p[2], 2))
+                      : grid.cells();
+}
+
+// One thread per query, the CPU's grid search (knn_cpu.cpp, Grid::search): the far strays, then
+// cube shells of cells around the query's cell, a cell skipped when its box lies beyond the buffer's
+// worst candidate, until no unvisited cell can hold a closer point. xyz, order: the reference
+// points sorted by cell and their original indices; start (cells + 1): each cell's first sorted
+// point; the far strays from far_begin on.
+template <typename scalar_t, int KMAX>
+__global__ void knn_grid_kernel(const scalar_t* __restrict__ query, const scalar_t* __restrict__ xyz,
+                                const int64_t* __restrict__ order, const int64_t* __restrict__ start,
+                                int64_t far_begin, GridShape grid, int64_t N, int64_t M, int64_t k, bool exclude_self,
+                                scalar_t* __restrict__ dist_out, int64_t* __restrict__ idx_out) {
+  const int64_t n = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (n >= N) return;
+  const scalar_t* q = query + 3 * n;
+  const int64_t self = exclude_self ? n : -1;
+  RegisterTopK<scalar_t, KMAX> top;
+  top.reset(static_cast<int32_t>(M));
+  const auto offer = [&](int64_t from, int64_t to) {
+    for (int64_t p = from; p < to; ++p)
+      if (order[p] != self) top.push(knn_sq_dist3(q[0], q[1], q[2], xyz + 3 * p), static_cast<int32_t>(order[p]));
+  };
+  offer(far_begin, M);
+  const int64_t c[3] = {grid.cell_coord(q[0], 0), grid.cell_coord(q[1], 1), grid.cell_coord(q[2], 2)};
+  double outside[3], outside_total = 0;
+  for (int a = 0; a < 3; ++a) {
+    outside[a] = grid.outside_sq(q, a);
+    outside_total += outside[a];
+  }
+  for (int64_t r = 0;; ++r) {
+    const int64_t z0 = c[2] - r > 0 ? c[2] - r : 0, z1 = c[2] + r < grid.dims[2] - 1 ? c[2] + r : grid.dims[2] - 1;
+    const int64_t y0 = c[1] - r > 0 ? c[1] - r : 0, y1 = c[1] + r < grid.dims[1] - 1 ? c[1] + r : grid.dims[1] - 1;
+    const int64_t x0 = c[0] - r > 0 ? c[0] - r : 0, x1 = c[0] + r < grid.dims[0] - 1 ? c[0] + r : grid.dims[0] - 1;
+    for (int64_t z = z0; z <= z1; ++z) {
+      const bool z_shell = (z - c[2] == r) || (c[2] - z == r);
+      for (int64_t y = y0; y <= y1; ++y) {
+        const bool zy_shell = z_shell || (y - c[1] == r) || (c[1] - y == r);
+        const int64_t step = zy_shell || r == 0 ? 1 : 2 * r;  // interior rows: their two shell cells only
+        for (int64_t x = zy_shell ? x0 : c[0] - r; x <= x1; x += step) {
+          if (x < x0) continue;
+          const int64_t id = grid.cell_id(x, y, z);
+          if (start[id] == start[id + 1]) continue;
+          if (grid.cell_distance_sq(q, x, y, z) * (1.0 - 1e-5) > static_cast<double>(top.worst())) continue;
+          offer(start[id], start[id + 1]);
+        }
+      }
+    }
+    // A lower bound on the squared distance to any cell outside the visited box (as the CPU's).
+    double bound = INFINITY;
+    bool more = false;
+    for (int a = 0; a < 3; ++a) {
+      const double others = outside_total - outside[a], v = static_cast<double>(q[a]);
+      if (c[a] - r > 0) {
+        more = true;
+        const double gap = v - (grid.lo[a] + (c[a] - r) * grid.cell), kept = gap > 0.0 ? gap : 0.0;
+        bound = kept * kept + others < bound ? kept * kept + others : bound;
+      }
+      if (c[a] + r < grid.dims[a] - 1) {
+        more = true;
+        const double gap = grid.lo[a] + (c[a] + r + 1) * grid.cell - v, kept = gap > 0.0 ? gap : 0.0;
+        bound = kept * kept + others < bound ? kept * kept + others : bound;
+      }
+    }
+    if (!more || static_cast<double>(top.worst()) < bound * (1.0 - 1e-5)) break;
+  }
+  knn_store(top, k, dist_out + n * k, idx_out + n * k);
 }
 
 // Exact squared distance of two rows of C values: channel c into partial sum c % 8, one rounding per
