@@ -19,6 +19,7 @@ from vrnet_ext.registration import (IcpFailure, IcpSettings, ObjectNetwork, Poin
                                     transform_errors)
 from vrnet_ext.registration.refinement import TargetReach
 from vrnet_ext.geometry.transforms import apply, to_homogeneous
+from vrnet_ext.names import GLOBAL_ESTIMATORS
 
 
 def point_to_point(max_distance: float, **settings) -> IcpSettings:
@@ -577,3 +578,22 @@ def test_sparse_clouds_are_refined_at_their_spacing_and_a_finer_voxel_names_the_
     spacing = float(note.split("voxel_size=")[1])
     refined = register(src, tgt, method="icp", icp_settings=IcpSettings(voxel_size=spacing))
     assert refined.fitness > 0.5 and not [w for w in refined.warnings if w.startswith("low fitness")]
+
+
+@pytest.mark.parametrize("method", GLOBAL_ESTIMATORS)
+@pytest.mark.parametrize("budgeted", [False, True])
+def test_every_method_runs_on_each_device_with_and_without_a_budget(method, budgeted, device):
+    """register() with every built-in method, on the CPU and (with a GPU) on CUDA, with no budget and
+    with one (the process's own memory; on a GPU the host's), registers a room turned by 10 degrees;
+    a budget below what the process already holds is refused naming max_memory."""
+    from vrnet_ext.registration.budget import MB, MemoryBudgetError, resident_mb
+
+    src = room(6000)
+    truth = motion(10.0, [0.2, -0.1, 0.05])
+    budget = int((resident_mb() + 1500) * MB) if budgeted else None
+    result = register(src, apply(truth, src), method=method, device=device, max_memory=budget)
+    errors = transform_errors(result.T_target_source, truth)
+    assert errors["rotation_error_deg"] < 2.0 and errors["translation_error"] < 0.05, (method, errors)
+    if budgeted:
+        with pytest.raises(MemoryBudgetError, match="max_memory"):
+            register(src, apply(truth, src), method=method, device=device, max_memory=int(resident_mb() * MB) // 2)
