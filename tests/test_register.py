@@ -584,8 +584,9 @@ def test_sparse_clouds_are_refined_at_their_spacing_and_a_finer_voxel_names_the_
 @pytest.mark.parametrize("budgeted", [False, True])
 def test_every_method_runs_on_each_device_with_and_without_a_budget(method, budgeted, device):
     """register() with every built-in method, on the CPU and (with a GPU) on CUDA, with no budget and
-    with one (the process's own memory; on a GPU the host's), registers a room turned by 10 degrees;
-    a budget below what the process already holds is refused naming max_memory."""
+    with one (the process's own memory; on a GPU the host's), registers a room turned by 10 degrees,
+    the default twice with the same transform bit for bit; a budget below what the process already
+    holds is refused naming max_memory."""
     from vrnet_ext.registration.budget import MB, MemoryBudgetError, resident_mb
 
     src = room(6000)
@@ -594,6 +595,9 @@ def test_every_method_runs_on_each_device_with_and_without_a_budget(method, budg
     result = register(src, apply(truth, src), method=method, device=device, max_memory=budget)
     errors = transform_errors(result.T_target_source, truth)
     assert errors["rotation_error_deg"] < 2.0 and errors["translation_error"] < 0.05, (method, errors)
+    if method == "auto" and not budgeted:
+        again = register(src, apply(truth, src), method=method, device=device)
+        np.testing.assert_array_equal(again.T_target_source, result.T_target_source)
     if budgeted:
         with pytest.raises(MemoryBudgetError, match="max_memory"):
             register(src, apply(truth, src), method=method, device=device, max_memory=int(resident_mb() * MB) // 2)
