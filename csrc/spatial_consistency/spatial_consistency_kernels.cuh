@@ -115,9 +115,9 @@ __global__ void sc_seeds_kernel(const double* __restrict__ p, const int64_t* __r
       status = 1;
       for (int64_t s = 0; s < count && status; ++s)
         if (sc_distance(candidate, p + 3 * seeds[s]) < tolerance) status = 0;
-      for (int w = 0; w < kSeedChunkWords; ++w) {
+      for (int w = 0; w < kSeedChunkWords; ++w) {  // needed only by a candidate that may be chosen
         uint64_t bits = 0;
-        for (int l = 0; l < 64; ++l) {
+        for (int l = 0; l < 64 && status; ++l) {
           const int u = 64 * w + l;
           if (u < t && sc_distance(candidate, p + 3 * order[base + u]) < tolerance) bits |= uint64_t{1} << l;
         }
