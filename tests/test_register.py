@@ -8,7 +8,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from conftest import DATA_DIR, MODELNET_DIR, help_defaults_are_clean, requires_modelnet
+from conftest import DATA_DIR, MODELNET_DIR, help_defaults_are_clean, requires_cuda_kernels, requires_modelnet
 from synthetic import motion, room
 from vrnet_ext import ops
 from vrnet_ext.cli import main
@@ -601,3 +601,70 @@ def test_every_method_runs_on_each_device_with_and_without_a_budget(method, budg
     if budgeted:
         with pytest.raises(MemoryBudgetError, match="max_memory"):
             register(src, apply(truth, src), method=method, device=device, max_memory=int(resident_mb() * MB) // 2)
+
+
+def test_a_gpu_budget_plans_the_gpu_and_moves_whole_scans_to_the_host(monkeypatch):
+    """On a CUDA device the plan counts what the process holds there and the GPU's cost of whole
+    scans: with room, all on the GPU; with room for the downsampled stages only, the whole scans'
+    steps on the host (said in a note); with room for neither, refused at once naming the device."""
+    from vrnet_ext.registration import budget
+    from vrnet_ext.registration.global_estimators import SpatialConsistency
+
+    cuda = torch.device("cuda")
+    monkeypatch.setattr(budget, "held_mb", lambda device=None: 100.0 if budget.on_gpu(device) else 5000.0)
+    scans = (10_000_000, 8_000_000)
+    whole_mb = budget.GPU_SCAN_BYTES_PER_POINT * scans[0] / budget.MB
+    roomy = budget.plan_registration(int((whole_mb + 200) * budget.MB), SpatialConsistency(), *scans, PointCounts(),
+                                     cuda)
+    assert roomy.scans_on_device and roomy.counts == PointCounts() and not roomy.notes
+    assert roomy.predicted_peak_mb == pytest.approx(100.0 + budget.MARGIN_MB + whole_mb)
+    downsampled_mb = budget.predicted_peak_mb(SpatialConsistency(), scans, PointCounts(), 100.0, cuda, False)
+    assert downsampled_mb < 400 < whole_mb
+    tight = budget.plan_registration(400 * budget.MB, SpatialConsistency(), *scans, PointCounts(), cuda)
+    assert not tight.scans_on_device and tight.predicted_peak_mb == pytest.approx(downsampled_mb)
+    assert any("voxel-downsampled on the host" in note for note in tight.notes)
+    with pytest.raises(budget.MemoryBudgetError, match="max_memory 110 MB on cuda cannot be met"):
+        budget.plan_registration(110 * budget.MB, SpatialConsistency(), *scans, PointCounts(), cuda)
+    host = budget.plan_registration(8 * 2 ** 30, SpatialConsistency(), *scans, PointCounts())  # the CPU: as before
+    assert host.scans_on_device and host.predicted_peak_mb > 5000.0
+
+
+def test_the_gpu_cap_is_set_for_the_run_restored_after_and_turns_running_out_into_a_budget_error(monkeypatch):
+    from types import SimpleNamespace
+
+    from vrnet_ext.registration import budget
+
+    fractions = []
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda device: SimpleNamespace(total_memory=8 * 2 ** 30))
+    monkeypatch.setattr(torch.cuda, "get_per_process_memory_fraction", lambda device: 0.75)
+    monkeypatch.setattr(torch.cuda, "set_per_process_memory_fraction", lambda f, device: fractions.append(f))
+    monkeypatch.setattr(torch.cuda, "empty_cache", lambda: None)
+    with budget.device_memory_cap(torch.device("cuda"), 2 * 2 ** 30):
+        assert fractions == [0.25]
+    assert fractions == [0.25, 0.75]
+    with pytest.raises(budget.MemoryBudgetError, match="max_memory 2048 MB on cuda was reached"):
+        with budget.device_memory_cap(torch.device("cuda"), 2 * 2 ** 30):
+            raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 3.00 GiB")
+    assert fractions[-1] == 0.75
+    with budget.device_memory_cap(torch.device("cpu"), 2 * 2 ** 30), budget.device_memory_cap(None, None):
+        pass
+    assert len(fractions) == 4
+
+
+@requires_cuda_kernels
+def test_cuda_budget_bounds_the_gpu_peak():
+    """On the GPU, register() under max_memory stays within it (torch's peak allocation) or is
+    refused with MemoryBudgetError; whole scans too large for the budget are downsampled on the host."""
+    from vrnet_ext.registration.budget import MB, MemoryBudgetError
+
+    src = room(200_000)
+    truth = motion(10.0, [0.2, -0.1, 0.05])
+    for budget_mb in (2048, 64, 24):
+        torch.cuda.reset_peak_memory_stats()
+        try:
+            result = register(src, apply(truth, src), device="cuda", max_memory=budget_mb * MB)
+        except MemoryBudgetError as error:
+            assert "max_memory" in str(error)
+            continue
+        assert torch.cuda.max_memory_allocated() <= budget_mb * MB, budget_mb
+        assert transform_errors(result.T_target_source, truth)["rotation_error_deg"] < 2.0

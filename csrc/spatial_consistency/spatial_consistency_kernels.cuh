@@ -137,7 +137,8 @@ __global__ void sc_seeds_kernel(const double* __restrict__ p, const int64_t* __r
           over = true;
         } else if (usable[u] == 1) {
           bool near = false;
-          for (int w = 0; w < kSeedChunkWords; ++w) near = near || (near_earlier[u * kSeedChunkWords + w] & accepted[w]);
+          for (int w = 0; w < kSeedChunkWords; ++w)
+            near = near || (near_earlier[u * kSeedChunkWords + w] & accepted[w]);
           if (!near) {
             seeds[n++] = order[base + u];
             accepted[u >> 6] |= uint64_t{1} << (u & 63);
@@ -336,7 +337,8 @@ __global__ void sc_refine_kernel(const double* __restrict__ cols_d, const double
     int64_t chosen = -1, most = -1;
     for (int64_t s = 0; s < S; ++s)
       if (fit_ok[s] && counts[s] > most) chosen = s, most = counts[s];
-    for (int v = 0; v < kFitDoubles; ++v) best[v] = chosen >= 0 ? fits[chosen * kFitDoubles + v] : (v % 4 == 0 && v < 9);
+    for (int v = 0; v < kFitDoubles; ++v)  // no fit: the identity
+      best[v] = chosen >= 0 ? fits[chosen * kFitDoubles + v] : (v % 4 == 0 && v < 9);
     best_count[0] = most;
   }
   __syncthreads();

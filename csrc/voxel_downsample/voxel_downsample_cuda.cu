@@ -46,7 +46,8 @@ at::Tensor voxel_downsample_cuda(const at::Tensor& points_in, double voxel_size)
                                      at::amax(cells).reshape({1})}).cpu();
   const int64_t* host = checks.const_data_ptr<int64_t>();
   TORCH_CHECK_VALUE(host[0], "points contains NaN or Inf values");
-  TORCH_CHECK_VALUE(!host[1], "voxel_size ", voxel_size, " is too small for this cloud (more than 2^62 voxels along an axis)");
+  TORCH_CHECK_VALUE(!host[1], "voxel_size ", voxel_size,
+                    " is too small for this cloud (more than 2^62 voxels along an axis)");
   const at::Tensor order = cell_order(cells, host[2]).contiguous();
   at::Tensor first = at::empty({N}, points.options().dtype(at::kBool));
   launch<voxel_firsts_kernel>(per_item(N), cells, order, N, first);

@@ -56,8 +56,8 @@ def add_registration_options(p) -> None:
     p.add_argument("--fpfh-points", dest="global_points", type=positive_int, action=RenamedOption,
                    help=argparse.SUPPRESS)
     p.add_argument("--max-memory", type=memory_size, default=None,
-                   help="peak memory budget of the whole run, e.g. 2GB or 512MB: sizes the point counts "
-                        "and fails at once if the budget cannot be met")
+                   help="peak memory budget of the whole run, e.g. 2GB or 512MB (with --device cuda: of the "
+                        "GPU's memory): sizes the point counts and fails at once if the budget cannot be met")
     p.add_argument("--network-points", type=positive_int, default=PointCounts.network_points,
                    help="points per cloud fed to VRNet")
     p.add_argument("--icp-points", type=positive_int, default=PointCounts.icp_points,
@@ -174,7 +174,7 @@ def registration_arguments(args) -> dict:
     ``register()``'s default when no option names one)."""
     from vrnet_ext.registration import IcpSettings
 
-    if args.max_memory is not None:
+    if args.max_memory is not None and not str(args.device).startswith("cuda"):  # a GPU's: planned per run
         from vrnet_ext.registration.budget import require_headroom
 
         require_headroom(args.max_memory)

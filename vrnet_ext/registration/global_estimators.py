@@ -345,7 +345,8 @@ class Adaptive(GlobalEstimator):
         scans, kept, notes = (len(pair.src.points), len(pair.tgt.points)), {}, []
         for name in (self.members[1:] if names is None else names):
             member = self.member(name, pair.device)
-            peak = None if budget_bytes is None else predicted_peak_mb(member, scans, pair.counts)
+            peak = None if budget_bytes is None else predicted_peak_mb(member, scans, pair.counts, device=pair.device,
+                                                                       scans_on_device=pair.scans_on_device)
             if peak is not None and peak > budget_bytes / MB:
                 notes.append(f"{name} was not tried: it needs about {peak:.0f} MB, more than max_memory "
                              f"{budget_bytes / MB:.0f} MB")

@@ -15,7 +15,7 @@ from vrnet_ext.geometry.preprocessing import coarse_in_float32, voxel_size_for
 from vrnet_ext.geometry.transforms import in_shifted_frames
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
-from vrnet_ext.registration.budget import plan_registration
+from vrnet_ext.registration.budget import device_memory_cap, plan_registration
 from vrnet_ext.registration.global_estimators import GlobalEstimator, make_global_estimator
 from vrnet_ext.names import DEFAULT_METHOD
 from vrnet_ext.registration.counts import PointCounts
@@ -95,11 +95,13 @@ def register(src, tgt, *, method: str | GlobalEstimator | None = None,
     estimator's own). Every start shares one preparation of each scan (voxels, FPFH: a
     :class:`~vrnet_ext.registration.prepared.ScanPair`). If ICP finds no pairs within reach, the result
     is the initial estimate with a message in ``warnings``. max_memory: a budget in bytes for the
-    process's peak resident memory; the point counts are lowered to fit it
-    (:func:`vrnet_ext.registration.budget.plan_registration` with the estimator's own cost,
-    :meth:`GlobalEstimator.peak_mb`; notes in ``warnings``) or MemoryBudgetError says at once what would fit;
-    from then on the process gives the memory it frees back to the system
-    (:func:`vrnet_ext.registration.budget.return_freed_memory`, glibc's allocator setting).
+    process's peak resident memory (on a CUDA ``device``: for its peak on that GPU); the point counts
+    are lowered to fit it (:func:`vrnet_ext.registration.budget.plan_registration` with the estimator's
+    own cost, :meth:`GlobalEstimator.peak_mb`; on a GPU the whole scans' steps run on the host where
+    they would not fit; notes in ``warnings``) or MemoryBudgetError says at once what would fit; on
+    the CPU, from then on the process gives the memory it frees back to the system
+    (:func:`vrnet_ext.registration.budget.return_freed_memory`, glibc's allocator setting); on a GPU
+    its allocator is capped at the budget for the run (:func:`~vrnet_ext.registration.budget.device_memory_cap`).
     """
     _require_icp_settings(icp_settings)
     src, tgt = as_points(src, "src"), as_points(tgt, "tgt")
@@ -169,11 +171,13 @@ def _far_from_origin(src: np.ndarray, tgt: np.ndarray) -> bool:
 
 def _register_centred(src: np.ndarray, tgt: np.ndarray, run: RegistrationRun) -> RegistrationResult:
     """:func:`register` on clouds near enough to the origin for float32."""
-    counts, warnings = run.counts, []
+    counts, warnings, scan_device = run.counts, [], run.device
     if run.max_memory is not None:
-        plan = plan_registration(run.max_memory, run.estimator, len(src), len(tgt), counts)
+        plan = plan_registration(run.max_memory, run.estimator, len(src), len(tgt), counts, run.device)
         counts, warnings = plan.counts, list(plan.notes)
-    result = register_prepared(ScanPair.of(src, tgt, counts, run.device), run)
+        scan_device = run.device if plan.scans_on_device else torch.device("cpu")
+    with device_memory_cap(run.device, run.max_memory):
+        result = register_prepared(ScanPair.of(src, tgt, counts, run.device, scan_device), run)
     result.warnings = warnings + result.warnings
     return result
 

@@ -21,22 +21,25 @@ CPU = torch.device("cpu")
 @dataclass
 class PreparedScan:
     """One scan, ``points`` (N, 3) float64 in its unit, with what the stages of a registration made
-    of it on ``device``, each made on first use and then reused."""
+    of it on ``device``, each made on first use and then reused. ``scan_device``: where the steps
+    that read the whole scan run (voxel-edge searches, downsampling; None: ``device``), the host
+    when a GPU's memory budget leaves no room for them."""
 
     points: np.ndarray
     device: torch.device = CPU
+    scan_device: torch.device | None = None
     _downsampled: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
     _views: dict[float, ScanView] = field(default_factory=dict, repr=False)
 
     def on_device(self) -> torch.Tensor:
-        """``points`` as a tensor on ``device``, where voxel edges are searched and voxels averaged: on
-        the CPU the array's own memory, elsewhere a copy made for the call and not kept (a scene's
+        """``points`` as a tensor on ``scan_device``, where voxel edges are searched and voxels averaged:
+        on the CPU the array's own memory, elsewhere a copy made for the call and not kept (a scene's
         scans would otherwise all stay on the GPU at full resolution)."""
-        return torch.as_tensor(self.points, device=self.device)
+        return torch.as_tensor(self.points, device=self.scan_device or self.device)
 
     def downsampled(self, voxel: float) -> np.ndarray:
         """(V, 3) float64: the centroid of the points in each ``voxel``-edged cell (computed on
-        ``device``)."""
+        ``scan_device``)."""
         if voxel not in self._downsampled:
             self._downsampled[voxel] = ops.voxel_downsample(self.on_device(), voxel).cpu().numpy()
         return self._downsampled[voxel]
@@ -61,14 +64,20 @@ class ScanPair:
 
     @classmethod
     def of(cls, src: np.ndarray, tgt: np.ndarray, counts: PointCounts = PointCounts(),
-           device: torch.device = CPU) -> "ScanPair":
-        """src (N, 3), tgt (M, 3) arrays -> a pair prepared on ``device``."""
-        return cls(PreparedScan(np.asarray(src, dtype=np.float64), device),
-                   PreparedScan(np.asarray(tgt, dtype=np.float64), device), counts)
+           device: torch.device = CPU, scan_device: torch.device | None = None) -> "ScanPair":
+        """src (N, 3), tgt (M, 3) arrays -> a pair prepared on ``device``, the whole scans' steps on
+        ``scan_device`` (None: ``device``)."""
+        return cls(PreparedScan(np.asarray(src, dtype=np.float64), device, scan_device),
+                   PreparedScan(np.asarray(tgt, dtype=np.float64), device, scan_device), counts)
 
     @property
     def device(self) -> torch.device:
         return self.tgt.device
+
+    @property
+    def scans_on_device(self) -> bool:
+        """Whether the steps that read whole scans run on :attr:`device`."""
+        return self.tgt.scan_device in (None, self.tgt.device)
 
     @cached_property
     def global_voxel(self) -> float:
