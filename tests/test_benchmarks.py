@@ -93,6 +93,15 @@ def test_bench_register_device_compares_with_the_cpu_in_the_same_run(tmp_path):
     assert "kitchen 4->0 | default" in (tmp_path / "device.md").read_text()
 
 
+def test_bench_device_budget_records_each_budget(tmp_path):
+    run([str(ROOT / "benchmarks" / "bench_device_budget.py"), "--points", "50000", "--budgets", "4GB", "1MB",
+         "--json", "budget.json", "--markdown", "budget.md"], tmp_path)
+    roomy, tiny = json.loads((tmp_path / "budget.json").read_text())["rows"]
+    assert roomy["outcome"] == "registered" and roomy["within"] and roomy["errors"]["rotation_error_deg"] < 1
+    assert tiny["outcome"] == "refused" and "max_memory 1 MB cannot be met" in tiny["message"] and tiny["within"] is None
+    assert "| 4096 | registered |" in (tmp_path / "budget.md").read_text()
+
+
 def test_bench_large_scene_and_bench_register_run_on_the_lidar_pair(tmp_path):
     run([str(ROOT / "benchmarks" / "bench_large_scene.py"), "--pairs", "LiDAR", "--methods", "fpfh", "--budgets", "2GB",
          "--skip-synthetic", "--memory-sizes", "1000", "--json", "large.json", "--markdown", "large.md"], tmp_path)
