@@ -72,6 +72,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "default_cross_check": "The default (`auto`) with its check by a second estimator, beside the methods it combines (`bench_default.py`)",
     "default_ambiguity": "The default (`auto`) with the ambiguity warning (a rival alignment's support), beside the methods it combines (`bench_default.py`)",
     "default_scans": "The default (`auto`) with voxel edges never finer than the scans' spacing, on object range scans too, beside the methods it combines (`bench_default.py`)",
+    "device_budget_cpu": "A 10-million-point pair under `max_memory` on the CPU (`bench_device_budget.py`)",
     "register_scene": "Many scans of one scene against ground-truth poses: `register-scene` and Open3D's multiway registration (`bench_register_scene.py`)",
     "scene_objectives": "How far the redkitchen fragments determine their ground-truth poses: three refinements of all poses, round by round (`scene_objectives.py --rounds 8`)",
     "icp_from_truth": "Where ICP goes when it starts from the official ground truth (`bench_icp_from_truth.py`)",
