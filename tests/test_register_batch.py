@@ -111,3 +111,11 @@ def test_two_torchrun_processes_merge_to_the_single_process_file(manifest, tmp_p
     drop = ("seconds",)
     assert [{k: v for k, v in r.items() if k not in drop} for r in records(sharded)] == \
         [{k: v for k, v in r.items() if k not in drop} for r in records(single)]
+
+
+def test_torchrun_ranks_take_their_own_gpu_or_share_them_in_turn():
+    from vrnet_ext.cli.batch import rank_device
+
+    assert [rank_device("cuda", rank, 2) for rank in range(4)] == ["cuda:0", "cuda:1", "cuda:0", "cuda:1"]
+    assert rank_device("cuda", 3, 8) == "cuda:3" and rank_device("cuda:1", 3, 8) == "cuda:1"
+    assert rank_device("cpu", 3, 8) == "cpu" and rank_device("cuda", 0, 0) == "cuda"

@@ -29,6 +29,13 @@ def add_register_batch(sub) -> None:
     add_registration_options(p)
 
 
+def rank_device(device: str, local_rank: int, gpus: int) -> str:
+    """The device a torchrun rank registers on: with ``--device cuda`` (no index) GPU ``local_rank %
+    gpus`` of its machine (each rank its own where there are enough, else ranks share them in turn:
+    several processes keep one GPU busy); any other device as given."""
+    return f"cuda:{local_rank % gpus}" if device == "cuda" and gpus > 0 else device
+
+
 def run_register_batch(args) -> int:
     from datetime import timedelta
 
@@ -37,9 +44,12 @@ def run_register_batch(args) -> int:
     world, rank = int(os.environ.get("WORLD_SIZE", "1")), int(os.environ.get("RANK", "0"))
     distributed = world > 1
     if distributed:
+        import torch
         import torch.distributed as dist
 
         dist.init_process_group("gloo", timeout=timedelta(days=7))  # ranks wait for the slowest at the end
+        gpus = torch.cuda.device_count() if args.device == "cuda" else 0
+        args.device = rank_device(args.device, int(os.environ.get("LOCAL_RANK", "0")), gpus)
     try:
         options = BatchOptions(register=registration_arguments(args), success_rotation_deg=args.success_rotation,
                                success_translation=args.success_translation)
