@@ -102,6 +102,15 @@ def test_bench_device_budget_records_each_budget(tmp_path):
     assert "| 4096 | registered |" in (tmp_path / "budget.md").read_text()
 
 
+def test_bench_register_batch_on_synthetic_pairs(tmp_path):
+    run([str(ROOT / "benchmarks" / "bench_register_batch.py"), "--synthetic", "2", "--no-singles", "--processes", "2",
+         "--json", "batch.json"], tmp_path)
+    record = json.loads((tmp_path / "batch.json").read_text())
+    assert record["pairs"] == 2 and record["synthetic"] and record["recall"] == 1.0
+    assert list(record["seconds"]) == ["register-batch", "torchrun, 2 processes x 1 thread"]
+    assert record["identical"] == {"torchrun = register-batch": True}
+
+
 def test_bench_large_scene_and_bench_register_run_on_the_lidar_pair(tmp_path):
     run([str(ROOT / "benchmarks" / "bench_large_scene.py"), "--pairs", "LiDAR", "--methods", "fpfh", "--budgets", "2GB",
          "--skip-synthetic", "--memory-sizes", "1000", "--json", "large.json", "--markdown", "large.md"], tmp_path)
