@@ -228,7 +228,7 @@ RUNNERS = {"iterations": run_iterations, "outliers": run_outliers, "matches": ru
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=DefaultsHelpFormatter)
     parser.add_argument("ablation", choices=sorted(RUNNERS),
                         help="iterations: errors against passes; outliers: errors against the outlier ratio; "

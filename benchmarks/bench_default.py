@@ -336,7 +336,7 @@ def main(argv: list[str] | None = None) -> None:
     from vrnet_ext.cli.common import DefaultsHelpFormatter
     from vrnet_ext.registration import register
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="the real pairs' folder (MANIFEST.tsv, clouds/)")
     parser.add_argument("--seeds", type=int, default=2, help="seeds per pair (each draws its own turns)")
     parser.add_argument("--extra-rotation", type=float, default=180.0, help="largest turn of the 'real turned' set")

@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> None:
     from vrnet_ext.registration.result import transform_errors
     from scipy.spatial.transform import Rotation
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", type=device_name, default="cpu", help="where register() runs: cpu, cuda or cuda:N")
     parser.add_argument("--points", type=int, default=10_000_000, help="points per synthetic scan")
     parser.add_argument("--budgets", nargs="+", type=memory_size, default=[2 << 30, 512 << 20, 64 << 20],

@@ -52,7 +52,7 @@ METHODS = {"sc2": fit_sc2, "fpfh": fit_fpfh}
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--real-pairs", default=str(DEFAULT_PAIRS),
                         help="a real_pairs folder (MANIFEST.tsv, clouds/, gt/)")

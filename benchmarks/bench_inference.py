@@ -131,7 +131,7 @@ def _ratio(value: float | None) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--model", default="vrnet-pv-upc-rcp", help="shipped name or checkpoint")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 16, 64], help="pairs per forward, each timed")

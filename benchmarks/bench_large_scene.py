@@ -166,7 +166,7 @@ def markdown(records: list[dict], memory: list[dict], kitchen_heldout: bool) -> 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="folder with 3dmatch_redkitchen/ and lidar_pair/")
     parser.add_argument("--heldout-dir", default=None, help="folder with only0.pt, only4.pt, only10.pt")
     parser.add_argument("--budgets", nargs="+", default=["2GB", "4GB"],

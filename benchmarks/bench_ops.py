@@ -511,7 +511,7 @@ def _format_table(records: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats, skip the largest cases")
     parser.add_argument("--json", default=None, help="write the records to this JSON file")
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")

@@ -156,7 +156,7 @@ def plot(records: list[dict], methods: list[str], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="the shared scenes folder")
     parser.add_argument("--seeds", type=int, default=2, help="runs per pair and method (seeds 0, 1, ...)")

@@ -108,7 +108,7 @@ def run_open3d(pair: dict, estimator: str, out: Path, global_method: str = "rans
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="the shared scenes folder")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per pair and estimator, in turns")
     parser.add_argument("--pairs", nargs="+", default=None, help="only pairs whose name contains one of these")

@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> None:
     from vrnet_ext.geometry.atomic import read_json_lines
     from vrnet_ext.registration.batch import read_manifest
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--manifest", default=str(DEFAULT_MANIFEST), help="pairs (register-batch's manifest)")
     parser.add_argument("--max-pairs", type=int, default=None, help="the first N pairs only")
     parser.add_argument("--device", type=device_name, default="cpu", help="where every command registers")

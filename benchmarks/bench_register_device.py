@@ -1,5 +1,7 @@
-"""``vrnet_ext.register`` in one process on a device, from arrays in memory: time per pair, the
-transform against the CPU's of the same run, peak memory, time by stage.
+"""``vrnet_ext.register`` on a device from arrays in memory: time, stages, transform against the CPU's.
+
+In one process: time per pair and by stage, the transform against the CPU's of the same run, peak
+memory.
 
     python benchmarks/bench_register_device.py [--device cuda] [--methods default fpfh]
                                                [--repeats 5] [--json register_device.json]
@@ -51,7 +53,7 @@ def main(argv: list[str] | None = None) -> None:
     from vrnet_ext.registration import register
     from vrnet_ext.registration.result import transform_errors
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="the shared scenes folder")
     parser.add_argument("--device", type=device_name, default="cpu", help="where register() runs: cpu, cuda or cuda:N")
     parser.add_argument("--methods", nargs="+", default=["default"], choices=list(METHODS), help="register() methods")

@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> None:
     from vrnet_ext.cli.common import DefaultsHelpFormatter
     from vrnet_ext.registration.scene_metrics import scene_errors
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="the real pairs' folder (MANIFEST.tsv, clouds/)")
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES), help="scenes to run")
     parser.add_argument("--graph-poses", type=int, default=1000, help="poses of the synthetic graph (0: skip)")

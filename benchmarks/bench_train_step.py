@@ -109,7 +109,7 @@ def inference_seconds(model: VRNet, src: torch.Tensor, tgt: torch.Tensor, backen
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--preset", default="paper", choices=sorted(PRESETS),
                         help="`vrnet train` preset whose step is timed")
     parser.add_argument("--steps", type=int, default=2, help="timed steps per stage and implementation")

@@ -69,7 +69,7 @@ def markdown(rows: list[dict], note: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--tables", type=Path, required=True, help="folder of modelnet40_tables.py JSON files")
     parser.add_argument("--json", type=Path, default=Path("rotations.json"), help="where the JSON goes")
     parser.add_argument("--markdown", type=Path, default=Path("rotations.md"), help="where the Markdown goes")

@@ -231,7 +231,7 @@ def picture(rows: list[dict], path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--results", default=str(Path(__file__).parent / "results"),
                         help="folder of dated result folders holding modelnet40_tables*.json")

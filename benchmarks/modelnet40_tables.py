@@ -279,7 +279,7 @@ def markdown(results: list[dict], machine: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--models", nargs="+", default=None, help="shipped names or checkpoints (default: every shipped ModelNet40 VRNet)")
     parser.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)

@@ -22,7 +22,7 @@ from vrnet_ext.ops import kabsch, robust_kabsch
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("checkpoint", help="a VRNet checkpoint (its setting and split choose the pairs)")
     parser.add_argument("--pairs", type=int, default=160, help="validation pairs to probe")
     parser.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)

@@ -42,7 +42,7 @@ def render(record: dict) -> str:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("json", help="a bench_real_pairs.py JSON")
     path = Path(parser.parse_args().json)
     if not path.is_file():

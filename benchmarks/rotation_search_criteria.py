@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> None:
     from vrnet_ext.geometry.transforms import cube_rotations
     from vrnet_ext.model.pretrained import cells
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--models", nargs="+", default=DEFAULT_MODELS, help="shipped names")
     parser.add_argument("--pairs", type=int, default=60, help="validation shapes per model")
     parser.add_argument("--rotation-range", choices=ROTATION_RANGES, default="so3", help="the pairs' rotations")

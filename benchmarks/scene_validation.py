@@ -58,7 +58,7 @@ def summary(records: list[dict]) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--real-pairs", required=True, help="a real_pairs folder (MANIFEST.tsv, clouds/, gt/)")
     parser.add_argument("--checkpoint", action="append", default=[], help="a scene model (file or shipped name)")
