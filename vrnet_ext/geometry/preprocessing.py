@@ -63,21 +63,32 @@ def voxel_size_for(points: np.ndarray | torch.Tensor, target_points: int) -> flo
     points keeps about all of its distinct points (but for the floor): a thousandth of that
     diagonal where that keeps 90 % of them, else (a dense scan) the edge the search finds for their
     count, so asking for more points never leaves fewer."""
+    return voxel_edge_and_points(points, target_points)[0]
+
+
+def voxel_edge_and_points(points: np.ndarray | torch.Tensor,
+                          target_points: int) -> tuple[float, torch.Tensor | None]:
+    """:func:`voxel_size_for`'s edge and the scan downsampled at it ((V, 3), on the points' device),
+    which the search has made on its way, or None where the spacing floor set the edge."""
     if target_points < 1:
         raise ValueError(f"target_points must be >= 1, got {target_points}")
     points = torch.as_tensor(points)
     edge, left = _edge_for_count(points, target_points)
     if left is None:
         left = ops.voxel_downsample(points, edge)
-    return max(edge, point_spacing(left)) if len(left) > 1 else edge
+    if len(left) > 1:
+        spacing = point_spacing(left)
+        if spacing > edge:
+            return spacing, None
+    return edge, left
 
 
 def _edge_for_count(points: torch.Tensor, target_points: int) -> tuple[float, torch.Tensor | None]:
     """:func:`voxel_size_for` without the spacing floor -> (the edge, the points downsampled at it,
     or None where the search did not downsample at that edge)."""
     trim = min(STRAY_POINTS, (len(points) - 1) // 2)
-    low = torch.kthvalue(points, trim + 1, dim=0).values  # (kthvalue counts from 1)
-    high = torch.kthvalue(points, len(points) - trim, dim=0).values
+    low = points.topk(trim + 1, dim=0, largest=False).values[-1]  # the (trim + 1)-th smallest per axis
+    high = points.topk(trim + 1, dim=0).values[-1]
     extent = float(torch.linalg.vector_norm(high - low)) or 1.0
     if len(points) <= target_points:
         distinct = len(ops.voxel_downsample(points, extent * DISTINCT))

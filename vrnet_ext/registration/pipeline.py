@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from vrnet_ext.geometry.io import as_points
-from vrnet_ext.geometry.preprocessing import coarse_in_float32, voxel_size_for
+from vrnet_ext.geometry.preprocessing import coarse_in_float32
 from vrnet_ext.geometry.transforms import in_shifted_frames
 from vrnet_ext.model import VRNet
 from vrnet_ext.model.scene import SceneVRNet
@@ -393,8 +393,7 @@ def _icp_problem(pair: ScanPair, run: RegistrationRun, seconds: dict[str, float]
     """Both scans voxel-downsampled for ICP and prepared once for every start, the reach resolved;
     the ICP point counts go into ``points``."""
     start = time.perf_counter()
-    voxel = run.icp.voxel_size if run.icp.voxel_size is not None else voxel_size_for(pair.tgt.on_device(),
-                                                                                      pair.counts.icp_points)
+    voxel = run.icp.voxel_size if run.icp.voxel_size is not None else pair.tgt.edge_for(pair.counts.icp_points)
     src_icp, tgt_icp = pair.src.downsampled(voxel), pair.tgt.downsampled(voxel)
     points.update(source_icp=len(src_icp), target_icp=len(tgt_icp))
     reach = run.icp.max_distance if run.icp.max_distance is not None else 3.0 * voxel

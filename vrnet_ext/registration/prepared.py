@@ -12,7 +12,7 @@ import torch
 
 from vrnet_ext import ops
 from vrnet_ext.geometry.features import ScanView, describe
-from vrnet_ext.geometry.preprocessing import voxel_size_for
+from vrnet_ext.geometry.preprocessing import voxel_edge_and_points
 from vrnet_ext.registration.counts import PointCounts
 
 CPU = torch.device("cpu")
@@ -43,6 +43,15 @@ class PreparedScan:
         if voxel not in self._downsampled:
             self._downsampled[voxel] = ops.voxel_downsample(self.on_device(), voxel).cpu().numpy()
         return self._downsampled[voxel]
+
+    def edge_for(self, count: int) -> float:
+        """The voxel edge that leaves about ``count`` of the scan's points
+        (:func:`~vrnet_ext.geometry.preprocessing.voxel_size_for`); the points the search downsampled
+        at that edge are kept for :meth:`downsampled`."""
+        edge, left = voxel_edge_and_points(self.on_device(), count)
+        if left is not None and edge not in self._downsampled:
+            self._downsampled[edge] = left.cpu().numpy()
+        return edge
 
     def view(self, voxel: float) -> ScanView:
         """The scan downsampled at ``voxel`` with its FPFH descriptors (V, 33) on ``device``."""
@@ -83,7 +92,7 @@ class ScanPair:
     def global_voxel(self) -> float:
         """The voxel edge that leaves the target about ``counts.global_points`` points (the global
         estimators' feature radii are multiples of it), unless fixed by ``voxel``."""
-        return self.voxel if self.voxel is not None else voxel_size_for(self.tgt.on_device(), self.counts.global_points)
+        return self.voxel if self.voxel is not None else self.tgt.edge_for(self.counts.global_points)
 
     def global_views(self) -> tuple[ScanView, ScanView]:
         """Both scans at :attr:`global_voxel`, with their FPFH descriptors."""
