@@ -3,7 +3,7 @@ the scene model (:class:`ScanView`, :func:`describe`), and nearest-neighbour mat
 sets of descriptors."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -19,7 +19,7 @@ def voxel_fpfh(points: torch.Tensor, voxel_size: float) -> torch.Tensor:
     return ops.fpfh(points, ops.normals(points), FEATURE_RADIUS_VOXELS * voxel_size)
 
 
-@dataclass
+@dataclass(eq=False)
 class ScanView:
     """One downsampled scan: ``points`` (V, 3) in the scan's unit, ``voxel`` edge, FPFH (V, 33) float32
     (on the device they were computed on)."""
@@ -27,6 +27,14 @@ class ScanView:
     points: np.ndarray
     voxel: float
     descriptors: torch.Tensor
+    _nearest: dict[int, tuple[ScanView, torch.Tensor]] = field(default_factory=dict, repr=False)
+
+    def nearest_in(self, other: ScanView) -> torch.Tensor:
+        """(V,) each point's nearest descriptor among ``other``'s (:func:`nearest_features`), computed
+        once per pair of views (the estimators of one registration share them)."""
+        if id(other) not in self._nearest:  # the view is kept with the result: its id stays its own
+            self._nearest[id(other)] = (other, nearest_features(self.descriptors, other.descriptors))
+        return self._nearest[id(other)][1]
 
     def network_points(self) -> torch.Tensor:
         """(V, 3) float32 points in voxel units (the network's coordinates), beside the descriptors."""
@@ -64,8 +72,12 @@ def mutual_matches(src_features: torch.Tensor, tgt_features: torch.Tensor) -> to
     """(N, F), (M, F) -> (C, 2) index pairs (i, j): j is i's nearest target feature and i is j's
     nearest source feature. Falls back to every source point's nearest target feature when fewer
     than 10 pairs are mutual."""
-    forward, backward = nearest_both_ways(src_features, tgt_features)
-    src_idx = torch.arange(src_features.shape[0], device=src_features.device)
+    return mutual_of(*nearest_both_ways(src_features, tgt_features))
+
+
+def mutual_of(forward: torch.Tensor, backward: torch.Tensor) -> torch.Tensor:
+    """:func:`mutual_matches` from the nearest features both ways, forward (N,), backward (M,)."""
+    src_idx = torch.arange(forward.shape[0], device=forward.device)
     mutual = backward[forward] == src_idx
     if int(mutual.sum()) < 10:
         mutual = torch.ones_like(mutual)

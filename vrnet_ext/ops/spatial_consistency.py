@@ -37,6 +37,9 @@ from vrnet_ext.ops.kabsch import kabsch_reference
 
 MAX_CORRESPONDENCES = 1 << 15
 FLOAT_GRAPH_EXTENT = 128  # the compiled op's kFloatGraphExtent
+# One number per correspondence (K, 6) @ ROW_KEY: copies get equal keys, so K distinct keys mean no
+# copies; distinct rows rarely share one (then the full row comparison decides).
+ROW_KEY = torch.tensor([1.0, math.pi, math.e, math.sqrt(2.0), math.sqrt(3.0), math.sqrt(5.0)], dtype=torch.float64)
 
 
 def _validate(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, inlier_threshold: float, seeds: int,
@@ -148,6 +151,8 @@ def spatial_consistency(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, 
     """
     _validate(src, tgt, tolerance, inlier_threshold, seeds, consensus)
     rows = torch.cat([src.detach(), tgt.detach()], 1).double()
+    if len(torch.unique(rows @ ROW_KEY.to(rows.device))) == len(rows):  # distinct keys, so distinct rows (one sort
+        return _fit(rows[:, :3], rows[:, 3:], backend, tolerance, inlier_threshold, seeds, consensus)  # of K numbers)
     first, inverse = _first_occurrences(rows)
     if len(first) == len(rows):
         return _fit(rows[:, :3], rows[:, 3:], backend, tolerance, inlier_threshold, seeds, consensus)

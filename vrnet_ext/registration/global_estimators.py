@@ -33,8 +33,8 @@ from vrnet_ext.registration.budget import MB, predicted_peak_mb
 from vrnet_ext.registration.counts import PointCounts
 from vrnet_ext.registration.prepared import ScanPair
 from vrnet_ext import ops
-from vrnet_ext.geometry.features import ScanView, nearest_features
-from vrnet_ext.registration.ransac import SCORING_MB as RANSAC_SCORING_MB, feature_ransac, ransac
+from vrnet_ext.geometry.features import ScanView, mutual_of
+from vrnet_ext.registration.ransac import SCORING_MB as RANSAC_SCORING_MB, ransac
 from vrnet_ext.registration.result import RegistrationResult
 from vrnet_ext.geometry.transforms import from_normalised, to_homogeneous
 
@@ -115,8 +115,8 @@ class FpfhRansac(GlobalEstimator):
 
     def estimate_pair(self, pair, seed):
         src, tgt = pair.global_views()
-        T, inliers = feature_ransac(src.tensor(), tgt.tensor(), src.descriptors, tgt.descriptors, src.voxel,
-                                    seed=seed)
+        matches = mutual_of(src.nearest_in(tgt), tgt.nearest_in(src))  # the views' matches, shared with sc2
+        T, inliers = ransac(src.tensor(), tgt.tensor(), matches, 1.5 * src.voxel, seed=seed)
         return RegistrationResult.global_estimate(T.cpu().numpy(), self.name, inliers, _counts(src, tgt))
 
 
@@ -157,8 +157,7 @@ class SpatialConsistency(GlobalEstimator):
 
     def estimate_pair(self, pair, seed):
         src, tgt = pair.global_views()
-        nearest = nearest_features(src.descriptors, tgt.descriptors)
-        transform, inliers, rival = self.fit(src.tensor(), tgt.tensor()[nearest], src.voxel)
+        transform, inliers, rival = self.fit(src.tensor(), tgt.tensor()[src.nearest_in(tgt)], src.voxel)
         if int(inliers.sum()) < 3:
             raise ValueError("spatial consistency found no set of 3 or more consistent FPFH matches: the features "
                              "do not match (try another global_points)")
@@ -228,7 +227,7 @@ class SceneNetwork(GlobalEstimator):
         src_pairs, tgt_pairs = src_points[keep], out.rcp[0, keep].double() * voxel  # (source point, its RCP)
         if self.robust != "ransac":
             if self.robust == "sc2+fpfh":  # and (source point, its nearest target descriptor's point)
-                nearest = nearest_features(src_view.descriptors, tgt_view.descriptors)
+                nearest = src_view.nearest_in(tgt_view)
                 src_pairs = torch.cat([src_pairs, src_points])
                 tgt_pairs = torch.cat([tgt_pairs, tgt_view.tensor()[nearest]])
             T, inliers = ops.spatial_consistency(src_pairs, tgt_pairs, 2.0 * voxel, 2.0 * voxel)
