@@ -16,23 +16,13 @@
 
 #include <cstdint>
 
+#include "common/exact_math.h"  // add_rn, sub_rn, mul_rn, div_rn
 #include "common/host_device.h"
 
 namespace vrnet {
 
 constexpr int kThreads = 256;
 constexpr unsigned int kFullWarp = 0xffffffffu;
-
-// a + b, a * b and a / b rounded once each: nvcc would otherwise contract a * b + c into an FMA and the
-// results would differ from the CPU kernels in the last bit.
-__device__ inline float add_rn(float a, float b) { return __fadd_rn(a, b); }
-__device__ inline double add_rn(double a, double b) { return __dadd_rn(a, b); }
-__device__ inline float sub_rn(float a, float b) { return __fsub_rn(a, b); }
-__device__ inline double sub_rn(double a, double b) { return __dsub_rn(a, b); }
-__device__ inline float mul_rn(float a, float b) { return __fmul_rn(a, b); }
-__device__ inline double mul_rn(double a, double b) { return __dmul_rn(a, b); }
-__device__ inline float div_rn(float a, float b) { return __fdiv_rn(a, b); }
-__device__ inline double div_rn(double a, double b) { return __ddiv_rn(a, b); }
 
 // Sum over the 32 lanes of a warp; every lane gets the total (fixed order: deterministic). All 32
 // lanes must call it.

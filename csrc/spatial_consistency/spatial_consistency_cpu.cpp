@@ -36,6 +36,7 @@
 #include "common/cpu_dispatch.h"
 #include "kabsch/procrustes.h"
 #include "spatial_consistency/spatial_consistency.h"
+#include "spatial_consistency/spatial_consistency_math.h"
 
 
 namespace vrnet {
@@ -48,18 +49,14 @@ struct Graph {
   const uint64_t* row(int64_t i) const { return bits.data() + i * words; }
 };
 
-double distance(const double* a, const double* b) {
-  const double dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
-  return std::sqrt(dx * dx + dy * dy + dz * dz);
-}
-
 // Coordinates of the correspondences, one array per axis (px, py, pz, qx, qy, qz), in double as
 // given, or in float relative to the first correspondence (p - p_0, q - q_0: lengths unchanged).
 template <typename T>
 struct Columns {
-  std::vector<T> data;
+  std::vector<T> data;  // the columns one after another (spatial_consistency_math.h's layout)
+  int64_t K;
   const T *px, *py, *pz, *qx, *qy, *qz;
-  Columns(const double* p, const double* q, int64_t K) : data(6 * K) {
+  Columns(const double* p, const double* q, int64_t K) : data(6 * K), K(K) {
     const bool about_first = !std::is_same_v<T, double>;
     for (int64_t k = 0; k < K; ++k)
       for (int a = 0; a < 3; ++a) {
@@ -72,20 +69,11 @@ struct Columns {
   Columns& operator=(const Columns&) = delete;
 };
 
-// | |p_i - p_j| - |q_i - q_j| | < tolerance without square roots: with a, b the squared distances
-// and s = a + b - tolerance^2, it holds iff s < 0 or s^2 < 4 a b. Bits of correspondences
-// [j0, j0 + count) compatible with i.
+// Bits of correspondences [j0, j0 + count) compatible with i (spatial_consistency_math.h).
 template <typename T>
 uint64_t compatible_word(const Columns<T>& c, int64_t i, int64_t j0, int64_t count, T t2) {
   uint64_t bits = 0;
-  for (int64_t l = 0; l < count; ++l) {
-    const int64_t j = j0 + l;
-    const T dpx = c.px[j] - c.px[i], dpy = c.py[j] - c.py[i], dpz = c.pz[j] - c.pz[i];
-    const T dqx = c.qx[j] - c.qx[i], dqy = c.qy[j] - c.qy[i], dqz = c.qz[j] - c.qz[i];
-    const T a = dpx * dpx + dpy * dpy + dpz * dpz, b = dqx * dqx + dqy * dqy + dqz * dqz;
-    const T s = a + b - t2;
-    bits |= static_cast<uint64_t>((s < 0) | (s * s < 4 * a * b)) << l;
-  }
+  for (int64_t l = 0; l < count; ++l) bits |= static_cast<uint64_t>(compatible(c.data.data(), c.K, i, j0 + l, t2)) << l;
   return bits;
 }
 
@@ -256,16 +244,11 @@ Fit kabsch_on(const double* p, const double* q, const std::vector<int64_t>& memb
 }
 
 // Bits of the correspondences [k0, k0 + count) that the fit maps within sqrt(threshold2) of their
-// target.
+// target (spatial_consistency_math.h).
 uint64_t inlier_word(const Fit& fit, const Columns<double>& c, int64_t k0, int64_t count, double threshold2) {
   uint64_t bits = 0;
-  for (int64_t l = 0; l < count; ++l) {
-    const int64_t k = k0 + l;
-    const double x = fit.R[0] * c.px[k] + fit.R[1] * c.py[k] + fit.R[2] * c.pz[k] + fit.t[0] - c.qx[k];
-    const double y = fit.R[3] * c.px[k] + fit.R[4] * c.py[k] + fit.R[5] * c.pz[k] + fit.t[1] - c.qy[k];
-    const double z = fit.R[6] * c.px[k] + fit.R[7] * c.py[k] + fit.R[8] * c.pz[k] + fit.t[2] - c.qz[k];
-    bits |= static_cast<uint64_t>(x * x + y * y + z * z < threshold2) << l;
-  }
+  for (int64_t l = 0; l < count; ++l)
+    bits |= static_cast<uint64_t>(maps_within(fit.R, fit.t, c.data.data(), c.K, k0 + l, threshold2)) << l;
   return bits;
 }
 
@@ -343,7 +326,8 @@ std::vector<int64_t> choose_seeds(const Degrees& d, const double* p, int64_t wan
   std::vector<int64_t> seeds;
   for (int64_t i : d.order) {
     if (static_cast<int64_t>(seeds.size()) >= wanted || d.degree[i] < 2) break;
-    const bool near = std::any_of(seeds.begin(), seeds.end(), [&](int64_t s) { return distance(p + 3 * i, p + 3 * s) < tolerance; });
+    const bool near = std::any_of(seeds.begin(), seeds.end(),
+                                  [&](int64_t s) { return point_distance(p + 3 * i, p + 3 * s) < tolerance; });
     if (!near) seeds.push_back(i);
   }
   return seeds;

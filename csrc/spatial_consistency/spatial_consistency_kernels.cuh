@@ -5,8 +5,8 @@
 //             in double as given and in float relative to the first correspondence;
 //   graph     one thread per 64-bit word of the compatibility graph (K rows of `words` words), the
 //             32 lanes of a warp on consecutive rows of one word column (each reads the same 64
-//             columns); the test of the CPU op in the same operations (no FMA contraction), so the
-//             graph is the CPU op's bit for bit; float or double as the device flag `in_float` says;
+//             columns); the CPU op's test (spatial_consistency_math.h, rounded alike), so the graph is
+//             the CPU op's bit for bit; float or double as the device flag `in_float` says;
 //   degree    one thread per row;
 //   seeds     one block: the correspondences by degree (sorted by the glue), kSeedChunk candidates a
 //             round, each checked against the seeds of earlier rounds and against the earlier
@@ -27,6 +27,7 @@
 
 #include "common/cuda_device.cuh"
 #include "kabsch/procrustes.h"
+#include "spatial_consistency/spatial_consistency_math.h"
 
 namespace vrnet {
 
@@ -37,11 +38,6 @@ constexpr int kKeyIndexBits = 16;           // the neighbour's index in the low 
 constexpr int64_t kKeyIndexMask = (int64_t{1} << kKeyIndexBits) - 1;  // > the largest index (1 << 15)
 constexpr int kMaxGraphWords = 512;         // words of one graph row at most: (1 << 15) / 64
 constexpr int kFitDoubles = 12;             // a fit: R (9, row-major), t (3)
-
-__device__ inline double sc_distance(const double* a, const double* b) {
-  const double dx = sub_rn(a[0], b[0]), dy = sub_rn(a[1], b[1]), dz = sub_rn(a[2], b[2]);
-  return sqrt(add_rn(add_rn(mul_rn(dx, dx), mul_rn(dy, dy)), mul_rn(dz, dz)));
-}
 
 __global__ void sc_columns_kernel(const double* __restrict__ p, const double* __restrict__ q, int64_t K,
                                   double* __restrict__ cols_d, float* __restrict__ cols_f) {
@@ -55,22 +51,11 @@ __global__ void sc_columns_kernel(const double* __restrict__ p, const double* __
   }
 }
 
-// Bits of correspondences [j0, j0 + count) compatible with i: | |p_i - p_j| - |q_i - q_j| | < tolerance
-// as s < 0 or s^2 < 4 a b, with a, b the squared distances and s = a + b - tolerance^2.
+// Bits of correspondences [j0, j0 + count) compatible with i (spatial_consistency_math.h).
 template <typename T>
 __device__ uint64_t sc_compatible_word(const T* cols, int64_t K, int64_t i, int64_t j0, int64_t count, T t2) {
-  const T *px = cols, *py = cols + K, *pz = cols + 2 * K, *qx = cols + 3 * K, *qy = cols + 4 * K, *qz = cols + 5 * K;
-  const T pix = px[i], piy = py[i], piz = pz[i], qix = qx[i], qiy = qy[i], qiz = qz[i];
   uint64_t bits = 0;
-  for (int64_t l = 0; l < count; ++l) {
-    const int64_t j = j0 + l;
-    const T dpx = sub_rn(px[j], pix), dpy = sub_rn(py[j], piy), dpz = sub_rn(pz[j], piz);
-    const T dqx = sub_rn(qx[j], qix), dqy = sub_rn(qy[j], qiy), dqz = sub_rn(qz[j], qiz);
-    const T a = add_rn(add_rn(mul_rn(dpx, dpx), mul_rn(dpy, dpy)), mul_rn(dpz, dpz));
-    const T b = add_rn(add_rn(mul_rn(dqx, dqx), mul_rn(dqy, dqy)), mul_rn(dqz, dqz));
-    const T s = sub_rn(add_rn(a, b), t2);
-    bits |= static_cast<uint64_t>((s < 0) | (mul_rn(s, s) < mul_rn(mul_rn(T(4), a), b))) << l;
-  }
+  for (int64_t l = 0; l < count; ++l) bits |= static_cast<uint64_t>(compatible(cols, K, i, j0 + l, t2)) << l;
   return bits;
 }
 
@@ -114,12 +99,12 @@ __global__ void sc_seeds_kernel(const double* __restrict__ p, const int64_t* __r
       const double* candidate = p + 3 * order[position];
       status = 1;
       for (int64_t s = 0; s < count && status; ++s)
-        if (sc_distance(candidate, p + 3 * seeds[s]) < tolerance) status = 0;
+        if (point_distance(candidate, p + 3 * seeds[s]) < tolerance) status = 0;
       for (int w = 0; w < kSeedChunkWords; ++w) {  // needed only by a candidate that may be chosen
         uint64_t bits = 0;
         for (int l = 0; l < 64 && status; ++l) {
           const int u = 64 * w + l;
-          if (u < t && sc_distance(candidate, p + 3 * order[base + u]) < tolerance) bits |= uint64_t{1} << l;
+          if (u < t && point_distance(candidate, p + 3 * order[base + u]) < tolerance) bits |= uint64_t{1} << l;
         }
         near_earlier[t * kSeedChunkWords + w] = bits;
       }
@@ -226,20 +211,6 @@ __global__ void sc_fits_kernel(const double* __restrict__ p, const double* __res
   fit.write(fits + s * kFitDoubles, fits + s * kFitDoubles + 9);
 }
 
-// Whether fit (R, t) maps correspondence k within sqrt(threshold2) of its target (the CPU op's
-// operations, in its order).
-__device__ inline bool sc_within(const double* fit, const double* cols, int64_t K, int64_t k, double threshold2) {
-  const double px = cols[k], py = cols[K + k], pz = cols[2 * K + k];
-  double r2 = 0;
-  for (int a = 0; a < 3; ++a) {
-    const double moved = add_rn(add_rn(add_rn(mul_rn(fit[3 * a], px), mul_rn(fit[3 * a + 1], py)),
-                                       mul_rn(fit[3 * a + 2], pz)), fit[9 + a]);
-    const double d = sub_rn(moved, cols[(3 + a) * K + k]);
-    r2 = a == 0 ? mul_rn(d, d) : add_rn(r2, mul_rn(d, d));
-  }
-  return r2 < threshold2;
-}
-
 // Grid (blocks over K, S): counts[s] += the correspondences fit s maps within the threshold.
 __global__ void sc_count_kernel(const double* __restrict__ cols_d, const double* __restrict__ fits,
                                 const int64_t* __restrict__ fit_ok, int64_t K, double threshold2,
@@ -247,7 +218,8 @@ __global__ void sc_count_kernel(const double* __restrict__ cols_d, const double*
   const int64_t s = blockIdx.y;
   if (!fit_ok[s]) return;  // the whole block
   const int64_t k = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
-  const bool inside = k < K && sc_within(fits + s * kFitDoubles, cols_d, K, k, threshold2);
+  const double* fit = fits + s * kFitDoubles;
+  const bool inside = k < K && maps_within(fit, fit + 9, cols_d, K, k, threshold2);
   const unsigned int ballot = __ballot_sync(kFullWarp, inside);
   if ((threadIdx.x & 31) == 0 && ballot != 0)
     atomicAdd(reinterpret_cast<unsigned long long*>(counts + s), static_cast<unsigned long long>(__popc(ballot)));
@@ -275,7 +247,7 @@ __device__ inline double sc_inlier_bits(const double* fit, const double* cols, i
   for (int64_t w = threadIdx.x; w < words; w += kScThreads) {
     uint64_t word = 0;
     for (int64_t k = 64 * w; k < K && k < 64 * w + 64; ++k)
-      word |= static_cast<uint64_t>(sc_within(fit, cols, K, k, threshold2)) << (k & 63);
+      word |= static_cast<uint64_t>(maps_within(fit, fit + 9, cols, K, k, threshold2)) << (k & 63);
     bits[w] = word;
     count += __popcll(word);
   }
