@@ -151,16 +151,15 @@ def spatial_consistency(src: torch.Tensor, tgt: torch.Tensor, tolerance: float, 
     """
     _validate(src, tgt, tolerance, inlier_threshold, seeds, consensus)
     rows = torch.cat([src.detach(), tgt.detach()], 1).double()
-    if len(torch.unique(rows @ ROW_KEY.to(rows.device))) == len(rows):  # distinct keys, so distinct rows (one sort
-        return _fit(rows[:, :3], rows[:, 3:], backend, tolerance, inlier_threshold, seeds, consensus)  # of K numbers)
-    first, inverse = _first_occurrences(rows)
-    if len(first) == len(rows):
-        return _fit(rows[:, :3], rows[:, 3:], backend, tolerance, inlier_threshold, seeds, consensus)
-    if len(first) < 3:  # copies of one or two correspondences: no fit
-        return (torch.eye(4, dtype=torch.float64, device=rows.device),
-                torch.zeros(len(rows), dtype=torch.bool, device=rows.device))
-    T, inliers = _fit(rows[first, :3], rows[first, 3:], backend, tolerance, inlier_threshold, seeds, consensus)
-    return T, inliers[inverse]
+    if len(torch.unique(rows @ ROW_KEY.to(rows.device))) < len(rows):  # equal keys: compare the rows themselves
+        first, inverse = _first_occurrences(rows)
+        if len(first) < 3:  # copies of one or two correspondences: no fit
+            return (torch.eye(4, dtype=torch.float64, device=rows.device),
+                    torch.zeros(len(rows), dtype=torch.bool, device=rows.device))
+        if len(first) < len(rows):
+            T, inliers = _fit(rows[first, :3], rows[first, 3:], backend, tolerance, inlier_threshold, seeds, consensus)
+            return T, inliers[inverse]
+    return _fit(rows[:, :3], rows[:, 3:], backend, tolerance, inlier_threshold, seeds, consensus)
 
 
 def _first_occurrences(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -169,7 +169,7 @@ class SpatialConsistency(GlobalEstimator):
         float64 transform, (K,) bool inliers, the inlier count of the same fit on the matches
         those inliers left out: the best other alignment's support, 0 below 3)."""
         transform, inliers = ops.spatial_consistency(src, tgt, 2.0 * voxel, 2.0 * voxel, self.seeds, self.consensus)
-        left = ~inliers.to(src.device)
+        left = ~inliers
         if int(left.sum()) < 3:
             return transform, inliers, 0
         rival = int(ops.spatial_consistency(src[left], tgt[left], 2.0 * voxel, 2.0 * voxel, self.seeds,
