@@ -81,6 +81,32 @@ struct GridShape {
     return total;
   }
 
+  // A lower bound on the squared distance from q (in cell c) to any cell outside the cube of cells
+  // within r of c: a cell beyond face (a, side) is at least the face gap away along a and, along
+  // every other axis, at least q's distance to the grid's extent (outside[], their sum
+  // outside_total: this term keeps far-away queries from scanning ring after ring of cells that are
+  // all about equally far). *more: whether any cell lies outside that cube.
+  template <typename scalar_t>
+  VRNET_HOST_DEVICE double beyond_sq(const scalar_t* q, const int64_t* c, int64_t r, const double* outside,
+                                     double outside_total, bool* more) const {
+    double bound = INFINITY;
+    *more = false;
+    for (int a = 0; a < 3; ++a) {
+      const double others = outside_total - outside[a], v = static_cast<double>(q[a]);
+      if (c[a] - r > 0) {
+        *more = true;
+        const double gap = v - (lo[a] + (c[a] - r) * cell), kept = gap > 0.0 ? gap : 0.0;
+        bound = kept * kept + others < bound ? kept * kept + others : bound;
+      }
+      if (c[a] + r < dims[a] - 1) {
+        *more = true;
+        const double gap = lo[a] + (c[a] + r + 1) * cell - v, kept = gap > 0.0 ? gap : 0.0;
+        bound = kept * kept + others < bound ? kept * kept + others : bound;
+      }
+    }
+    return bound;
+  }
+
   // Squared distance from q to the grid's extent along axis a (0 within it).
   template <typename scalar_t>
   VRNET_HOST_DEVICE double outside_sq(const scalar_t* q, int a) const {

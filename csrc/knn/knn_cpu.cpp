@@ -156,25 +156,8 @@ struct Grid : GridShape {
         if (box_sq * (1.0 - 1e-5) > static_cast<double>(top.worst())) continue;
         for (int64_t p = start[id]; p < start[id + 1]; ++p) push(q, p, self, top);
       }
-      // Lower bound on the squared distance from q to any cell outside the visited box: a cell
-      // beyond face (a, side) is at least the face gap away along a and, along every other axis b,
-      // at least q's distance to the grid's extent (this term keeps far-away queries from
-      // scanning ring after ring of cells that are all about equally far).
-      double bound_sq = std::numeric_limits<double>::infinity();
-      bool more = false;
-      for (int a = 0; a < 3; ++a) {
-        const double others_sq = outside_total - outside[a];
-        if (c[a] - r > 0) {
-          more = true;
-          const double gap = std::max(0.0, q[a] - (lo[a] + (c[a] - r) * cell));
-          bound_sq = std::min(bound_sq, gap * gap + others_sq);
-        }
-        if (c[a] + r < dims[a] - 1) {
-          more = true;
-          const double gap = std::max(0.0, lo[a] + (c[a] + r + 1) * cell - q[a]);
-          bound_sq = std::min(bound_sq, gap * gap + others_sq);
-        }
-      }
+      bool more;
+      const double bound_sq = beyond_sq(q, c, r, outside, outside_total, &more);
       if (!more) return;
       if (static_cast<double>(top.worst()) < bound_sq * (1.0 - 1e-5)) return;
     }

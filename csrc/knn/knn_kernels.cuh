@@ -129,22 +129,8 @@ __global__ void knn_grid_kernel(const scalar_t* __restrict__ query, const scalar
         }
       }
     }
-    // A lower bound on the squared distance to any cell outside the visited box (as the CPU's).
-    double bound = INFINITY;
-    bool more = false;
-    for (int a = 0; a < 3; ++a) {
-      const double others = outside_total - outside[a], v = static_cast<double>(q[a]);
-      if (c[a] - r > 0) {
-        more = true;
-        const double gap = v - (grid.lo[a] + (c[a] - r) * grid.cell), kept = gap > 0.0 ? gap : 0.0;
-        bound = kept * kept + others < bound ? kept * kept + others : bound;
-      }
-      if (c[a] + r < grid.dims[a] - 1) {
-        more = true;
-        const double gap = grid.lo[a] + (c[a] + r + 1) * grid.cell - v, kept = gap > 0.0 ? gap : 0.0;
-        bound = kept * kept + others < bound ? kept * kept + others : bound;
-      }
-    }
+    bool more;
+    const double bound = grid.beyond_sq(q, c, r, outside, outside_total, &more);
     if (!more || static_cast<double>(top.worst()) < bound * (1.0 - 1e-5)) break;
   }
   knn_store(top, k, dist_out + n * k, idx_out + n * k);
