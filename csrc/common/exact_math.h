@@ -8,61 +8,26 @@
 
 namespace vrnet {
 
-VRNET_HOST_DEVICE inline float add_rn(float a, float b) {
+// name(a, b) for float or double: `a op b` on the host, the intrinsic of the type on the GPU.
 #ifdef __CUDA_ARCH__
-  return __fadd_rn(a, b);
+#define VRNET_EXACT(name, op, float_rn, double_rn)                                      \
+  template <typename T>                                                                 \
+  VRNET_HOST_DEVICE inline T name(T a, T b) {                                           \
+    if constexpr (sizeof(T) == sizeof(float)) return float_rn(a, b);                    \
+    else return double_rn(a, b);                                                        \
+  }
 #else
-  return a + b;
+#define VRNET_EXACT(name, op, float_rn, double_rn) \
+  template <typename T>                            \
+  VRNET_HOST_DEVICE inline T name(T a, T b) {      \
+    return a op b;                                 \
+  }
 #endif
-}
-VRNET_HOST_DEVICE inline double add_rn(double a, double b) {
-#ifdef __CUDA_ARCH__
-  return __dadd_rn(a, b);
-#else
-  return a + b;
-#endif
-}
-VRNET_HOST_DEVICE inline float sub_rn(float a, float b) {
-#ifdef __CUDA_ARCH__
-  return __fsub_rn(a, b);
-#else
-  return a - b;
-#endif
-}
-VRNET_HOST_DEVICE inline double sub_rn(double a, double b) {
-#ifdef __CUDA_ARCH__
-  return __dsub_rn(a, b);
-#else
-  return a - b;
-#endif
-}
-VRNET_HOST_DEVICE inline float mul_rn(float a, float b) {
-#ifdef __CUDA_ARCH__
-  return __fmul_rn(a, b);
-#else
-  return a * b;
-#endif
-}
-VRNET_HOST_DEVICE inline double mul_rn(double a, double b) {
-#ifdef __CUDA_ARCH__
-  return __dmul_rn(a, b);
-#else
-  return a * b;
-#endif
-}
-VRNET_HOST_DEVICE inline float div_rn(float a, float b) {
-#ifdef __CUDA_ARCH__
-  return __fdiv_rn(a, b);
-#else
-  return a / b;
-#endif
-}
-VRNET_HOST_DEVICE inline double div_rn(double a, double b) {
-#ifdef __CUDA_ARCH__
-  return __ddiv_rn(a, b);
-#else
-  return a / b;
-#endif
-}
+
+VRNET_EXACT(add_rn, +, __fadd_rn, __dadd_rn)
+VRNET_EXACT(sub_rn, -, __fsub_rn, __dsub_rn)
+VRNET_EXACT(mul_rn, *, __fmul_rn, __dmul_rn)
+VRNET_EXACT(div_rn, /, __fdiv_rn, __ddiv_rn)
+#undef VRNET_EXACT
 
 }  // namespace vrnet
