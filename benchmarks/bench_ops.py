@@ -313,11 +313,27 @@ def _spatial_consistency_case(K, outlier_ratio=0.9, quick=True, skip_torch=None,
     return Case("spatial_consistency", f"K={K} outliers={outlier_ratio:.0%}", make, impls, quick, skip)
 
 
-def _soft_match_case(B, N, c, D, backward=True, quick=True, skip_torch=None, sharpness=1.0):
+def _tf32_matmuls(fn):
+    """fn run with torch's float32 matmul precision "high" (TF32 allowed), the setting restored after."""
+    def run(*inputs):
+        previous = torch.get_float32_matmul_precision()
+        torch.set_float32_matmul_precision("high")
+        try:
+            return fn(*inputs)
+        finally:
+            torch.set_float32_matmul_precision(previous)
+    return run
+
+
+def _soft_match_case(B, N, c, D, backward=True, quick=True, skip_torch=None, sharpness=1.0, gpu_columns=False):
     """The best existing tool is torch's scaled_dot_product_attention (a flash-attention kernel on
-    CPU and GPU): the same product, without the log-normaliser VRNet's matching statistics need.
-    ``sharpness`` multiplies the queries: at 60 most scores lie over 87 below their row's maximum
-    (exponentials under float32's normal range), as in a trained model's sharp matching."""
+    CPU and GPU): the same product, without the log-normaliser VRNet's matching statistics need
+    (``sdpa + lse``: with it, by products on blocks of query rows). ``sharpness`` multiplies the
+    queries: at 60 most scores lie over 87 below their row's maximum (exponentials under float32's
+    normal range), as in a trained model's sharp matching. ``gpu_columns``: also the dense blocks
+    the GPU runs past the flash kernel's sizes, and ext / sdpa with TF32 allowed."""
+    from vrnet_ext.ops.soft_match import dense_in_query_blocks, query_block
+
     def make():
         tensors = (_clouds(B, N, c) * sharpness, _clouds(B, N, c, seed=1), _clouds(B, N, D, seed=2))
         return _grad(*tensors) if backward else tensors
@@ -325,8 +341,19 @@ def _soft_match_case(B, N, c, D, backward=True, quick=True, skip_torch=None, sha
     def sdpa(q, k, v):
         return torch.nn.functional.scaled_dot_product_attention(q, k, v)
 
+    def sdpa_and_lse(q, k, v):
+        block = query_block(q.shape[0], k.shape[1])
+        lse = torch.cat([torch.logsumexp(torch.bmm(q[:, i:i + block], k.mT) * c ** -0.5, dim=-1)
+                         for i in range(0, q.shape[1], block)], dim=1)
+        return sdpa(q, k, v), lse
+
     impls = {b: (lambda q, k, v, b=b: ops.soft_match(q, k, v, backend=b)) for b in ("ext", "torch")}
     impls["sdpa"] = sdpa
+    if gpu_columns:
+        impls["ext, dense blocks"] = lambda q, k, v: dense_in_query_blocks(q, k, v, c ** -0.5).out
+        impls["ext, TF32"] = _tf32_matmuls(impls["ext"])
+        impls["sdpa + lse"] = sdpa_and_lse
+        impls["sdpa, TF32"] = _tf32_matmuls(sdpa)
     if backward:
         impls = {name: _fwd_bwd(fn) for name, fn in impls.items()}
     skip = {"torch": skip_torch} if skip_torch else None
@@ -360,9 +387,13 @@ def cuda_cases() -> list[Case]:
         _robust_kabsch_case(64, 768),
         _pdl_case(4096),
         _pdl_case(65536, skip_torch="the reference needs ~70 GB of N x N matrices"),
-        _soft_match_case(28, 768, 512, 515),
-        _soft_match_case(1, 16384, 32, 35),  # four blocks of query rows: the recomputing backward
-        _soft_match_case(1, 50000, 32, 35, backward=False, skip_torch="the reference needs ~20 GB (50k x 50k)"),
+        _soft_match_case(28, 768, 512, 515, gpu_columns=True),
+        _soft_match_case(1, 5000, 32, 35, backward=False, gpu_columns=True),  # the scene model's matching
+        _soft_match_case(1, 16384, 32, 35, gpu_columns=True),  # four blocks of query rows: the recomputing backward
+        _soft_match_case(1, 50000, 32, 35, backward=False, skip_torch="the reference needs ~20 GB (50k x 50k)",
+                         gpu_columns=True),
+        _soft_match_case(1, 100000, 32, 35, backward=False, skip_torch="the reference needs ~80 GB (100k x 100k)",
+                         gpu_columns=True),
         _voxel_downsample_case(0.02),
         _spatial_consistency_case(1000, host_column=True),
         _spatial_consistency_case(5000, 0.95, skip_torch="the dense reference takes ~20 s per call", host_column=True),

@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from conftest import DTYPES, non_contiguous, tolerances
+from vrnet_ext.ops.soft_match import soft_match_reference
 from cuda_emu import build as emu_build
 
 CSRC = Path(__file__).resolve().parents[1] / "csrc"
@@ -414,6 +415,93 @@ def test_voxel_downsample_bad_input_same_errors():
     assert run_both("voxel_downsample", points * 1e10, 1e-300) == (None, None)  # more than 2^62 cells
     assert run_both("voxel_downsample", points, 0.0) == (None, None)
     assert run_both("voxel_downsample", points[:, :2], 0.1) == (None, None)
+
+
+# soft_match_flash has no CPU kernel: the emulated kernel is checked against the float64 reference.
+FLASH_EPS = {3: 2.0 ** -22, 1: 2.0 ** -12}  # score error per unit of scale * max|q| * max|k| (3 passes, TF32)
+
+
+def flash_errors(query, key, values, scale, passes):
+    """The emulated flash kernel's largest errors against float64, in units of what its tensor-core
+    rounding allows: out, lse (both should be at most 1) and the argmax (equal wherever the float64
+    peak leads the runner-up by more than the score tolerance)."""
+    CASES["soft_match_flash"] += 1
+    out, lse, argmax = emu_op("soft_match_flash")(query, key, values, scale, passes)
+    ref = soft_match_reference(query.double(), key.double(), values.double(), scale)
+    span = abs(scale) * query.double().norm(dim=-1).max() * key.double().norm(dim=-1).max()
+    score_tol = FLASH_EPS[passes] * (1 + span) + 1e-6 * ref.lse.abs().max()
+    value_size = values.double().abs().max() if values.numel() else torch.tensor(0.0, dtype=torch.float64)
+    out_err = (out.double() - ref.out).abs().max() / (2 * score_tol * (1 + value_size)) if out.numel() else 0.0
+    lse_err = (lse.double() - ref.lse).abs().max() / score_tol
+    scores = torch.bmm(query.double(), key.double().mT) * scale
+    top2 = scores.topk(min(2, key.shape[1]), dim=-1).values
+    clear = (top2[..., 0] - top2[..., -1] > 2 * score_tol) | (key.shape[1] == 1)
+    assert clear.any() or key.shape[1] > 1
+    return float(out_err), float(lse_err), bool(torch.equal(argmax[clear], ref.argmax[clear]))
+
+
+@pytest.mark.parametrize("passes", [3, 1])
+@pytest.mark.parametrize("B,N,M,C,D", [(1, 1, 1, 1, 1), (2, 70, 45, 33, 35), (1, 130, 100, 64, 64),
+                                       (2, 17, 33, 8, 3), (1, 5, 40, 3, 0), (1, 64, 64, 32, 64)])
+def test_soft_match_flash(passes, B, N, M, C, D):
+    """Tiles with rows and keys past the ends, c and D off the 8-wide fragments, both limits."""
+    query, key, values = torch.randn(B, N, C), torch.randn(B, M, C), torch.randn(B, M, D)
+    out_err, lse_err, argmax_ok = flash_errors(query, key, values, C ** -0.5, passes)
+    assert out_err <= 1 and lse_err <= 1 and argmax_ok
+
+
+@pytest.mark.parametrize("passes", [3, 1])
+def test_soft_match_flash_sharp_far_and_ties(passes):
+    """Features far from the origin with a sharp scale (the row peak dominates; the rescaling of the
+    accumulators when the maximum grows tile after tile), keys repeated (the first peak wins),
+    non-contiguous inputs and a negative scale."""
+    query = torch.randn(2, 40, 16) + 30
+    key = torch.randn(2, 90, 16) + 30
+    key[:, [6, 10, 70]] = key[:, 3:4]  # copies of a key in its tile and a later one: the first is the peak
+    values = torch.randn(2, 90, 7) * 100
+    out_err, lse_err, argmax_ok = flash_errors(query, key, values, 0.05, passes)
+    assert out_err <= 1 and lse_err <= 1 and argmax_ok
+    unit = torch.nn.functional.normalize(key, dim=-1)
+    _, _, argmax = emu_op("soft_match_flash")(unit[:, [3, 70, 3]] * 5, unit, values, 1.0, passes)
+    assert argmax.eq(3).all()  # the peak, reached at 3, 6, 10 and 70: the first
+    out_err, lse_err, argmax_ok = flash_errors(non_contiguous(query), non_contiguous(key), values, -0.2, passes)
+    assert out_err <= 1 and lse_err <= 1 and argmax_ok
+
+
+@pytest.mark.parametrize("with_lse", [True, False])
+def test_soft_match_flash_autograd(with_lse):
+    """The flash path's autograd function on the emulated kernel (registered for this test as the CPU
+    kernel of vrnet_ext::soft_match_flash): outputs and the recomputed gradients as the reference's,
+    with and without a gradient reaching the log-normaliser."""
+    soft_match_module = importlib.import_module("vrnet_ext.ops.soft_match")
+    library = torch.library.Library("vrnet_ext", "IMPL")
+    library.impl("soft_match_flash", emu_op("soft_match_flash"), "CPU")
+    try:
+        inputs = [torch.randn(2, 50, 12), torch.randn(2, 70, 12), torch.randn(2, 70, 5)]
+        weights = torch.randn(2, 50, 5), torch.randn(2, 50)
+        results = []
+        for run in (lambda q, k, v: soft_match_module._SoftMatchFlash.apply(q, k, v, 0.3, 3),
+                    lambda q, k, v: soft_match_reference(q, k, v, 0.3)):
+            leaves = [t.clone().requires_grad_() for t in inputs]
+            out, lse, _ = run(*leaves)
+            loss = (out * weights[0]).sum() + ((lse * weights[1]).sum() if with_lse else 0)
+            results.append([out, lse, *torch.autograd.grad(loss, leaves)])
+    finally:
+        library._destroy()
+    for got, expected in zip(*results):
+        torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-5)
+
+
+def test_soft_match_flash_bad_input():
+    good = torch.randn(1, 5, 8), torch.randn(1, 6, 8), torch.randn(1, 6, 3)
+    for args, message in [((*good, 1.0, 2), "passes"), ((torch.randn(1, 5, 65), torch.randn(1, 6, 65), good[2], 1.0, 3),
+                                                        "at most 64"),
+                          ((good[0], good[1], torch.randn(1, 6, 65), 1.0, 3), "at most 64"),
+                          ((*(t.double() for t in good), 1.0, 3), "float32"),
+                          ((good[0], good[1], good[2][:, :5], 1.0, 3), "values"),
+                          ((*good, math.inf, 3), "scale")]:
+        with pytest.raises((ValueError, TypeError), match=message):
+            emu_op("soft_match_flash")(*args)
 
 
 @pytest.mark.parametrize("K,ratio,seeds,consensus", [(3, 0.0, 5, 2), (64, 0.5, 5, 2), (130, 0.8, 20, 10),

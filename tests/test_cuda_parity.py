@@ -192,3 +192,31 @@ def test_voxel_downsample_identical_to_cpu(dtype, voxel_size):
     points = torch.as_tensor(room_scan(50_000, 0)).to(dtype)
     cpu = torch.ops.vrnet_ext.voxel_downsample(points, voxel_size)
     assert torch.equal(torch.ops.vrnet_ext.voxel_downsample(points.cuda(), voxel_size).cpu(), cpu)
+
+
+@pytest.mark.parametrize("precision", ["highest", "high"])
+@pytest.mark.parametrize("B,N,M,C,D", [(1, 1, 1, 1, 1), (2, 300, 257, 32, 35), (1, 1000, 4000, 64, 3),
+                                       (3, 65, 33, 33, 64)])
+def test_soft_match_flash_matches_cpu(precision, B, N, M, C, D):
+    """The flash kernel (c, D <= 64) against the CPU kernel: outputs and gradients, its argmax where the
+    peak is clear; TF32 (precision "high") within TF32's error. Repeats bit for bit."""
+    query, key, values = torch.randn(B, N, C), torch.randn(B, M, C), torch.randn(B, M, D)
+    previous = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision(precision)
+    try:
+        (cpu_out, cpu_grad), (cuda_out, cuda_grad) = run_both(
+            lambda q, k, v: tuple(ops.soft_match(q, k, v, return_stats=True)), query, key, values)
+        again = ops.soft_match(query.cuda(), key.cuda(), values.cuda(), return_stats=True)
+    finally:
+        torch.set_float32_matmul_precision(previous)
+    loose = 1 if precision == "highest" else 300
+    tol = tolerances(torch.float32)
+    for a, b in zip(cpu_out[:2], cuda_out[:2]):
+        torch.testing.assert_close(b, a, rtol=tol["rtol"] * loose, atol=tol["atol"] * loose)
+    for a, b in zip(cpu_grad, cuda_grad):
+        torch.testing.assert_close(b, a, rtol=tol["rtol"] * 10 * loose, atol=tol["atol"] * 10 * loose)
+    scores = torch.bmm(query.double(), key.double().mT) / C ** 0.5
+    top2 = scores.topk(min(2, M), dim=-1).values
+    clear = (top2[..., 0] - top2[..., -1] > 1e-3) | (M == 1)
+    assert torch.equal(cuda_out[2][clear], cpu_out[2][clear])
+    assert all(torch.equal(a.cpu(), b) for a, b in zip(again, cuda_out))

@@ -52,11 +52,16 @@ void* dynamic_shared_region();
 void sync_threads();
 void sync_warp(unsigned int mask);
 
-enum class Collective : int { kShflIdx, kShflUp, kShflDown, kShflXor, kBallot, kAny, kAll, kSyncWarp };
+enum class Collective : int { kShflIdx, kShflUp, kShflDown, kShflXor, kBallot, kAny, kAll, kSyncWarp, kMmaTf32 };
 // One lane's part in a warp collective: value (size bytes, <= 8) in, the result out.
 void warp_collective(Collective kind, unsigned int mask, const void* value, std::size_t size, int arg, int width,
                      void* result);
 unsigned int warp_vote(Collective kind, unsigned int mask, int predicate);
+// `mma.sync.aligned.m16n8k8.row.col.f32.tf32.tf32.f32` of a whole warp: d (16 x 8) += a (16 x 8) b (8 x 8),
+// each lane holding its fragments in the PTX ISA's layout (common/tensor_core.cuh). Operands keep
+// their TF32 bits only (the low 13 mantissa bits are ignored, as the tensor cores ignore them); each
+// product is exact and the eight are added to d in k order in float32.
+void mma_m16n8k8_tf32(float (&d)[4], const std::uint32_t (&a)[4], const std::uint32_t (&b)[2]);
 unsigned int active_mask();
 
 // Atomics on global or shared memory (checked by the sanitizer like any access).
@@ -177,6 +182,16 @@ inline long long __double_as_longlong(double x) {
   long long bits;
   std::memcpy(&bits, &x, sizeof bits);
   return bits;
+}
+inline unsigned int __float_as_uint(float x) {
+  unsigned int bits;
+  std::memcpy(&bits, &x, sizeof bits);
+  return bits;
+}
+inline float __uint_as_float(unsigned int bits) {
+  float x;
+  std::memcpy(&x, &bits, sizeof x);
+  return x;
 }
 inline double __longlong_as_double(long long bits) {
   double x;

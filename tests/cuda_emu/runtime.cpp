@@ -113,6 +113,9 @@ struct Thread {
   unsigned int mask = 0;
   uint64_t value = 0, result = 0;
   int arg = 0, width = kWarp;
+  // tensor-core product in progress (kMmaTf32): the lane's fragments
+  uint32_t mma_a[4] = {}, mma_b[2] = {};
+  float mma_d[4] = {};
 };
 
 struct SharedRegion {
@@ -670,8 +673,61 @@ namespace {
 
 bool valid_width(int width) { return width >= 1 && width <= kWarp && (width & (width - 1)) == 0; }
 
+float tf32_operand(uint32_t bits) {
+  bits &= 0xffffe000u;  // the tensor cores read 1 + 8 + 10 bits of each operand
+  float x;
+  std::memcpy(&x, &bits, sizeof x);
+  return x;
+}
+
+// Every lane of the warp has passed its fragments of one m16n8k8 TF32 product (the PTX ISA's layout:
+// groupID g = lane / 4, t = lane % 4; A (row, k): a0 (g, t), a1 (g + 8, t), a2 (g, t + 4),
+// a3 (g + 8, t + 4); B (k, col): b0 (t, g), b1 (t + 4, g); D (row, col): d0 (g, 2t), d1 (g, 2t + 1),
+// d2 (g + 8, 2t), d3 (g + 8, 2t + 1)): every lane's d += a b.
+void resolve_mma(Worker& w, Thread& last) {
+  const int first = last.warp * kWarp;
+  if (last.mask != 0xffffffffu || first + kWarp > static_cast<int>(w.threads.size())) {
+    report(w, "mma-warp", "a tensor-core product needs all 32 lanes of a full warp (mask " + hex(last.mask) +
+                              ") in " + where(w, last));
+    for (int id = first; id < std::min<int>(first + kWarp, static_cast<int>(w.threads.size())); ++id)
+      w.threads[id].state = State::kRunnable;
+    return;
+  }
+  for (int id = first; id < first + kWarp; ++id) {
+    if (w.threads[id].kind != Collective::kMmaTf32 || w.threads[id].mask != last.mask) {
+      report(w, "collective-mismatch", "lanes of warp " + std::to_string(last.warp) +
+                                           " meet at a tensor-core product and another collective in " +
+                                           where(w, w.threads[id]));
+    }
+  }
+  auto a = [&](int row, int k) {
+    const Thread& t = w.threads[first + (row % 8) * 4 + k % 4];
+    return tf32_operand(t.mma_a[(row >= 8 ? 1 : 0) + (k >= 4 ? 2 : 0)]);
+  };
+  auto b = [&](int k, int col) { return tf32_operand(w.threads[first + col * 4 + k % 4].mma_b[k >= 4 ? 1 : 0]); };
+  float result[kWarp][4];
+  for (int lane = 0; lane < kWarp; ++lane) {
+    const int g = lane / 4, t = lane % 4;
+    for (int i = 0; i < 4; ++i) {
+      const int row = g + 8 * (i / 2), col = 2 * t + i % 2;
+      float sum = w.threads[first + lane].mma_d[i];
+      for (int k = 0; k < 8; ++k) sum += a(row, k) * b(k, col);
+      result[lane][i] = sum;
+    }
+  }
+  for (int lane = 0; lane < kWarp; ++lane) {
+    Thread& t = w.threads[first + lane];
+    std::memcpy(t.mma_d, result[lane], sizeof t.mma_d);
+    t.state = State::kRunnable;
+  }
+}
+
 // The lanes of mask have all arrived: compute every lane's result and wake them.
 void resolve(Worker& w, Thread& last) {
+  if (last.kind == Collective::kMmaTf32) {
+    resolve_mma(w, last);
+    return;
+  }
   const int T = static_cast<int>(w.threads.size());
   const unsigned int mask = last.mask;
   unsigned int ballot = 0;
@@ -772,6 +828,16 @@ __attribute__((noinline)) unsigned int warp_vote(Collective kind, unsigned int m
   Worker& w = in_kernel("a warp vote");
   arrive(w, kind, mask, predicate != 0, 0, kWarp, __builtin_return_address(0));
   return static_cast<unsigned int>(w.current->result);
+}
+
+__attribute__((noinline)) void mma_m16n8k8_tf32(float (&d)[4], const uint32_t (&a)[4], const uint32_t (&b)[2]) {
+  Worker& w = in_kernel("mma.sync");
+  Thread& t = *w.current;
+  std::memcpy(t.mma_a, a, sizeof t.mma_a);
+  std::memcpy(t.mma_b, b, sizeof t.mma_b);
+  std::memcpy(t.mma_d, d, sizeof t.mma_d);
+  arrive(w, Collective::kMmaTf32, 0xffffffffu, 0, 0, kWarp, __builtin_return_address(0));
+  std::memcpy(d, w.current->mma_d, sizeof t.mma_d);
 }
 
 __attribute__((noinline)) void sync_warp(unsigned int mask) {

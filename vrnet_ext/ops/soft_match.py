@@ -5,11 +5,16 @@ clouds M alone is 10 GB in float32. On a CPU the compiled kernel walks over tile
 the online-softmax recurrence (running row maximum and normaliser, rescaled partial sums), so memory
 stays O((N + M)(c + D)); the backward recomputes the tiles from the saved log-normaliser.
 
-On other devices (a GPU) the compiled backend runs torch's batched products on blocks of query rows
-of at most ``DENSE_BLOCK_MAX_SCORES`` scores each (one block for most problems), and a backward
-through more than one block recomputes each block's scores from the saved log-normaliser, as flash
-attention does: memory stays that of one block. (A streamed CUDA kernel of one thread per query
-row measured two orders of magnitude behind those products on an H200.)
+On a GPU, float32 problems whose feature size c and value width D are at most ``FLASH_MAX_WIDTH``
+run a flash-style CUDA kernel on the TF32 tensor cores (tiles of queries and keys, the same online
+softmax, no N x M matrix): each float32 operand split into two TF32 parts, three products each (about
+float32's accuracy) while ``torch.get_float32_matmul_precision()`` is ``"highest"`` (torch's
+default), one TF32 product each when it is ``"high"`` or ``"medium"`` (TF32 allowed, ~1e-3 relative
+error in the scores). Its backward recomputes the probabilities with torch's products, block by
+block, in float32 (the dense formula's gradients). Other problems run torch's batched products on blocks of query
+rows of at most ``DENSE_BLOCK_MAX_SCORES`` scores each (one block for most problems), and a backward
+through more than one block recomputes each block's scores, as flash attention does: memory stays
+that of one block.
 """
 from __future__ import annotations
 
@@ -24,6 +29,7 @@ from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_
 
 
 DENSE_BLOCK_MAX_SCORES = 1 << 26  # scores per dense block off the CPU: 256 MB per float32 copy
+FLASH_MAX_WIDTH = 64  # largest c and D of the CUDA flash kernel (its shared-memory tiles)
 
 
 class SoftMatch(NamedTuple):
@@ -63,15 +69,14 @@ def soft_match_reference(query: torch.Tensor, key: torch.Tensor, values: torch.T
     """Dense pure-PyTorch soft matching (builds the (B, N, M) score matrix)."""
     scores = torch.bmm(query, key.transpose(1, 2)) * scale
     lse = torch.logsumexp(scores, dim=-1)
-    if values_checked() and not bool(torch.isfinite(lse).all()):
-        raise ValueError(f"soft_match scores overflow: scale * query . key is not finite (scale {scale})")
+    check_lse_finite(lse, scale)
     out = torch.bmm(torch.softmax(scores, dim=-1), values)
     return SoftMatch(out, lse, scores.argmax(dim=-1))
 
 
 class _SoftMatchInBlocks(torch.autograd.Function):
     """:func:`soft_match_reference` on blocks of ``block`` query rows; the backward recomputes each
-    block's probabilities from the saved log-normaliser, so at most one block's (B, block, M)
+    block's probabilities (:func:`recomputed_gradients`), so at most one block's (B, block, M)
     matrices are alive in either pass. The backward is made of differentiable products, so
     second-order gradients flow through it."""
 
@@ -80,27 +85,81 @@ class _SoftMatchInBlocks(torch.autograd.Function):
         parts = [soft_match_reference(query[:, start:start + block], key, values, scale)
                  for start in range(0, query.shape[1], block)]
         out, lse, argmax = (torch.cat(pieces, dim=1) for pieces in zip(*parts))
-        ctx.save_for_backward(query, key, values, out, lse)
+        ctx.save_for_backward(query, key, values)
         ctx.scale, ctx.block = scale, block
         ctx.mark_non_differentiable(argmax)
         return out, lse, argmax
 
     @staticmethod
     def backward(ctx, grad_out, grad_lse, _grad_argmax):
-        # With P = exp(scale Q Kᵀ - lse): dScores = P (dO Vᵀ + shift), shift_i = dlse_i - dO_i . O_i.
-        query, key, values, out, lse = ctx.saved_tensors
-        scale, block = ctx.scale, ctx.block
-        with float32_region(query):
-            shift = grad_lse - (grad_out * out).sum(-1)
-            grad_query, grad_key, grad_values = [], torch.zeros_like(key), torch.zeros_like(values)
-            for start in range(0, query.shape[1], block):
-                rows = slice(start, start + block)
-                probs = torch.exp(torch.bmm(query[:, rows], key.mT) * scale - lse[:, rows, None])
-                grad_scores = probs * (torch.bmm(grad_out[:, rows], values.mT) + shift[:, rows, None])
-                grad_query.append(torch.bmm(grad_scores, key) * scale)
-                grad_key = grad_key + torch.bmm(grad_scores.mT, query[:, rows]) * scale
-                grad_values = grad_values + torch.bmm(probs.mT, grad_out[:, rows])
-        return torch.cat(grad_query, dim=1), grad_key, grad_values, None, None
+        grads = recomputed_gradients(*ctx.saved_tensors, grad_out, grad_lse, ctx.scale, ctx.block)
+        return (*grads, None, None)
+
+
+def recomputed_gradients(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, grad_out: torch.Tensor,
+                         grad_lse: torch.Tensor, scale: float, block: int
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Gradients of a soft matching in query, key and values, the probabilities recomputed by torch's
+    products for blocks of ``block`` query rows (each block holds its rows' every score, so its
+    softmax is complete): the dense formula's gradients in the inputs' precision, whatever rounding
+    produced the forward's outputs, and differentiable again. With P = softmax(scale Q Kᵀ) and
+    dP = dO Vᵀ: dScores = P ∘ (dP - rowsum(P ∘ dP) + dlse)."""
+    with float32_region(query):
+        grad_query, grad_key, grad_values = [], torch.zeros_like(key), torch.zeros_like(values)
+        for start in range(0, query.shape[1], block):
+            rows = slice(start, start + block)
+            probs = torch.softmax(torch.bmm(query[:, rows], key.mT) * scale, dim=-1)
+            grad_probs = torch.bmm(grad_out[:, rows], values.mT)
+            shift = grad_lse[:, rows] - (probs * grad_probs).sum(-1)
+            grad_scores = probs * (grad_probs + shift[..., None])
+            grad_query.append(torch.bmm(grad_scores, key) * scale)
+            grad_key = grad_key + torch.bmm(grad_scores.mT, query[:, rows]) * scale
+            grad_values = grad_values + torch.bmm(probs.mT, grad_out[:, rows])
+    return torch.cat(grad_query, dim=1), grad_key, grad_values
+
+
+def query_block(batch: int, cols: int, max_scores: int = DENSE_BLOCK_MAX_SCORES) -> int:
+    """Query rows per dense block: at most ``max_scores`` scores (B·rows·M), at least one row."""
+    return max(1, max_scores // max(1, batch * cols))
+
+
+@torch.compiler.assume_constant_result
+def flash_passes() -> int:
+    """Tensor-core products per operand pair of the CUDA flash kernel under torch's float32 matmul
+    precision: 3 (split TF32, about float32's accuracy) for ``"highest"``, else 1 (TF32). A constant
+    for ``torch.compile`` (read when a graph is traced)."""
+    return 3 if torch.get_float32_matmul_precision() == "highest" else 1
+
+
+def flash_fits(query: torch.Tensor, values: torch.Tensor) -> bool:
+    """Whether the CUDA flash kernel takes this problem: float32 on a GPU, c and D at most FLASH_MAX_WIDTH."""
+    return (query.device.type == "cuda" and query.dtype == torch.float32
+            and query.shape[2] <= FLASH_MAX_WIDTH and values.shape[2] <= FLASH_MAX_WIDTH)
+
+
+class _SoftMatchFlash(torch.autograd.Function):
+    """The CUDA flash kernel forward (``passes`` 1 or 3); the backward by :func:`recomputed_gradients`."""
+
+    @staticmethod
+    def forward(ctx, query, key, values, scale: float, passes: int):
+        out, lse, argmax = torch.ops.vrnet_ext.soft_match_flash(query, key, values, scale, passes)
+        ctx.save_for_backward(query, key, values)
+        ctx.scale = scale
+        ctx.mark_non_differentiable(argmax)
+        return out, lse, argmax
+
+    @staticmethod
+    def backward(ctx, grad_out, grad_lse, _grad_argmax):
+        query, key, values = ctx.saved_tensors
+        block = query_block(query.shape[0], key.shape[1])
+        grads = recomputed_gradients(query, key, values, grad_out, grad_lse, ctx.scale, block)
+        return (*grads, None, None)
+
+
+def check_lse_finite(lse: torch.Tensor, scale: float) -> None:
+    """Raise ValueError when a row's scores overflowed (where values are checked)."""
+    if values_checked() and not bool(torch.isfinite(lse).all()):
+        raise ValueError(f"soft_match scores overflow: scale * query . key is not finite (scale {scale})")
 
 
 def dense_in_query_blocks(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, scale: float,
@@ -108,8 +167,7 @@ def dense_in_query_blocks(query: torch.Tensor, key: torch.Tensor, values: torch.
     """:func:`soft_match_reference` on blocks of query rows of at most ``max_scores`` scores each
     (at least one row): the same values and gradients, with at most one block's (B, rows, M)
     matrices alive in the forward and in the backward (which then recomputes each block)."""
-    batch, rows, cols = query.shape[0], query.shape[1], key.shape[1]
-    block = max(1, max_scores // max(1, batch * cols))
+    rows, block = query.shape[1], query_block(query.shape[0], key.shape[1], max_scores)
     if rows <= block:
         return soft_match_reference(query, key, values, scale)
     return SoftMatch(*_SoftMatchInBlocks.apply(query, key, values, scale, block))
@@ -124,8 +182,9 @@ def soft_match(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, sca
         key: (B, M, c) features of the candidates (M >= 1).
         values: (B, M, D) what each candidate contributes (VRNet: ``[Y | Φyᵀ]``).
         scale: score multiplier, default ``1 / sqrt(c)``.
-        backend: ``"ext"`` (on a CPU the compiled streamed kernel; elsewhere dense products on
-            blocks of query rows, :func:`dense_in_query_blocks`) or ``"torch"`` (dense reference).
+        backend: ``"ext"`` (on a CPU the compiled streamed kernel; on a GPU the flash kernel
+            where :func:`flash_fits`, else dense products on blocks of query rows,
+            :func:`dense_in_query_blocks`) or ``"torch"`` (dense reference).
         return_stats: also return the log-normaliser and the row peak (:class:`SoftMatch`).
 
     Returns:
@@ -135,13 +194,19 @@ def soft_match(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, sca
     query, key, values = (promote_low_precision(t) for t in (query, key, values))
     validate_soft_match(query, key, values, scale)
     scale = 1.0 / math.sqrt(query.shape[2]) if scale is None else float(scale)
-    if use_extension(backend, query.device) and query.device.type == "cpu":
+    compiled = use_extension(backend, query.device)
+    if compiled and query.device.type == "cpu":
         result = SoftMatch(*torch.ops.vrnet_ext.soft_match(query, key, values, scale))
     else:
         for name, t in (("query", query), ("key", key), ("values", values)):
             check_finite(t, name)
-        with float32_region(query):
-            result = (dense_in_query_blocks if backend == "ext" else soft_match_reference)(query, key, values, scale)
+        if compiled and flash_fits(query, values):
+            result = SoftMatch(*_SoftMatchFlash.apply(query, key, values, scale, flash_passes()))
+            check_lse_finite(result.lse, scale)
+        else:
+            with float32_region(query):
+                result = (dense_in_query_blocks if backend == "ext" else soft_match_reference)(query, key, values,
+                                                                                               scale)
     return result if return_stats else result.out
 
 
@@ -152,6 +217,10 @@ if has_extension():
         B, N = query.shape[0], query.shape[1]
         return (query.new_empty((B, N, values.shape[2])), query.new_empty((B, N)),
                 query.new_empty((B, N), dtype=torch.int64))
+
+    @torch.library.register_fake("vrnet_ext::soft_match_flash")
+    def _soft_match_flash_fake(query, key, values, scale, passes):
+        return _soft_match_fake(query, key, values, scale)
 
     @torch.library.register_fake("vrnet_ext::soft_match_backward")
     def _soft_match_backward_fake(grad_out, grad_lse, query, key, values, out, lse, scale):

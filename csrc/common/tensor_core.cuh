@@ -1,0 +1,103 @@
+// TF32 tensor-core products of one warp (sm_80 and later): `mma.sync.aligned.m16n8k8` with float32
+// accumulators, and the loading of its fragments from shared-memory tiles. Under the CPU emulator the
+// product is the emulator's collective of the same layout (cuda_emu/cuda_emu.h).
+//
+// Fragment layout (PTX ISA, "Matrix Fragments for mma.m16n8k8", .tf32), lane = 4 g + t:
+//   A (16 x 8, row, k):  a0 (g, t)    a1 (g + 8, t)    a2 (g, t + 4)    a3 (g + 8, t + 4)
+//   B (8 x 8,  k, col):  b0 (t, g)    b1 (t + 4, g)
+//   D (16 x 8, row, col): d0 (g, 2t)  d1 (g, 2t + 1)   d2 (g + 8, 2t)   d3 (g + 8, 2t + 1)
+//
+// With three passes a float32 operand x is split into x_hi = tf32(x) and x_lo = tf32(x - x_hi), and
+// a b is accumulated as a_lo b_hi + a_hi b_lo + a_hi b_hi: about float32's accuracy (the dropped
+// a_lo b_lo is ~2^-22 of a b) on the tensor cores. One pass rounds each operand to TF32 (~2^-11).
+#pragma once
+
+#include "common/cuda_device.cuh"
+
+namespace vrnet {
+
+// x rounded to TF32 (8 exponent, 10 mantissa bits; to nearest, ties away from zero), as float bits.
+__device__ inline std::uint32_t to_tf32(float x) {
+#ifdef VRNET_CUDA_EMULATION
+  std::uint32_t bits = __float_as_uint(x);
+  if ((bits & 0x7f800000u) != 0x7f800000u) bits = (bits + 0x1000u) & 0xffffe000u;  // Inf / NaN kept
+  return bits;
+#else
+  std::uint32_t bits;
+  asm("cvt.rna.tf32.f32 %0, %1;" : "=r"(bits) : "f"(x));
+  return bits;
+#endif
+}
+
+// d (16 x 8) += a (16 x 8) b (8 x 8) on the tensor cores; all 32 lanes of the warp call it together.
+__device__ inline void mma_tf32(float (&d)[4], const std::uint32_t (&a)[4], const std::uint32_t (&b)[2]) {
+#ifdef VRNET_CUDA_EMULATION
+  ::vrnet::emu::mma_m16n8k8_tf32(d, a, b);
+#else
+  asm volatile("mma.sync.aligned.m16n8k8.row.col.f32.tf32.tf32.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, {%8, %9}, "
+               "{%0, %1, %2, %3};"
+               : "+f"(d[0]), "+f"(d[1]), "+f"(d[2]), "+f"(d[3])
+               : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b[0]), "r"(b[1]));
+#endif
+}
+
+// One operand fragment of `kPasses` (1 or 3) passes: its TF32 values and, for three, the remainders.
+template <int kSize, int kPasses>
+struct Tf32Fragment {
+  std::uint32_t hi[kSize];
+  std::uint32_t lo[kSize];
+
+  __device__ void set(int i, float x) {
+    hi[i] = to_tf32(x);
+    if (kPasses == 3) lo[i] = to_tf32(x - __uint_as_float(hi[i]));
+  }
+};
+
+template <int kPasses>
+using FragmentA = Tf32Fragment<4, kPasses>;
+template <int kPasses>
+using FragmentB = Tf32Fragment<2, kPasses>;
+
+// d += a b in `kPasses` passes (the small products first).
+template <int kPasses>
+__device__ inline void mma_passes(float (&d)[4], const FragmentA<kPasses>& a, const FragmentB<kPasses>& b) {
+  if (kPasses == 3) {
+    mma_tf32(d, a.lo, b.hi);
+    mma_tf32(d, a.hi, b.lo);
+  }
+  mma_tf32(d, a.hi, b.hi);
+}
+
+// A from a row-major tile: A(row, k) = tile[(row0 + row) * stride + k0 + k].
+template <int kPasses>
+__device__ inline FragmentA<kPasses> load_a(const float* tile, int stride, int row0, int k0, int lane) {
+  const int g = lane >> 2, t = lane & 3;
+  FragmentA<kPasses> a;
+  a.set(0, tile[(row0 + g) * stride + k0 + t]);
+  a.set(1, tile[(row0 + g + 8) * stride + k0 + t]);
+  a.set(2, tile[(row0 + g) * stride + k0 + t + 4]);
+  a.set(3, tile[(row0 + g + 8) * stride + k0 + t + 4]);
+  return a;
+}
+
+// B from a tile holding B's columns as rows: B(k, col) = tile[(col0 + col) * stride + k0 + k].
+template <int kPasses>
+__device__ inline FragmentB<kPasses> load_b_transposed(const float* tile, int stride, int k0, int col0, int lane) {
+  const int g = lane >> 2, t = lane & 3;
+  FragmentB<kPasses> b;
+  b.set(0, tile[(col0 + g) * stride + k0 + t]);
+  b.set(1, tile[(col0 + g) * stride + k0 + t + 4]);
+  return b;
+}
+
+// B from a row-major tile: B(k, col) = tile[(k0 + k) * stride + col0 + col].
+template <int kPasses>
+__device__ inline FragmentB<kPasses> load_b(const float* tile, int stride, int k0, int col0, int lane) {
+  const int g = lane >> 2, t = lane & 3;
+  FragmentB<kPasses> b;
+  b.set(0, tile[(k0 + t) * stride + col0 + g]);
+  b.set(1, tile[(k0 + t + 4) * stride + col0 + g]);
+  return b;
+}
+
+}  // namespace vrnet

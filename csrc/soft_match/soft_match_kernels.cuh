@@ -1,0 +1,180 @@
+// soft_match's CUDA kernel: flash-style soft matching on TF32 tensor cores for feature and value
+// widths of at most 64 (the scene model's 32-dimensional features; matchings of 10^5 points).
+//
+// A block of 4 warps takes 64 query rows of one batch item (16 a warp) and walks over the keys in
+// tiles of 32 held in shared memory: each warp's scores S = scale Q Kᵀ by m16n8k8 products, the
+// online-softmax recurrence per row (running maximum m, normaliser l, the accumulated P V rescaled by
+// exp(m_old - m_new) when the maximum grows), P = exp(S - m) through the warp's slice of shared
+// memory into the A operand of O += P V. No N x M matrix; no atomics (deterministic).
+// Rows are held by lanes as the products' D fragments place them: rows g and g + 8 of the warp's 16,
+// columns 2t and 2t + 1 of each 8-wide tile (common/tensor_core.cuh); a row's four lanes combine
+// their maxima and sums by shuffles.
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+
+#include "common/cuda_device.cuh"
+#include "common/tensor_core.cuh"
+
+namespace vrnet {
+
+constexpr int kFlashWarps = 4;
+constexpr int kFlashThreads = kFlashWarps * 32;
+constexpr int kFlashRows = kFlashWarps * 16;  // query rows per block
+constexpr int kFlashKeys = 32;                 // keys per shared-memory tile
+constexpr int kFlashMaxWidth = 64;             // largest feature size c and value width D
+constexpr int kFlashValueTiles = kFlashMaxWidth / 8;
+
+// Row strides of the shared tiles (floats), chosen so that a fragment's 32 loads hit 32 banks:
+// Q and K are read as (g, t) -> g * stride + t (stride = 4 mod 32), V as (t, g) -> t * stride + g
+// (stride = 8 mod 32), P as Q.
+VRNET_HOST_DEVICE constexpr int flash_feature_stride(int c) { return (c + 31) / 32 * 32 + 4; }
+VRNET_HOST_DEVICE constexpr int flash_value_stride(int d) { return (d + 31) / 32 * 32 + 8; }
+constexpr int kFlashProbStride = kFlashKeys + 4;
+
+// Floats of dynamic shared memory a block uses: Q (64 rows), K and V (32 rows), P (64 rows).
+VRNET_HOST_DEVICE constexpr int flash_shared_floats(int c, int d) {
+  return (kFlashRows + kFlashKeys) * flash_feature_stride(c) + kFlashKeys * flash_value_stride(d) +
+         kFlashRows * kFlashProbStride;
+}
+
+// rows x width values of a (rows_total, width) row-major matrix from row `first` into a tile of
+// `stride` floats a row, zeros past its rows and columns; all threads of the block take part.
+__device__ inline void load_tile(const float* __restrict__ source, int64_t first, int64_t rows_total, int width,
+                                 int rows, int stride, float* tile) {
+  for (int i = threadIdx.x; i < rows * stride; i += blockDim.x) {
+    const int row = i / stride, col = i % stride;
+    const int64_t at = first + row;
+    tile[i] = at < rows_total && col < width ? source[at * width + col] : 0.0f;
+  }
+}
+
+// (value, index) pairs: the larger value, on ties the lower index (the first maximum).
+__device__ inline void take_first_max(float& value, int64_t& index, float other, int64_t other_index) {
+  if (other > value || (other == value && other_index < index)) {
+    value = other;
+    index = other_index;
+  }
+}
+
+// grid: one block per (batch item, tile of 64 query rows), blockIdx.x = b * row_tiles + tile;
+// kFlashThreads threads; flash_shared_floats(C, D) floats of dynamic shared memory.
+template <int kPasses>
+__global__ void soft_match_flash_kernel(const float* __restrict__ query, const float* __restrict__ key,
+                                        const float* __restrict__ values, int64_t N, int64_t M, int C, int D,
+                                        float scale, int64_t row_tiles, float* __restrict__ out,
+                                        float* __restrict__ lse, int64_t* __restrict__ argmax) {
+  VRNET_DYNAMIC_SHARED(float, shared);
+  const int feature_stride = flash_feature_stride(C), value_stride = flash_value_stride(D);
+  float* q_tile = shared;
+  float* k_tile = q_tile + kFlashRows * feature_stride;
+  float* v_tile = k_tile + kFlashKeys * feature_stride;
+  float* p_tile = v_tile + kFlashKeys * value_stride;
+
+  const int64_t b = blockIdx.x / row_tiles;
+  const int64_t row0 = (blockIdx.x % row_tiles) * kFlashRows;
+  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane >> 2, t = lane & 3;
+  const int warp_row = warp * 16;
+  const int feature_steps = (C + 7) / 8, value_tiles = (D + 7) / 8;
+
+  load_tile(query + b * N * C, row0, N, C, kFlashRows, feature_stride, q_tile);
+
+  // rows g (slot 0) and g + 8 (slot 1) of the warp's 16
+  float row_max[2] = {-INFINITY, -INFINITY}, row_sum[2] = {0.0f, 0.0f};
+  int64_t row_peak[2] = {0, 0};
+  float acc[kFlashValueTiles][4];
+  VRNET_UNROLL
+  for (int v = 0; v < kFlashValueTiles; ++v)
+    VRNET_UNROLL for (int i = 0; i < 4; ++i) acc[v][i] = 0.0f;
+
+  for (int64_t j0 = 0; j0 < M; j0 += kFlashKeys) {
+    __syncthreads();  // every warp is done with the previous tiles (and Q is loaded)
+    load_tile(key + b * M * C, j0, M, C, kFlashKeys, feature_stride, k_tile);
+    load_tile(values + b * M * D, j0, M, D, kFlashKeys, value_stride, v_tile);
+    __syncthreads();
+
+    float score[kFlashKeys / 8][4];
+    VRNET_UNROLL
+    for (int n = 0; n < kFlashKeys / 8; ++n)
+      VRNET_UNROLL for (int i = 0; i < 4; ++i) score[n][i] = 0.0f;
+    for (int step = 0; step < feature_steps; ++step) {
+      const FragmentA<kPasses> a = load_a<kPasses>(q_tile, feature_stride, warp_row, step * 8, lane);
+      VRNET_UNROLL
+      for (int n = 0; n < kFlashKeys / 8; ++n)
+        mma_passes<kPasses>(score[n], a, load_b_transposed<kPasses>(k_tile, feature_stride, step * 8, n * 8, lane));
+    }
+
+    // scale, mask the keys past M, and each row's first maximum in the tile
+    float tile_max[2] = {-INFINITY, -INFINITY};
+    int64_t tile_peak[2] = {M, M};
+    VRNET_UNROLL
+    for (int n = 0; n < kFlashKeys / 8; ++n)
+      VRNET_UNROLL for (int i = 0; i < 4; ++i) {
+        const int64_t j = j0 + n * 8 + 2 * t + (i & 1);
+        score[n][i] = j < M ? score[n][i] * scale : -INFINITY;
+        if (j < M) take_first_max(tile_max[i >> 1], tile_peak[i >> 1], score[n][i], j);
+      }
+    float alpha[2], shift[2];
+    VRNET_UNROLL
+    for (int s = 0; s < 2; ++s) {
+      for (int offset = 1; offset < 4; offset <<= 1) {
+        const float other = __shfl_xor_sync(kFullWarp, tile_max[s], offset);
+        const int64_t other_peak = __shfl_xor_sync(kFullWarp, tile_peak[s], offset);
+        take_first_max(tile_max[s], tile_peak[s], other, other_peak);
+      }
+      if (tile_max[s] > row_max[s]) row_peak[s] = tile_peak[s];
+      const float new_max = fmaxf(row_max[s], tile_max[s]);
+      // while every score so far is -inf (underflowed), weights exp(s - 0): 0, not exp(-inf + inf)
+      shift[s] = new_max == -INFINITY ? 0.0f : new_max;
+      alpha[s] = expf(row_max[s] - shift[s]);
+      row_max[s] = new_max;
+    }
+
+    // P = exp(S - m) into the warp's rows of p_tile; the rows' sums
+    float tile_sum[2] = {0.0f, 0.0f};
+    VRNET_UNROLL
+    for (int n = 0; n < kFlashKeys / 8; ++n)
+      VRNET_UNROLL for (int i = 0; i < 4; ++i) {
+        const float p = expf(score[n][i] - shift[i >> 1]);
+        tile_sum[i >> 1] += p;
+        p_tile[(warp_row + g + 8 * (i >> 1)) * kFlashProbStride + n * 8 + 2 * t + (i & 1)] = p;
+      }
+    VRNET_UNROLL
+    for (int s = 0; s < 2; ++s) {
+      for (int offset = 1; offset < 4; offset <<= 1) tile_sum[s] += __shfl_xor_sync(kFullWarp, tile_sum[s], offset);
+      row_sum[s] = row_sum[s] * alpha[s] + tile_sum[s];
+    }
+    VRNET_UNROLL
+    for (int v = 0; v < kFlashValueTiles; ++v)
+      VRNET_UNROLL for (int i = 0; i < 4; ++i) acc[v][i] *= alpha[i >> 1];
+    __syncwarp();
+
+    // O += P V
+    for (int step = 0; step < kFlashKeys / 8; ++step) {
+      const FragmentA<kPasses> a = load_a<kPasses>(p_tile, kFlashProbStride, warp_row, step * 8, lane);
+      VRNET_UNROLL
+      for (int v = 0; v < kFlashValueTiles; ++v)
+        if (v < value_tiles) mma_passes<kPasses>(acc[v], a, load_b<kPasses>(v_tile, value_stride, step * 8, v * 8, lane));
+    }
+  }
+
+  VRNET_UNROLL
+  for (int s = 0; s < 2; ++s) {
+    const int64_t row = row0 + warp_row + g + 8 * s;
+    if (row >= N) continue;
+    const int64_t at = b * N + row;
+    if (t == 0) {
+      lse[at] = row_max[s] + logf(row_sum[s]);
+      argmax[at] = row_peak[s];
+    }
+    VRNET_UNROLL
+    for (int v = 0; v < kFlashValueTiles; ++v)
+      for (int i = 2 * s; i < 2 * s + 2; ++i) {
+        const int col = v * 8 + 2 * t + (i & 1);
+        if (v < value_tiles && col < D) out[at * D + col] = acc[v][i] / row_sum[s];
+      }
+  }
+}
+
+}  // namespace vrnet
