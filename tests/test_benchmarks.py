@@ -65,6 +65,33 @@ def test_bench_inference_times_every_variant_on_the_same_pairs(tmp_path):
     assert all(r["gflop_per_s"] == pytest.approx(r["pairs_per_s"] * meta["reference_gflop_per_pair"]) for r in rows)
 
 
+def test_reduced_precision_rounds_as_bfloat16_does_and_only_in_its_scope():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import torch
+    from reduced_precision import RoundedProducts, round_mantissa
+
+    x = torch.cat([torch.randn(10000) * 1e3, torch.tensor([float("inf"), -float("inf"), 1 + 2.0 ** -8])])
+    assert torch.equal(round_mantissa(x, 7), x.bfloat16().float())
+    assert round_mantissa(torch.tensor([1 + 2.0 ** -11, 1 + 3 * 2.0 ** -11]), 10).tolist() == [1.0, 1 + 2.0 ** -9]
+    a, b = torch.randn(5, 7), torch.randn(7, 3)
+    with RoundedProducts(7, "matching"):  # outside the soft matching: untouched
+        assert torch.equal(a @ b, torch.mm(a, b))
+    plain = torch.mm(a, b)
+    with RoundedProducts(7, "all"):
+        rounded = torch.mm(a, b)
+    assert torch.equal(rounded, torch.mm(a.bfloat16().float(), b.bfloat16().float())) and not torch.equal(rounded, plain)
+
+
+@requires_modelnet
+def test_reduced_precision_writes_a_row_per_variant(tmp_path):
+    out = tmp_path / "precision.json"
+    run([str(ROOT / "benchmarks" / "reduced_precision.py"), "--max-items", "2", "--data-dir", str(MODELNET_DIR),
+         "--json", str(out)], tmp_path)
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["precision"] for r in rows] == ["fp32", "tf32 matching", "tf32", "bf16 matching", "bf16"]
+    assert all(r["pairs"] == rows[0]["pairs"] > 0 and r["RMSE(R)"] >= 0 for r in rows)
+
+
 LIDAR = ROOT.parent / "shared" / "data" / "scenes" / "lidar_pair"
 REAL_PAIRS = ROOT.parent / "shared" / "data" / "scenes" / "real_pairs"
 

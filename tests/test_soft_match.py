@@ -325,3 +325,23 @@ def test_the_vector_and_the_portable_rows_agree(tmp_path):
     for vector, generic in zip(*results):
         for a, b in zip(vector, generic):
             assert torch.equal(a, b)
+
+
+def test_flash_kernel_passes_follow_torchs_tf32_setting():
+    """The CUDA flash kernel's products: three (split TF32) unless TF32 is allowed for CUDA matmuls,
+    by either of torch's APIs; read without a GPU."""
+    from vrnet_ext.ops.soft_match import flash_passes
+
+    matmul = torch.backends.cuda.matmul
+    previous = matmul.fp32_precision
+    try:
+        assert flash_passes() == 3
+        matmul.fp32_precision = "tf32"
+        assert flash_passes() == 1
+        matmul.fp32_precision = previous
+        torch.set_float32_matmul_precision("high")
+        assert flash_passes() == 1
+    finally:
+        torch.set_float32_matmul_precision("highest")
+        matmul.fp32_precision = previous
+    assert flash_passes() == 3

@@ -8,9 +8,8 @@ stays O((N + M)(c + D)); the backward recomputes the tiles from the saved log-no
 On a GPU, float32 problems whose feature size c and value width D are at most ``FLASH_MAX_WIDTH``
 run a flash-style CUDA kernel on the TF32 tensor cores (tiles of queries and keys, the same online
 softmax, no N x M matrix): each float32 operand split into two TF32 parts, three products each (about
-float32's accuracy) while ``torch.get_float32_matmul_precision()`` is ``"highest"`` (torch's
-default), one TF32 product each when it is ``"high"`` or ``"medium"`` (TF32 allowed, ~1e-3 relative
-error in the scores). Its backward recomputes the probabilities with torch's products, block by
+float32's accuracy; torch's default), one TF32 product each where torch allows TF32 in float32 CUDA
+matmuls (:func:`flash_passes`; ~1e-3 relative error in the scores). Its backward recomputes the probabilities with torch's products, block by
 block, in float32 (the dense formula's gradients). Other problems run torch's batched products on blocks of query
 rows of at most ``DENSE_BLOCK_MAX_SCORES`` scores each (one block for most problems), and a backward
 through more than one block recomputes each block's scores, as flash attention does: memory stays
@@ -125,10 +124,13 @@ def query_block(batch: int, cols: int, max_scores: int = DENSE_BLOCK_MAX_SCORES)
 
 @torch.compiler.assume_constant_result
 def flash_passes() -> int:
-    """Tensor-core products per operand pair of the CUDA flash kernel under torch's float32 matmul
-    precision: 3 (split TF32, about float32's accuracy) for ``"highest"``, else 1 (TF32). A constant
-    for ``torch.compile`` (read when a graph is traced)."""
-    return 3 if torch.get_float32_matmul_precision() == "highest" else 1
+    """Tensor-core products per operand pair of the CUDA flash kernel: 1 (TF32) where torch allows
+    TF32 in float32 CUDA matmuls (``torch.backends.cuda.matmul.fp32_precision = "tf32"``, or
+    ``torch.set_float32_matmul_precision("high")``), else 3 (split TF32, about float32's accuracy;
+    torch's default). A constant for ``torch.compile`` (read when a graph is traced)."""
+    matmul = torch.backends.cuda.matmul
+    tf32 = matmul.fp32_precision == "tf32" if hasattr(matmul, "fp32_precision") else matmul.allow_tf32
+    return 1 if tf32 else 3
 
 
 def flash_fits(query: torch.Tensor, values: torch.Tensor) -> bool:

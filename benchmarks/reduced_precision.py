@@ -1,0 +1,171 @@
+"""What reduced-precision matrix products (TF32, bfloat16) do to a shipped model's errors, on the CPU.
+
+    python benchmarks/reduced_precision.py [--model vrnet-pv-upc-rcp] [--partition val] [--json F] [--markdown F]
+
+On a GPU, torch runs float32 matrix products on TF32 tensor cores where
+``torch.set_float32_matmul_precision("high")`` allows it (cuDNN's convolutions do by default), and
+in bfloat16 under autocast. Whether the model keeps its errors there is a question of numerics,
+answered here without a GPU: the model runs as it runs on a GPU (the DGCNN's feature graphs by
+``cdist`` + ``topk``, the soft matching by dense products; the compiled Procrustes solves in
+float64) while a ``TorchFunctionMode`` rounds every float32 operand of torch's matrix products
+(``mm``, ``bmm``, ``matmul``, ``linear``, ``conv1d/2d``, ``einsum``, ``baddbmm``, ``addmm``, SDPA, and
+``cdist`` as its matrix-product form) to TF32's 10 or bfloat16's 7 mantissa bits (round to nearest
+even), the products accumulated in float32, as the tensor cores do. The Transformer runs in float32
+in every column (its bfloat16 autocast is the ``bf16`` column's rounding). Reports the paper's
+columns, recall and the median rotation error per precision, on validation pairs by default (a
+precision is a choice: never made on the test split).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from contextlib import ExitStack
+from pathlib import Path
+from unittest import mock
+
+import torch
+from torch.overrides import TorchFunctionMode
+
+from outputs import cpu_description  # benchmarks/, the script's folder
+from vrnet_ext.cli.common import DefaultsHelpFormatter
+from vrnet_ext.data import ModelNet40Pairs, PairSpec
+from vrnet_ext.learning.evaluate import evaluate
+from vrnet_ext.model import dgcnn, vrnet
+from vrnet_ext.model.pretrained import load_vrnet
+
+F = torch.nn.functional
+PRODUCTS = {torch.mm, torch.bmm, torch.matmul, torch.Tensor.__matmul__, torch.Tensor.matmul, torch.Tensor.mm,
+            torch.Tensor.bmm, torch.baddbmm, torch.addmm, torch.einsum, F.linear, F.conv1d, F.conv2d,
+            F.scaled_dot_product_attention}
+# (name, mantissa bits, which products): fp32; TF32 in the soft matching only, everywhere; bfloat16 in the
+# matching only, everywhere
+VARIANTS = (("fp32", None, "all"), ("tf32 matching", 10, "matching"), ("tf32", 10, "all"),
+            ("bf16 matching", 7, "matching"), ("bf16", 7, "all"))
+_MATCHING = {"depth": 0}
+
+
+def round_mantissa(x: torch.Tensor, bits: int) -> torch.Tensor:
+    """float32 ``x`` rounded to ``bits`` explicit mantissa bits, to nearest even (Inf / NaN kept)."""
+    shift = 23 - bits
+    raw = x.contiguous().view(torch.int32)
+    bias = ((raw >> shift) & 1) + ((1 << (shift - 1)) - 1)
+    rounded = ((raw + bias) >> shift) << shift
+    finite = torch.isfinite(x)
+    return torch.where(finite, rounded.view(torch.float32), x)
+
+
+class RoundedProducts(TorchFunctionMode):
+    """Rounds the float32 tensor operands of torch's matrix products to ``bits`` mantissa bits:
+    ``scope`` "all" or "matching" (inside the soft matching only)."""
+
+    def __init__(self, bits: int, scope: str):
+        super().__init__()
+        self.bits, self.scope = bits, scope
+
+    def _applies(self, func) -> bool:
+        if self.scope == "matching" and not _MATCHING["depth"]:
+            return False
+        return func in PRODUCTS or func is torch.cdist
+
+    def _round(self, value):
+        if isinstance(value, torch.Tensor) and value.dtype == torch.float32:
+            return round_mantissa(value, self.bits)
+        if isinstance(value, (list, tuple)):
+            return type(value)(self._round(v) for v in value)
+        return value
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if not self._applies(func):
+            return func(*args, **kwargs)
+        if func is torch.cdist and args[0].dtype == torch.float32:
+            x, y = args[0], args[1]  # the matrix-product form a GPU uses for large inputs
+            products = torch.matmul(self._round(x), self._round(y).mT)
+            squared = (x * x).sum(-1, keepdim=True) + (y * y).sum(-1).unsqueeze(-2) - 2 * products
+            return squared.clamp_min(0).sqrt()
+        args, kwargs = self._round(args), {k: self._round(v) for k, v in kwargs.items()}
+        return func(*args, **kwargs)
+
+
+def as_on_a_gpu():
+    """The model's GPU paths on the CPU: feature graphs by cdist + topk, soft matching by dense products."""
+    stack = ExitStack()
+    stack.enter_context(mock.patch.object(dgcnn, "graph_backend",
+                                          lambda device, channels, backend: "torch" if channels > 3 else backend))
+    dense, match_clouds = vrnet.soft_match, vrnet.match_clouds
+    stack.enter_context(mock.patch.object(vrnet, "soft_match",
+                                          lambda *args, **kwargs: dense(*args, **{**kwargs, "backend": "torch"})))
+
+    def matching(*args, **kwargs):  # the soft matching, inside its scope
+        _MATCHING["depth"] += 1
+        try:
+            return match_clouds(*args, **kwargs)
+        finally:
+            _MATCHING["depth"] -= 1
+
+    stack.enter_context(mock.patch.object(vrnet, "match_clouds", matching))
+    return stack
+
+
+def run(model_name: str, data_dir: Path | None, partition: str, max_items: int | None, batch_size: int) -> list[dict]:
+    model, state = load_vrnet(model_name, "cpu")
+    cfg = state["config"]
+    model.config.transformer_precision = "fp32"
+    spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768))
+    data = ModelNet40Pairs(data_dir, partition=partition, setting=cfg["setting"], split=cfg["split"],
+                           max_items=max_items, spec=spec, val_fraction=cfg.get("val_fraction", 0.1))
+    rows = []
+    for name, bits, scope in VARIANTS:
+        start = time.perf_counter()
+        with as_on_a_gpu(), torch.no_grad(), (RoundedProducts(bits, scope) if bits else ExitStack()):
+            result = evaluate(model, data, batch_size=batch_size, backend="ext", progress=False)
+        rows.append({"precision": name, "mantissa_bits": bits or 23, "scope": scope,
+                     "seconds": time.perf_counter() - start,
+                     **{k: v for k, v in result.items() if isinstance(v, (int, float))}})
+        print(f"{name}: RMSE(R) {result['RMSE(R)']:.4f}, RE median {result['RE median (deg)']:.4f}, "
+              f"recall {result['recall(RE<5,TE<0.1)']:.4f}", flush=True)
+    return rows
+
+
+COLUMNS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)", "RE median (deg)", "recall(RE<5,TE<0.1)")
+
+
+def markdown(rows: list[dict], note: str) -> str:
+    lines = [note, "", "| operands of the products | " + " | ".join(COLUMNS) + " | RMSE(R) / fp32 |",
+             "|---|" + "---:|" * (len(COLUMNS) + 1)]
+    base = rows[0]["RMSE(R)"]
+    for row in rows:
+        cells = [f"{row[c]:.4g}" if c in row else "" for c in COLUMNS]
+        lines.append(f"| {row['precision']} | " + " | ".join(cells)
+                     + f" | {row['RMSE(R)'] / base:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
+    parser.add_argument("--model", default="vrnet-pv-upc-rcp", help="shipped model name or checkpoint")
+    parser.add_argument("--data-dir", type=Path, default=None,
+                        help="folder of modelnet40_1024_{train,test}.h5 (None: as `vrnet eval` finds it)")
+    parser.add_argument("--partition", default="val", choices=("val", "test"), help="which pairs")
+    parser.add_argument("--max-items", type=int, default=None, help="first N shapes only")
+    parser.add_argument("--batch-size", type=int, default=16, help="pairs per forward")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads")
+    parser.add_argument("--json", type=Path, default=None, help="write the rows here")
+    parser.add_argument("--markdown", type=Path, default=None, help="write the table here")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    rows = run(args.model, args.data_dir, args.partition, args.max_items, args.batch_size)
+    note = (f"{args.model} on ModelNet40 {args.partition} pairs ({rows[0]['pairs']}), the model's own protocol; "
+            f"GPU paths run on the CPU ({cpu_description()}, {args.threads} threads), matrix-product operands "
+            f"rounded (benchmarks/reduced_precision.py), {time.strftime('%Y-%m-%d')}.")
+    print(markdown(rows, note))
+    if args.json:
+        args.json.write_text(json.dumps({"note": note, "rows": rows}, indent=1))
+    if args.markdown:
+        args.markdown.write_text(markdown(rows, note))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
