@@ -15,7 +15,10 @@ with everything in float32 (the plain-PyTorch model); "x same precision": agains
 backend with the same Transformer precision, where that variant was timed too ("–" where not).
 On a GPU, ``ext, CUDA graphs`` replays the compiled backend's forward as CUDA graphs
 (:class:`vrnet_ext.model.cuda_graphs.CudaGraphForward`, one captured per batch size before the
-timing; every pair then takes the model's second look, chosen on the device).
+timing; every pair then takes the model's second look, chosen on the device), and ``ext, TF32
+matmuls`` runs the compiled backend with TF32 allowed in float32 CUDA matmuls
+(``torch.backends.cuda.matmul.fp32_precision = "tf32"``; what it costs the errors, simulated on a CPU:
+``reduced_precision.py``).
 Peak memory: the process's peak resident set after the run (all variants); on a GPU
 (``--device cuda``, clock reads after a device synchronisation) also the peak of torch's CUDA
 allocator.
@@ -30,11 +33,13 @@ does the reference's products; the "GFLOP/s" column is pairs/s times the referen
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import resource
 import statistics
 import sys
 import time
+from collections.abc import Iterator
 
 import torch
 from torch.utils.flop_counter import FlopCounterMode, sdpa_flop_count
@@ -45,11 +50,11 @@ from vrnet_ext.geometry.metrics import rotation_error_deg
 from vrnet_ext.model.pretrained import load_pretrained
 from outputs import cpu_description, write_outputs  # benchmarks/, the script's folder
 
-# name: (backend, transformer_precision, replayed as CUDA graphs)
-VARIANTS = {"torch": ("torch", "fp32", False), "torch, bf16 Transformer": ("torch", "bf16", False),
-            "ext": ("ext", "fp32", False), "ext, bf16 Transformer": ("ext", "bf16", False),
-            "ext, CUDA graphs": ("ext", "fp32", True)}
-GRAPHED = {name for name, settings in VARIANTS.items() if settings[2]}
+# name: (backend, transformer_precision, replayed as CUDA graphs, TF32 allowed in float32 CUDA matmuls)
+VARIANTS = {"torch": ("torch", "fp32", False, False), "torch, bf16 Transformer": ("torch", "bf16", False, False),
+            "ext": ("ext", "fp32", False, False), "ext, bf16 Transformer": ("ext", "bf16", False, False),
+            "ext, CUDA graphs": ("ext", "fp32", True, False), "ext, TF32 matmuls": ("ext", "fp32", False, True)}
+GPU_ONLY = {name for name, settings in VARIANTS.items() if settings[2] or settings[3]}
 SAME_PRECISION_REFERENCE = {"fp32": "torch", "bf16": "torch, bf16 Transformer"}
 
 
@@ -66,11 +71,29 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+@contextlib.contextmanager
+def cuda_matmul_precision(tf32: bool) -> Iterator[None]:
+    """TF32 allowed (or not) in float32 CUDA matmuls for the block, torch's setting restored after."""
+    matmul = torch.backends.cuda.matmul
+    previous = matmul.fp32_precision
+    matmul.fp32_precision = "tf32" if tf32 else "ieee"
+    try:
+        yield
+    finally:
+        matmul.fp32_precision = previous
+
+
 def run_pass(model, pairs: dict[str, torch.Tensor], batch: int, backend: str, transformer_precision: str,
-             graphs: bool, graphed: dict):
+             graphs: bool, tf32: bool, graphed: dict):
     """One pass over the pairs -> their rotations and translations. ``graphs``: through a
     :class:`CudaGraphForward` kept in ``graphed`` per (backend, precision): captured in the first
-    pass at each batch size, replayed after."""
+    pass at each batch size, replayed after. ``tf32``: TF32 allowed in float32 CUDA matmuls."""
+    with cuda_matmul_precision(tf32):
+        return _pass(model, pairs, batch, backend, transformer_precision, graphs, graphed)
+
+
+def _pass(model, pairs: dict[str, torch.Tensor], batch: int, backend: str, transformer_precision: str,
+          graphs: bool, graphed: dict):
     model.config.transformer_precision = transformer_precision
     forward = functools.partial(model, backend=backend)
     if graphs:
@@ -143,12 +166,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--json", default=None, help="write the record to this JSON file (none: print only)")
     parser.add_argument("--markdown", default=None, help="write the table to this Markdown file (none: print only)")
     parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=None,
-                        help="variants to time, beside the reference (torch); default: all (CUDA graphs on a GPU)")
+                        help="variants to time, beside the reference (torch); default: all (CUDA graphs and "
+                             "TF32 on a GPU only)")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
-    asked = args.variants or [name for name in VARIANTS if device.type == "cuda" or name not in GRAPHED]
-    if device.type != "cuda" and GRAPHED & set(asked):
-        parser.error(f"--variants {', '.join(sorted(GRAPHED & set(asked)))}: CUDA graphs need --device cuda")
+    asked = args.variants or [name for name in VARIANTS if device.type == "cuda" or name not in GPU_ONLY]
+    if device.type != "cuda" and GPU_ONLY & set(asked):
+        parser.error(f"--variants {', '.join(sorted(GPU_ONLY & set(asked)))}: need --device cuda (CUDA graphs, TF32)")
     needed = set(asked) | {"torch"}
     variants = {name: settings for name, settings in VARIANTS.items() if name in needed}
     graphed: dict = {}
