@@ -40,6 +40,14 @@ namespace vrnet {
 #ifndef VRNET_CUDA_EMULATION
 inline cudaStream_t current_stream() { return c10::cuda::getCurrentCUDAStream().stream(); }
 
+// The current device's compute capability, major part (8: Ampere, 9: Hopper).
+inline int compute_capability_major() {
+  int device = 0, major = 0;
+  C10_CUDA_CHECK(cudaGetDevice(&device));
+  C10_CUDA_CHECK(cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, device));
+  return major;
+}
+
 template <auto Kernel, typename Params, typename... Args, std::size_t... I>
 void launch_indexed(const LaunchConfig& config, std::index_sequence<I...>, Args&&... args) {
   Kernel<<<config.grid, config.block, config.shared_bytes, current_stream()>>>(

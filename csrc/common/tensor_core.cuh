@@ -14,11 +14,21 @@
 
 #include "common/cuda_device.cuh"
 
+// The tensor cores' TF32 products need sm_80 or later: compiled for an older GPU, mma_tf32 traps, and
+// the host code of a kernel that uses it refuses such devices (compute_capability_major()).
+#if defined(VRNET_CUDA_EMULATION) || !defined(__CUDA_ARCH__) || __CUDA_ARCH__ >= 800
+#define VRNET_TENSOR_CORES 1
+#else
+#define VRNET_TENSOR_CORES 0
+#endif
+
 namespace vrnet {
+
+constexpr int kTensorCoreMajor = 8;  // compute capability of the first GPUs with TF32 tensor cores
 
 // x rounded to TF32 (8 exponent, 10 mantissa bits; to nearest, ties away from zero), as float bits.
 __device__ inline std::uint32_t to_tf32(float x) {
-#ifdef VRNET_CUDA_EMULATION
+#if defined(VRNET_CUDA_EMULATION) || !VRNET_TENSOR_CORES
   std::uint32_t bits = __float_as_uint(x);
   if ((bits & 0x7f800000u) != 0x7f800000u) bits = (bits + 0x1000u) & 0xffffe000u;  // Inf / NaN kept
   return bits;
@@ -33,6 +43,8 @@ __device__ inline std::uint32_t to_tf32(float x) {
 __device__ inline void mma_tf32(float (&d)[4], const std::uint32_t (&a)[4], const std::uint32_t (&b)[2]) {
 #ifdef VRNET_CUDA_EMULATION
   ::vrnet::emu::mma_m16n8k8_tf32(d, a, b);
+#elif !VRNET_TENSOR_CORES
+  __trap();
 #else
   asm volatile("mma.sync.aligned.m16n8k8.row.col.f32.tf32.tf32.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, {%8, %9}, "
                "{%0, %1, %2, %3};"

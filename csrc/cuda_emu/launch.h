@@ -17,6 +17,7 @@
 namespace vrnet {
 
 inline cudaStream_t current_stream() { return nullptr; }
+inline int compute_capability_major() { return 9; }  // the emulator runs what an sm_90 GPU runs
 
 namespace emu {
 

@@ -23,6 +23,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> soft_match_flash_cuda(const at::T
                     query_in.size(2), ", D = ", values_in.size(2));
   TORCH_CHECK_VALUE(passes == 1 || passes == 3, "passes must be 1 (TF32) or 3 (split TF32), got ", passes);
   VRNET_CUDA_GUARD(query_in);
+  TORCH_CHECK(compute_capability_major() >= kTensorCoreMajor,
+              "soft_match_flash needs TF32 tensor cores (compute capability 8.0 or later)");
   const at::Tensor query = query_in.contiguous(), key = key_in.contiguous(), values = values_in.contiguous();
   const int64_t B = query.size(0), N = query.size(1), M = key.size(1);
   const int C = static_cast<int>(query.size(2)), D = static_cast<int>(values.size(2));

@@ -9,8 +9,9 @@ On a GPU, float32 problems whose feature size c and value width D are at most ``
 run a flash-style CUDA kernel on the TF32 tensor cores (tiles of queries and keys, the same online
 softmax, no N x M matrix): each float32 operand split into two TF32 parts, three products each (about
 float32's accuracy; torch's default), one TF32 product each where torch allows TF32 in float32 CUDA
-matmuls (:func:`flash_passes`; ~1e-3 relative error in the scores). Its backward recomputes the probabilities with torch's products, block by
-block, in float32 (the dense formula's gradients). Other problems run torch's batched products on blocks of query
+matmuls (:func:`flash_passes`; ~1e-3 relative error in the scores); it needs compute capability 8.0
+or later. Its backward recomputes the probabilities with torch's products, block by block, in float32
+(the dense formula's gradients). Other problems run torch's batched products on blocks of query
 rows of at most ``DENSE_BLOCK_MAX_SCORES`` scores each (one block for most problems), and a backward
 through more than one block recomputes each block's scores, as flash attention does: memory stays
 that of one block.
@@ -133,10 +134,19 @@ def flash_passes() -> int:
     return 1 if tf32 else 3
 
 
+@torch.compiler.assume_constant_result
+def has_tensor_cores(device_index: int) -> bool:
+    """Whether the GPU has TF32 tensor cores (compute capability 8.0 or later). A constant for
+    ``torch.compile``."""
+    return torch.cuda.get_device_capability(device_index)[0] >= 8
+
+
 def flash_fits(query: torch.Tensor, values: torch.Tensor) -> bool:
-    """Whether the CUDA flash kernel takes this problem: float32 on a GPU, c and D at most FLASH_MAX_WIDTH."""
+    """Whether the CUDA flash kernel takes this problem: float32 on a GPU with TF32 tensor cores, c and
+    D at most FLASH_MAX_WIDTH."""
     return (query.device.type == "cuda" and query.dtype == torch.float32
-            and query.shape[2] <= FLASH_MAX_WIDTH and values.shape[2] <= FLASH_MAX_WIDTH)
+            and query.shape[2] <= FLASH_MAX_WIDTH and values.shape[2] <= FLASH_MAX_WIDTH
+            and has_tensor_cores(torch.cuda.current_device() if query.device.index is None else query.device.index))
 
 
 class _SoftMatchFlash(torch.autograd.Function):
