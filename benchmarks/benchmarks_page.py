@@ -73,6 +73,8 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "default_ambiguity": "The default (`auto`) with the ambiguity warning (a rival alignment's support), beside the methods it combines (`bench_default.py`)",
     "default_scans": "The default (`auto`) with voxel edges never finer than the scans' spacing, on object range scans too, beside the methods it combines (`bench_default.py`)",
     "device_budget_cpu": "A 10-million-point pair under `max_memory` on the CPU (`bench_device_budget.py`)",
+    "reduced_precision_pv_upc": "What TF32 and bfloat16 products cost `vrnet-pv-upc-rcp`, simulated on the CPU, validation pairs (`reduced_precision.py --model vrnet-pv-upc-rcp`)",
+    "reduced_precision_pv_nd": "What TF32 and bfloat16 products cost `vrnet-pv-nd-rcp`, simulated on the CPU, validation pairs (`reduced_precision.py --model vrnet-pv-nd-rcp`)",
     "register_scene": "Many scans of one scene against ground-truth poses: `register-scene` and Open3D's multiway registration (`bench_register_scene.py`)",
     "scene_objectives": "How far the redkitchen fragments determine their ground-truth poses: three refinements of all poses, round by round (`scene_objectives.py --rounds 8`)",
     "icp_from_truth": "Where ICP goes when it starts from the official ground truth (`bench_icp_from_truth.py`)",
