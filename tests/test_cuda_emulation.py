@@ -468,14 +468,52 @@ def test_soft_match_flash_sharp_far_and_ties(passes):
     assert out_err <= 1 and lse_err <= 1 and argmax_ok
 
 
+def flash_gradient_errors(query, key, values, scale, passes):
+    """The emulated flash backward's largest gradient errors (query, key, values) against float64, in
+    units of what its tensor-core rounding allows (each should be at most 1)."""
+    CASES["soft_match_flash_backward"] += 1
+    grad_out, grad_lse = torch.randn(*query.shape[:2], values.shape[2]), torch.randn(*query.shape[:2])
+    out, lse, _ = emu_op("soft_match_flash")(query, key, values, scale, passes)
+    got = emu_op("soft_match_flash_backward")(grad_out, grad_lse, query, key, values, out, lse, scale, passes)
+    leaves = [t.double().requires_grad_() for t in (query, key, values)]
+    ref = soft_match_reference(*leaves, scale)
+    want = torch.autograd.grad((ref.out * grad_out.double()).sum() + (ref.lse * grad_lse.double()).sum(), leaves)
+    span = abs(scale) * query.double().norm(dim=-1).max() * key.double().norm(dim=-1).max()
+    score_tol = FLASH_EPS[passes] * (1 + span)
+    return [float((g.double() - w).abs().max() / (4 * score_tol * (1 + w.abs().max()))) if w.numel() else 0.0
+            for g, w in zip(got, want)]
+
+
+@pytest.mark.parametrize("passes", [3, 1])
+@pytest.mark.parametrize("B,N,M,C,D", [(1, 1, 1, 1, 1), (2, 70, 45, 33, 35), (1, 130, 100, 64, 64),
+                                       (2, 17, 33, 8, 3), (1, 5, 40, 3, 0), (1, 64, 64, 32, 64)])
+def test_soft_match_flash_backward(passes, B, N, M, C, D):
+    """dK and dV per block of keys, dQ per block of queries: keys and queries past the ends of their
+    tiles, c and D off the 8-wide fragments, both limits, no value channels."""
+    query, key, values = torch.randn(B, N, C), torch.randn(B, M, C), torch.randn(B, M, D)
+    assert max(flash_gradient_errors(query, key, values, C ** -0.5, passes)) <= 1
+
+
+@pytest.mark.parametrize("passes", [3, 1])
+def test_soft_match_flash_backward_sharp_and_far(passes):
+    query, key = torch.randn(2, 40, 16) + 30, torch.randn(2, 90, 16) + 30
+    assert max(flash_gradient_errors(query, key, torch.randn(2, 90, 7) * 100, 0.05, passes)) <= 1
+    assert max(flash_gradient_errors(non_contiguous(query), non_contiguous(key), torch.randn(2, 90, 7), -0.2,
+                                     passes)) <= 1
+
+
 @pytest.mark.parametrize("with_lse", [True, False])
-def test_soft_match_flash_autograd(with_lse):
-    """The flash path's autograd function on the emulated kernel (registered for this test as the CPU
-    kernel of vrnet_ext::soft_match_flash): outputs and the recomputed gradients as the reference's,
-    with and without a gradient reaching the log-normaliser."""
+@pytest.mark.parametrize("create_graph", [False, True])
+def test_soft_match_flash_autograd(with_lse, create_graph):
+    """The flash path's autograd function on the emulated kernels (registered for this test as the CPU
+    kernels of vrnet_ext::soft_match_flash and its backward): outputs and gradients as the
+    reference's, with and without a gradient reaching the log-normaliser, and with a graph of the
+    backward (torch's products then, so that second derivatives exist)."""
     soft_match_module = importlib.import_module("vrnet_ext.ops.soft_match")
     library = torch.library.Library("vrnet_ext", "IMPL")
-    library.impl("soft_match_flash", emu_op("soft_match_flash"), "CPU")
+    for name in ("soft_match_flash", "soft_match_flash_backward"):
+        library.impl(name, emu_op(name), "CPU")
+    before = CASES["soft_match_flash_backward"]
     try:
         inputs = [torch.randn(2, 50, 12), torch.randn(2, 70, 12), torch.randn(2, 70, 5)]
         weights = torch.randn(2, 50, 5), torch.randn(2, 50)
@@ -485,11 +523,25 @@ def test_soft_match_flash_autograd(with_lse):
             leaves = [t.clone().requires_grad_() for t in inputs]
             out, lse, _ = run(*leaves)
             loss = (out * weights[0]).sum() + ((lse * weights[1]).sum() if with_lse else 0)
-            results.append([out, lse, *torch.autograd.grad(loss, leaves)])
+            grads = torch.autograd.grad(loss, leaves, create_graph=create_graph)
+            assert all(g.requires_grad == create_graph for g in grads)
+            results.append([out, lse, *grads])
     finally:
         library._destroy()
     for got, expected in zip(*results):
         torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-5)
+    assert before == CASES["soft_match_flash_backward"]  # counted by the parity tests only
+
+
+def test_soft_match_flash_backward_bad_input():
+    query, key, values = torch.randn(1, 5, 8), torch.randn(1, 6, 8), torch.randn(1, 6, 3)
+    out, lse, _ = emu_op("soft_match_flash")(query, key, values, 1.0, 3)
+    grad_out, grad_lse = torch.randn(1, 5, 3), torch.randn(1, 5)
+    for args, message in [((grad_out[:, :4], grad_lse, query, key, values, out, lse, 1.0, 3), "grad_out"),
+                          ((grad_out, grad_lse, query, key, values, out, lse[:, :4], 1.0, 3), "lse"),
+                          ((grad_out, grad_lse, query, key, values, out, lse, 1.0, 0), "passes")]:
+        with pytest.raises((ValueError, TypeError), match=message):
+            emu_op("soft_match_flash_backward")(*args)
 
 
 def test_soft_match_flash_bad_input():

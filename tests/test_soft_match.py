@@ -60,8 +60,17 @@ def test_gradcheck_and_opcheck(device):
                                     (query, key, values))
     assert torch.autograd.gradgradcheck(lambda q, k, v: ops.soft_match(q, k, v, 0.9, backend="torch"),
                                         (query, key, values))
-    if device.type != "cpu":
-        return  # the op has a CPU kernel only: other devices run dense blocks, checked above
+    if device.type != "cpu":  # the flash kernels' ops (schema, fake kernels) where the GPU takes them
+        from vrnet_ext.ops.soft_match import flash_fits
+
+        q, k, v = (t.detach().float() for t in (query, key, values))
+        if not flash_fits(q, v):
+            return
+        out, lse, _ = torch.ops.vrnet_ext.soft_match_flash(q, k, v, 0.5, 3)
+        opcheck(torch.ops.vrnet_ext.soft_match_flash.default, (q, k, v, 0.5, 3))
+        opcheck(torch.ops.vrnet_ext.soft_match_flash_backward.default,
+                (torch.randn_like(out), torch.randn_like(lse), q, k, v, out, lse, 0.5, 1))
+        return
     opcheck(torch.ops.vrnet_ext.soft_match.default,
             (query.float().detach().requires_grad_(), key.float().detach().requires_grad_(),
              values.float().detach().requires_grad_(), 0.5))

@@ -155,7 +155,8 @@ __global__ void soft_match_flash_kernel(const float* __restrict__ query, const f
       const FragmentA<kPasses> a = load_a<kPasses>(p_tile, kFlashProbStride, warp_row, step * 8, lane);
       VRNET_UNROLL
       for (int v = 0; v < kFlashValueTiles; ++v)
-        if (v < value_tiles) mma_passes<kPasses>(acc[v], a, load_b<kPasses>(v_tile, value_stride, step * 8, v * 8, lane));
+        if (v < value_tiles)
+          mma_passes<kPasses>(acc[v], a, load_b<kPasses>(v_tile, value_stride, step * 8, v * 8, lane));
     }
   }
 
@@ -174,6 +175,216 @@ __global__ void soft_match_flash_kernel(const float* __restrict__ query, const f
         const int col = v * 8 + 2 * t + (i & 1);
         if (v < value_tiles && col < D) out[at * D + col] = acc[v][i] / row_sum[s];
       }
+  }
+}
+
+// ---------------------------------------------------------------------------------------------------
+// The backward, as flash attention's: with P = exp(scale Q Kᵀ - lse) recomputed tile by tile from the
+// saved log-normaliser, dP = dO Vᵀ and delta_i = dO_i . O_i - dlse_i (given),
+//   dS = P (dP - delta),  dQ = scale dS K,  dK = scale dSᵀ Q,  dV = Pᵀ dO.
+// Two kernels, each owning the rows it writes (no atomics: deterministic): blocks of 2 warps take 32
+// keys and walk over the queries in tiles of 32 (dK, dV), or take 32 queries and walk over the keys
+// (dQ). Feature and value tiles use flash_feature_stride (a 2-way bank conflict where read as B).
+
+constexpr int kFlashBackWarps = 2;
+constexpr int kFlashBackThreads = kFlashBackWarps * 32;
+constexpr int kFlashBackRows = kFlashBackWarps * 16;  // keys (dK, dV) or queries (dQ) per block
+constexpr int kFlashBackTile = 32;                     // queries or keys per shared-memory tile
+
+// Floats of dynamic shared memory of either backward kernel: two feature tiles and two value tiles of
+// 32 rows, and per warp two 16 x 32 probability tiles, plus 64 floats of row statistics.
+VRNET_HOST_DEVICE constexpr int flash_backward_shared_floats(int c, int d) {
+  return 2 * kFlashBackTile * (flash_feature_stride(c) + flash_feature_stride(d)) +
+         2 * kFlashBackWarps * 16 * kFlashProbStride + 2 * kFlashBackTile;
+}
+
+// grid: one block per (batch item, 32 keys), blockIdx.x = b * key_tiles + tile; kFlashBackThreads
+// threads; flash_backward_shared_floats(C, D) floats of dynamic shared memory.
+template <int kPasses>
+__global__ void soft_match_flash_grad_kv_kernel(const float* __restrict__ query, const float* __restrict__ key,
+                                                const float* __restrict__ values, const float* __restrict__ grad_out,
+                                                const float* __restrict__ lse, const float* __restrict__ delta,
+                                                int64_t N, int64_t M, int C, int D, float scale, int64_t key_tiles,
+                                                float* __restrict__ grad_key, float* __restrict__ grad_values) {
+  VRNET_DYNAMIC_SHARED(float, shared);
+  const int fs = flash_feature_stride(C), vs = flash_feature_stride(D);
+  float* k_tile = shared;                               // the block's keys (A of Sᵀ)
+  float* v_tile = k_tile + kFlashBackTile * fs;         // their values (A of dPᵀ)
+  float* q_tile = v_tile + kFlashBackTile * vs;         // a tile of queries
+  float* go_tile = q_tile + kFlashBackTile * fs;        // their output gradients
+  float* p_tiles = go_tile + kFlashBackTile * vs;       // per warp: Pᵀ, then dSᵀ (16 keys x 32 queries)
+  float* row_lse = p_tiles + 2 * kFlashBackWarps * 16 * kFlashProbStride;
+  float* row_delta = row_lse + kFlashBackTile;
+
+  const int64_t b = blockIdx.x / key_tiles;
+  const int64_t j0 = (blockIdx.x % key_tiles) * kFlashBackRows;
+  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane >> 2, t = lane & 3;
+  const int warp_row = warp * 16;
+  float* pt_tile = p_tiles + warp * 2 * 16 * kFlashProbStride;
+  float* dst_tile = pt_tile + 16 * kFlashProbStride;
+  const int feature_steps = (C + 7) / 8, value_steps = (D + 7) / 8;
+
+  load_tile(key + b * M * C, j0, M, C, kFlashBackTile, fs, k_tile);
+  load_tile(values + b * M * D, j0, M, D, kFlashBackTile, vs, v_tile);
+  float acc_k[kFlashValueTiles][4], acc_v[kFlashValueTiles][4];
+  VRNET_UNROLL
+  for (int f = 0; f < kFlashValueTiles; ++f) {
+    VRNET_UNROLL for (int i = 0; i < 4; ++i) acc_k[f][i] = acc_v[f][i] = 0.0f;
+  }
+
+  for (int64_t i0 = 0; i0 < N; i0 += kFlashBackTile) {
+    __syncthreads();  // every warp is done with the previous query tile (and the keys are loaded)
+    load_tile(query + b * N * C, i0, N, C, kFlashBackTile, fs, q_tile);
+    load_tile(grad_out + b * N * D, i0, N, D, kFlashBackTile, vs, go_tile);
+    for (int i = threadIdx.x; i < kFlashBackTile; i += blockDim.x) {
+      const bool inside = i0 + i < N;  // queries past N weigh exp(-inf) = 0 (and have no output gradient)
+      row_lse[i] = inside ? lse[b * N + i0 + i] : INFINITY;
+      row_delta[i] = inside ? delta[b * N + i0 + i] : 0.0f;
+    }
+    __syncthreads();
+
+    float st[kFlashBackTile / 8][4], dpt[kFlashBackTile / 8][4];
+    VRNET_UNROLL
+    for (int n = 0; n < kFlashBackTile / 8; ++n) {
+      VRNET_UNROLL for (int i = 0; i < 4; ++i) st[n][i] = dpt[n][i] = 0.0f;
+    }
+    for (int step = 0; step < feature_steps; ++step) {
+      const FragmentA<kPasses> a = load_a<kPasses>(k_tile, fs, warp_row, step * 8, lane);
+      VRNET_UNROLL
+      for (int n = 0; n < kFlashBackTile / 8; ++n)
+        mma_passes<kPasses>(st[n], a, load_b_transposed<kPasses>(q_tile, fs, step * 8, n * 8, lane));
+    }
+    for (int step = 0; step < value_steps; ++step) {
+      const FragmentA<kPasses> a = load_a<kPasses>(v_tile, vs, warp_row, step * 8, lane);
+      VRNET_UNROLL
+      for (int n = 0; n < kFlashBackTile / 8; ++n)
+        mma_passes<kPasses>(dpt[n], a, load_b_transposed<kPasses>(go_tile, vs, step * 8, n * 8, lane));
+    }
+    VRNET_UNROLL
+    for (int n = 0; n < kFlashBackTile / 8; ++n) {
+      VRNET_UNROLL for (int i = 0; i < 4; ++i) {
+        const int q = n * 8 + 2 * t + (i & 1), at = (g + 8 * (i >> 1)) * kFlashProbStride + q;
+        const float p = expf(st[n][i] * scale - row_lse[q]);
+        pt_tile[at] = p;
+        dst_tile[at] = p * (dpt[n][i] - row_delta[q]);
+      }
+    }
+    __syncwarp();
+    for (int step = 0; step < kFlashBackTile / 8; ++step) {
+      const FragmentA<kPasses> p = load_a<kPasses>(pt_tile, kFlashProbStride, 0, step * 8, lane);
+      const FragmentA<kPasses> ds = load_a<kPasses>(dst_tile, kFlashProbStride, 0, step * 8, lane);
+      VRNET_UNROLL
+      for (int f = 0; f < kFlashValueTiles; ++f) {
+        if (f < value_steps) mma_passes<kPasses>(acc_v[f], p, load_b<kPasses>(go_tile, vs, step * 8, f * 8, lane));
+        if (f < feature_steps) mma_passes<kPasses>(acc_k[f], ds, load_b<kPasses>(q_tile, fs, step * 8, f * 8, lane));
+      }
+    }
+  }
+
+  VRNET_UNROLL
+  for (int s = 0; s < 2; ++s) {
+    const int64_t j = j0 + warp_row + g + 8 * s;
+    if (j >= M) continue;
+    VRNET_UNROLL
+    for (int f = 0; f < kFlashValueTiles; ++f) {
+      VRNET_UNROLL for (int i = 2 * s; i < 2 * s + 2; ++i) {
+        const int col = f * 8 + 2 * t + (i & 1);
+        if (col < C) grad_key[(b * M + j) * C + col] = acc_k[f][i] * scale;
+        if (col < D) grad_values[(b * M + j) * D + col] = acc_v[f][i];
+      }
+    }
+  }
+}
+
+// grid: one block per (batch item, 32 queries), blockIdx.x = b * row_tiles + tile; kFlashBackThreads
+// threads; flash_backward_shared_floats(C, D) floats of dynamic shared memory.
+template <int kPasses>
+__global__ void soft_match_flash_grad_query_kernel(const float* __restrict__ query, const float* __restrict__ key,
+                                                   const float* __restrict__ values,
+                                                   const float* __restrict__ grad_out, const float* __restrict__ lse,
+                                                   const float* __restrict__ delta, int64_t N, int64_t M, int C, int D,
+                                                   float scale, int64_t row_tiles, float* __restrict__ grad_query) {
+  VRNET_DYNAMIC_SHARED(float, shared);
+  const int fs = flash_feature_stride(C), vs = flash_feature_stride(D);
+  float* q_tile = shared;                          // the block's queries (A of S)
+  float* go_tile = q_tile + kFlashBackTile * fs;   // their output gradients (A of dP)
+  float* k_tile = go_tile + kFlashBackTile * vs;   // a tile of keys
+  float* v_tile = k_tile + kFlashBackTile * fs;    // their values
+  float* ds_tiles = v_tile + kFlashBackTile * vs;  // per warp: dS (16 queries x 32 keys)
+
+  const int64_t b = blockIdx.x / row_tiles;
+  const int64_t row0 = (blockIdx.x % row_tiles) * kFlashBackRows;
+  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane >> 2, t = lane & 3;
+  const int warp_row = warp * 16;
+  float* ds_tile = ds_tiles + warp * 2 * 16 * kFlashProbStride;
+  const int feature_steps = (C + 7) / 8, value_steps = (D + 7) / 8;
+
+  load_tile(query + b * N * C, row0, N, C, kFlashBackTile, fs, q_tile);
+  load_tile(grad_out + b * N * D, row0, N, D, kFlashBackTile, vs, go_tile);
+  float own_lse[2], own_delta[2];
+  VRNET_UNROLL
+  for (int s = 0; s < 2; ++s) {
+    const int64_t row = row0 + warp_row + g + 8 * s;
+    own_lse[s] = row < N ? lse[b * N + row] : 0.0f;
+    own_delta[s] = row < N ? delta[b * N + row] : 0.0f;
+  }
+  float acc[kFlashValueTiles][4];
+  VRNET_UNROLL
+  for (int f = 0; f < kFlashValueTiles; ++f) {
+    VRNET_UNROLL for (int i = 0; i < 4; ++i) acc[f][i] = 0.0f;
+  }
+
+  for (int64_t j0 = 0; j0 < M; j0 += kFlashBackTile) {
+    __syncthreads();  // every warp is done with the previous key tile (and the queries are loaded)
+    load_tile(key + b * M * C, j0, M, C, kFlashBackTile, fs, k_tile);
+    load_tile(values + b * M * D, j0, M, D, kFlashBackTile, vs, v_tile);
+    __syncthreads();
+
+    float score[kFlashBackTile / 8][4], dp[kFlashBackTile / 8][4];
+    VRNET_UNROLL
+    for (int n = 0; n < kFlashBackTile / 8; ++n) {
+      VRNET_UNROLL for (int i = 0; i < 4; ++i) score[n][i] = dp[n][i] = 0.0f;
+    }
+    for (int step = 0; step < feature_steps; ++step) {
+      const FragmentA<kPasses> a = load_a<kPasses>(q_tile, fs, warp_row, step * 8, lane);
+      VRNET_UNROLL
+      for (int n = 0; n < kFlashBackTile / 8; ++n)
+        mma_passes<kPasses>(score[n], a, load_b_transposed<kPasses>(k_tile, fs, step * 8, n * 8, lane));
+    }
+    for (int step = 0; step < value_steps; ++step) {
+      const FragmentA<kPasses> a = load_a<kPasses>(go_tile, vs, warp_row, step * 8, lane);
+      VRNET_UNROLL
+      for (int n = 0; n < kFlashBackTile / 8; ++n)
+        mma_passes<kPasses>(dp[n], a, load_b_transposed<kPasses>(v_tile, vs, step * 8, n * 8, lane));
+    }
+    VRNET_UNROLL
+    for (int n = 0; n < kFlashBackTile / 8; ++n) {
+      VRNET_UNROLL for (int i = 0; i < 4; ++i) {
+        const int64_t j = j0 + n * 8 + 2 * t + (i & 1);
+        const float p = j < M ? expf(score[n][i] * scale - own_lse[i >> 1]) : 0.0f;
+        ds_tile[(g + 8 * (i >> 1)) * kFlashProbStride + n * 8 + 2 * t + (i & 1)] = p * (dp[n][i] - own_delta[i >> 1]);
+      }
+    }
+    __syncwarp();
+    for (int step = 0; step < kFlashBackTile / 8; ++step) {
+      const FragmentA<kPasses> ds = load_a<kPasses>(ds_tile, kFlashProbStride, 0, step * 8, lane);
+      VRNET_UNROLL
+      for (int f = 0; f < kFlashValueTiles; ++f)
+        if (f < feature_steps) mma_passes<kPasses>(acc[f], ds, load_b<kPasses>(k_tile, fs, step * 8, f * 8, lane));
+    }
+  }
+
+  VRNET_UNROLL
+  for (int s = 0; s < 2; ++s) {
+    const int64_t row = row0 + warp_row + g + 8 * s;
+    if (row >= N) continue;
+    VRNET_UNROLL
+    for (int f = 0; f < kFlashValueTiles; ++f) {
+      VRNET_UNROLL for (int i = 2 * s; i < 2 * s + 2; ++i) {
+        const int col = f * 8 + 2 * t + (i & 1);
+        if (f < feature_steps && col < C) grad_query[(b * N + row) * C + col] = acc[f][i] * scale;
+      }
+    }
   }
 }
 

@@ -10,11 +10,13 @@ run a flash-style CUDA kernel on the TF32 tensor cores (tiles of queries and key
 softmax, no N x M matrix): each float32 operand split into two TF32 parts, three products each (about
 float32's accuracy; torch's default), one TF32 product each where torch allows TF32 in float32 CUDA
 matmuls (:func:`flash_passes`; ~1e-3 relative error in the scores); it needs compute capability 8.0
-or later. Its backward recomputes the probabilities with torch's products, block by block, in float32
-(the dense formula's gradients). Other problems run torch's batched products on blocks of query
-rows of at most ``DENSE_BLOCK_MAX_SCORES`` scores each (one block for most problems), and a backward
-through more than one block recomputes each block's scores, as flash attention does: memory stays
-that of one block.
+or later. Its backward kernels recompute the probabilities tile by tile from the saved
+log-normaliser with the forward's arithmetic (dK and dV per block of keys, dQ per block of queries:
+no atomics); a backward that is itself differentiated runs torch's products on blocks of query rows
+instead. Other problems run torch's batched products on blocks of query rows of at most
+``DENSE_BLOCK_MAX_SCORES`` scores each (one block for most problems), and a backward through more
+than one block recomputes each block's scores, as flash attention does: memory stays that of one
+block.
 """
 from __future__ import annotations
 
@@ -150,21 +152,27 @@ def flash_fits(query: torch.Tensor, values: torch.Tensor) -> bool:
 
 
 class _SoftMatchFlash(torch.autograd.Function):
-    """The CUDA flash kernel forward (``passes`` 1 or 3); the backward by :func:`recomputed_gradients`."""
+    """The CUDA flash kernels (``passes`` 1 or 3): the forward, and the backward recomputing the
+    probabilities tile by tile from the saved log-normaliser with the forward's arithmetic. Where the
+    backward itself is differentiated (``create_graph``), :func:`recomputed_gradients` instead."""
 
     @staticmethod
     def forward(ctx, query, key, values, scale: float, passes: int):
         out, lse, argmax = torch.ops.vrnet_ext.soft_match_flash(query, key, values, scale, passes)
-        ctx.save_for_backward(query, key, values)
-        ctx.scale = scale
+        ctx.save_for_backward(query, key, values, out, lse)
+        ctx.scale, ctx.passes = scale, passes
         ctx.mark_non_differentiable(argmax)
         return out, lse, argmax
 
     @staticmethod
     def backward(ctx, grad_out, grad_lse, _grad_argmax):
-        query, key, values = ctx.saved_tensors
-        block = query_block(query.shape[0], key.shape[1])
-        grads = recomputed_gradients(query, key, values, grad_out, grad_lse, ctx.scale, block)
+        query, key, values, out, lse = ctx.saved_tensors
+        if torch.is_grad_enabled():  # a graph of the backward is asked for: differentiable products
+            block = query_block(query.shape[0], key.shape[1])
+            grads = recomputed_gradients(query, key, values, grad_out, grad_lse, ctx.scale, block)
+        else:
+            grads = torch.ops.vrnet_ext.soft_match_flash_backward(grad_out, grad_lse, query, key, values, out, lse,
+                                                                 ctx.scale, ctx.passes)
         return (*grads, None, None)
 
 
@@ -233,6 +241,10 @@ if has_extension():
     @torch.library.register_fake("vrnet_ext::soft_match_flash")
     def _soft_match_flash_fake(query, key, values, scale, passes):
         return _soft_match_fake(query, key, values, scale)
+
+    @torch.library.register_fake("vrnet_ext::soft_match_flash_backward")
+    def _soft_match_flash_backward_fake(grad_out, grad_lse, query, key, values, out, lse, scale, passes):
+        return torch.empty_like(query), torch.empty_like(key), torch.empty_like(values)
 
     @torch.library.register_fake("vrnet_ext::soft_match_backward")
     def _soft_match_backward_fake(grad_out, grad_lse, query, key, values, out, lse, scale):
