@@ -92,24 +92,52 @@ __device__ inline FragmentA<kPasses> load_a(const float* tile, int stride, int r
   return a;
 }
 
-// B from a tile holding B's columns as rows: B(k, col) = tile[(col0 + col) * stride + k0 + k].
+// B from a tile holding B(k, col) at tile[(k0 + k) * k_step + (col0 + col) * col_step]: k_step = 1 where
+// B's columns are the tile's rows (the keys of Q Kᵀ), col_step = 1 where the tile is B row-major.
 template <int kPasses>
-__device__ inline FragmentB<kPasses> load_b_transposed(const float* tile, int stride, int k0, int col0, int lane) {
+__device__ inline FragmentB<kPasses> load_b(const float* tile, int k_step, int col_step, int k0, int col0, int lane) {
   const int g = lane >> 2, t = lane & 3;
   FragmentB<kPasses> b;
-  b.set(0, tile[(col0 + g) * stride + k0 + t]);
-  b.set(1, tile[(col0 + g) * stride + k0 + t + 4]);
+  b.set(0, tile[(k0 + t) * k_step + (col0 + g) * col_step]);
+  b.set(1, tile[(k0 + t + 4) * k_step + (col0 + g) * col_step]);
   return b;
 }
 
-// B from a row-major tile: B(k, col) = tile[(k0 + k) * stride + col0 + col].
-template <int kPasses>
-__device__ inline FragmentB<kPasses> load_b(const float* tile, int stride, int k0, int col0, int lane) {
-  const int g = lane >> 2, t = lane & 3;
-  FragmentB<kPasses> b;
-  b.set(0, tile[(k0 + t) * stride + col0 + g]);
-  b.set(1, tile[(k0 + t + 4) * stride + col0 + g]);
-  return b;
+// Zeros for an accumulator of n_tiles fragments.
+template <int n_tiles>
+__device__ inline void zero(float (&acc)[n_tiles][4]) {
+  VRNET_UNROLL
+  for (int n = 0; n < n_tiles; ++n) {
+    VRNET_UNROLL for (int i = 0; i < 4; ++i) acc[n][i] = 0.0f;
+  }
 }
+
+// acc (16 x 8 n_tiles) = A Bᵀ, A the 16 rows of a_tile from row0 and B's columns the rows of b_tile,
+// both 8 * steps values long (zero-padded): a warp's scores Q Kᵀ, or dO Vᵀ.
+template <int kPasses, int n_tiles>
+__device__ inline void warp_products_abt(float (&acc)[n_tiles][4], const float* a_tile, int a_stride, int row0,
+                                         const float* b_tile, int b_stride, int steps, int lane) {
+  zero(acc);
+  for (int step = 0; step < steps; ++step) {
+    const FragmentA<kPasses> a = load_a<kPasses>(a_tile, a_stride, row0, step * 8, lane);
+    VRNET_UNROLL
+    for (int n = 0; n < n_tiles; ++n)
+      mma_passes<kPasses>(acc[n], a, load_b<kPasses>(b_tile, 1, b_stride, step * 8, n * 8, lane));
+  }
+}
+
+// acc (16 x 8 col_tiles, the first `used` fragments) += A B, A the 16 rows of a_tile (8 * k_steps values
+// from column 0), B the tile b_tile row-major (8 * k_steps rows): P V, and the backward's products.
+template <int kPasses, int col_tiles>
+__device__ inline void warp_products_ab(float (&acc)[col_tiles][4], const float* a_tile, int a_stride,
+                                        const float* b_tile, int b_stride, int k_steps, int used, int lane) {
+  for (int step = 0; step < k_steps; ++step) {
+    const FragmentA<kPasses> a = load_a<kPasses>(a_tile, a_stride, 0, step * 8, lane);
+    VRNET_UNROLL
+    for (int f = 0; f < col_tiles; ++f)
+      if (f < used) mma_passes<kPasses>(acc[f], a, load_b<kPasses>(b_tile, b_stride, 1, step * 8, f * 8, lane));
+  }
+}
+
 
 }  // namespace vrnet

@@ -58,6 +58,25 @@ __device__ inline void take_first_max(float& value, int64_t& index, float other,
   }
 }
 
+// A warp's accumulated 16 rows into rows first .. first + 15 of a (rows_total, width) row-major matrix,
+// each of the lane's two rows (g, g + 8) multiplied by its factor; rows past rows_total are skipped.
+__device__ inline void store_rows(const float (&acc)[kFlashValueTiles][4], const float (&factor)[2], int64_t first,
+                                  int64_t rows_total, int width, float* __restrict__ out, int lane) {
+  const int g = lane >> 2, t = lane & 3;
+  VRNET_UNROLL
+  for (int s = 0; s < 2; ++s) {
+    const int64_t row = first + g + 8 * s;
+    if (row >= rows_total) continue;
+    VRNET_UNROLL
+    for (int f = 0; f < kFlashValueTiles; ++f) {
+      VRNET_UNROLL for (int i = 2 * s; i < 2 * s + 2; ++i) {
+        const int col = f * 8 + 2 * t + (i & 1);
+        if (col < width) out[row * width + col] = acc[f][i] * factor[s];
+      }
+    }
+  }
+}
+
 // grid: one block per (batch item, tile of 64 query rows), blockIdx.x = b * row_tiles + tile;
 // kFlashThreads threads; flash_shared_floats(C, D) floats of dynamic shared memory.
 template <int kPasses>
@@ -84,9 +103,7 @@ __global__ void soft_match_flash_kernel(const float* __restrict__ query, const f
   float row_max[2] = {-INFINITY, -INFINITY}, row_sum[2] = {0.0f, 0.0f};
   int64_t row_peak[2] = {0, 0};
   float acc[kFlashValueTiles][4];
-  VRNET_UNROLL
-  for (int v = 0; v < kFlashValueTiles; ++v)
-    VRNET_UNROLL for (int i = 0; i < 4; ++i) acc[v][i] = 0.0f;
+  zero(acc);
 
   for (int64_t j0 = 0; j0 < M; j0 += kFlashKeys) {
     __syncthreads();  // every warp is done with the previous tiles (and Q is loaded)
@@ -95,15 +112,7 @@ __global__ void soft_match_flash_kernel(const float* __restrict__ query, const f
     __syncthreads();
 
     float score[kFlashKeys / 8][4];
-    VRNET_UNROLL
-    for (int n = 0; n < kFlashKeys / 8; ++n)
-      VRNET_UNROLL for (int i = 0; i < 4; ++i) score[n][i] = 0.0f;
-    for (int step = 0; step < feature_steps; ++step) {
-      const FragmentA<kPasses> a = load_a<kPasses>(q_tile, feature_stride, warp_row, step * 8, lane);
-      VRNET_UNROLL
-      for (int n = 0; n < kFlashKeys / 8; ++n)
-        mma_passes<kPasses>(score[n], a, load_b_transposed<kPasses>(k_tile, feature_stride, step * 8, n * 8, lane));
-    }
+    warp_products_abt<kPasses>(score, q_tile, feature_stride, warp_row, k_tile, feature_stride, feature_steps, lane);
 
     // scale, mask the keys past M, and each row's first maximum in the tile
     float tile_max[2] = {-INFINITY, -INFINITY};
@@ -151,31 +160,21 @@ __global__ void soft_match_flash_kernel(const float* __restrict__ query, const f
     __syncwarp();
 
     // O += P V
-    for (int step = 0; step < kFlashKeys / 8; ++step) {
-      const FragmentA<kPasses> a = load_a<kPasses>(p_tile, kFlashProbStride, warp_row, step * 8, lane);
-      VRNET_UNROLL
-      for (int v = 0; v < kFlashValueTiles; ++v)
-        if (v < value_tiles)
-          mma_passes<kPasses>(acc[v], a, load_b<kPasses>(v_tile, value_stride, step * 8, v * 8, lane));
-    }
+    warp_products_ab<kPasses>(acc, p_tile + warp_row * kFlashProbStride, kFlashProbStride, v_tile, value_stride,
+                              kFlashKeys / 8, value_tiles, lane);
   }
 
+  float inverse_sum[2];
   VRNET_UNROLL
   for (int s = 0; s < 2; ++s) {
+    inverse_sum[s] = 1.0f / row_sum[s];
     const int64_t row = row0 + warp_row + g + 8 * s;
-    if (row >= N) continue;
-    const int64_t at = b * N + row;
-    if (t == 0) {
-      lse[at] = row_max[s] + logf(row_sum[s]);
-      argmax[at] = row_peak[s];
+    if (row < N && t == 0) {
+      lse[b * N + row] = row_max[s] + logf(row_sum[s]);
+      argmax[b * N + row] = row_peak[s];
     }
-    VRNET_UNROLL
-    for (int v = 0; v < kFlashValueTiles; ++v)
-      for (int i = 2 * s; i < 2 * s + 2; ++i) {
-        const int col = v * 8 + 2 * t + (i & 1);
-        if (v < value_tiles && col < D) out[at * D + col] = acc[v][i] / row_sum[s];
-      }
   }
+  store_rows(acc, inverse_sum, row0 + warp_row, N, D, out + b * N * D, lane);
 }
 
 // ---------------------------------------------------------------------------------------------------
@@ -227,10 +226,8 @@ __global__ void soft_match_flash_grad_kv_kernel(const float* __restrict__ query,
   load_tile(key + b * M * C, j0, M, C, kFlashBackTile, fs, k_tile);
   load_tile(values + b * M * D, j0, M, D, kFlashBackTile, vs, v_tile);
   float acc_k[kFlashValueTiles][4], acc_v[kFlashValueTiles][4];
-  VRNET_UNROLL
-  for (int f = 0; f < kFlashValueTiles; ++f) {
-    VRNET_UNROLL for (int i = 0; i < 4; ++i) acc_k[f][i] = acc_v[f][i] = 0.0f;
-  }
+  zero(acc_k);
+  zero(acc_v);
 
   for (int64_t i0 = 0; i0 < N; i0 += kFlashBackTile) {
     __syncthreads();  // every warp is done with the previous query tile (and the keys are loaded)
@@ -243,23 +240,9 @@ __global__ void soft_match_flash_grad_kv_kernel(const float* __restrict__ query,
     }
     __syncthreads();
 
-    float st[kFlashBackTile / 8][4], dpt[kFlashBackTile / 8][4];
-    VRNET_UNROLL
-    for (int n = 0; n < kFlashBackTile / 8; ++n) {
-      VRNET_UNROLL for (int i = 0; i < 4; ++i) st[n][i] = dpt[n][i] = 0.0f;
-    }
-    for (int step = 0; step < feature_steps; ++step) {
-      const FragmentA<kPasses> a = load_a<kPasses>(k_tile, fs, warp_row, step * 8, lane);
-      VRNET_UNROLL
-      for (int n = 0; n < kFlashBackTile / 8; ++n)
-        mma_passes<kPasses>(st[n], a, load_b_transposed<kPasses>(q_tile, fs, step * 8, n * 8, lane));
-    }
-    for (int step = 0; step < value_steps; ++step) {
-      const FragmentA<kPasses> a = load_a<kPasses>(v_tile, vs, warp_row, step * 8, lane);
-      VRNET_UNROLL
-      for (int n = 0; n < kFlashBackTile / 8; ++n)
-        mma_passes<kPasses>(dpt[n], a, load_b_transposed<kPasses>(go_tile, vs, step * 8, n * 8, lane));
-    }
+    float st[kFlashBackTile / 8][4], dpt[kFlashBackTile / 8][4];  // Sᵀ = K Qᵀ and dPᵀ = V dOᵀ
+    warp_products_abt<kPasses>(st, k_tile, fs, warp_row, q_tile, fs, feature_steps, lane);
+    warp_products_abt<kPasses>(dpt, v_tile, vs, warp_row, go_tile, vs, value_steps, lane);
     VRNET_UNROLL
     for (int n = 0; n < kFlashBackTile / 8; ++n) {
       VRNET_UNROLL for (int i = 0; i < 4; ++i) {
@@ -270,30 +253,13 @@ __global__ void soft_match_flash_grad_kv_kernel(const float* __restrict__ query,
       }
     }
     __syncwarp();
-    for (int step = 0; step < kFlashBackTile / 8; ++step) {
-      const FragmentA<kPasses> p = load_a<kPasses>(pt_tile, kFlashProbStride, 0, step * 8, lane);
-      const FragmentA<kPasses> ds = load_a<kPasses>(dst_tile, kFlashProbStride, 0, step * 8, lane);
-      VRNET_UNROLL
-      for (int f = 0; f < kFlashValueTiles; ++f) {
-        if (f < value_steps) mma_passes<kPasses>(acc_v[f], p, load_b<kPasses>(go_tile, vs, step * 8, f * 8, lane));
-        if (f < feature_steps) mma_passes<kPasses>(acc_k[f], ds, load_b<kPasses>(q_tile, fs, step * 8, f * 8, lane));
-      }
-    }
+    warp_products_ab<kPasses>(acc_v, pt_tile, kFlashProbStride, go_tile, vs, kFlashBackTile / 8, value_steps, lane);
+    warp_products_ab<kPasses>(acc_k, dst_tile, kFlashProbStride, q_tile, fs, kFlashBackTile / 8, feature_steps, lane);
   }
 
-  VRNET_UNROLL
-  for (int s = 0; s < 2; ++s) {
-    const int64_t j = j0 + warp_row + g + 8 * s;
-    if (j >= M) continue;
-    VRNET_UNROLL
-    for (int f = 0; f < kFlashValueTiles; ++f) {
-      VRNET_UNROLL for (int i = 2 * s; i < 2 * s + 2; ++i) {
-        const int col = f * 8 + 2 * t + (i & 1);
-        if (col < C) grad_key[(b * M + j) * C + col] = acc_k[f][i] * scale;
-        if (col < D) grad_values[(b * M + j) * D + col] = acc_v[f][i];
-      }
-    }
-  }
+  const float scales[2] = {scale, scale}, ones[2] = {1.0f, 1.0f};
+  store_rows(acc_k, scales, j0 + warp_row, M, C, grad_key + b * M * C, lane);
+  store_rows(acc_v, ones, j0 + warp_row, M, D, grad_values + b * M * D, lane);
 }
 
 // grid: one block per (batch item, 32 queries), blockIdx.x = b * row_tiles + tile; kFlashBackThreads
@@ -329,10 +295,7 @@ __global__ void soft_match_flash_grad_query_kernel(const float* __restrict__ que
     own_delta[s] = row < N ? delta[b * N + row] : 0.0f;
   }
   float acc[kFlashValueTiles][4];
-  VRNET_UNROLL
-  for (int f = 0; f < kFlashValueTiles; ++f) {
-    VRNET_UNROLL for (int i = 0; i < 4; ++i) acc[f][i] = 0.0f;
-  }
+  zero(acc);
 
   for (int64_t j0 = 0; j0 < M; j0 += kFlashBackTile) {
     __syncthreads();  // every warp is done with the previous key tile (and the queries are loaded)
@@ -340,23 +303,9 @@ __global__ void soft_match_flash_grad_query_kernel(const float* __restrict__ que
     load_tile(values + b * M * D, j0, M, D, kFlashBackTile, vs, v_tile);
     __syncthreads();
 
-    float score[kFlashBackTile / 8][4], dp[kFlashBackTile / 8][4];
-    VRNET_UNROLL
-    for (int n = 0; n < kFlashBackTile / 8; ++n) {
-      VRNET_UNROLL for (int i = 0; i < 4; ++i) score[n][i] = dp[n][i] = 0.0f;
-    }
-    for (int step = 0; step < feature_steps; ++step) {
-      const FragmentA<kPasses> a = load_a<kPasses>(q_tile, fs, warp_row, step * 8, lane);
-      VRNET_UNROLL
-      for (int n = 0; n < kFlashBackTile / 8; ++n)
-        mma_passes<kPasses>(score[n], a, load_b_transposed<kPasses>(k_tile, fs, step * 8, n * 8, lane));
-    }
-    for (int step = 0; step < value_steps; ++step) {
-      const FragmentA<kPasses> a = load_a<kPasses>(go_tile, vs, warp_row, step * 8, lane);
-      VRNET_UNROLL
-      for (int n = 0; n < kFlashBackTile / 8; ++n)
-        mma_passes<kPasses>(dp[n], a, load_b_transposed<kPasses>(v_tile, vs, step * 8, n * 8, lane));
-    }
+    float score[kFlashBackTile / 8][4], dp[kFlashBackTile / 8][4];  // S = Q Kᵀ (as the forward) and dP = dO Vᵀ
+    warp_products_abt<kPasses>(score, q_tile, fs, warp_row, k_tile, fs, feature_steps, lane);
+    warp_products_abt<kPasses>(dp, go_tile, vs, warp_row, v_tile, vs, value_steps, lane);
     VRNET_UNROLL
     for (int n = 0; n < kFlashBackTile / 8; ++n) {
       VRNET_UNROLL for (int i = 0; i < 4; ++i) {
@@ -366,26 +315,11 @@ __global__ void soft_match_flash_grad_query_kernel(const float* __restrict__ que
       }
     }
     __syncwarp();
-    for (int step = 0; step < kFlashBackTile / 8; ++step) {
-      const FragmentA<kPasses> ds = load_a<kPasses>(ds_tile, kFlashProbStride, 0, step * 8, lane);
-      VRNET_UNROLL
-      for (int f = 0; f < kFlashValueTiles; ++f)
-        if (f < feature_steps) mma_passes<kPasses>(acc[f], ds, load_b<kPasses>(k_tile, fs, step * 8, f * 8, lane));
-    }
+    warp_products_ab<kPasses>(acc, ds_tile, kFlashProbStride, k_tile, fs, kFlashBackTile / 8, feature_steps, lane);
   }
 
-  VRNET_UNROLL
-  for (int s = 0; s < 2; ++s) {
-    const int64_t row = row0 + warp_row + g + 8 * s;
-    if (row >= N) continue;
-    VRNET_UNROLL
-    for (int f = 0; f < kFlashValueTiles; ++f) {
-      VRNET_UNROLL for (int i = 2 * s; i < 2 * s + 2; ++i) {
-        const int col = f * 8 + 2 * t + (i & 1);
-        if (f < feature_steps && col < C) grad_query[(b * N + row) * C + col] = acc[f][i] * scale;
-      }
-    }
-  }
+  const float scales[2] = {scale, scale};
+  store_rows(acc, scales, row0 + warp_row, N, C, grad_query + b * N * C, lane);
 }
 
 }  // namespace vrnet
