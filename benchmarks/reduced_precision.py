@@ -10,7 +10,9 @@ answered here without a GPU: the model runs as it runs on a GPU (the DGCNN's fea
 float64) while a ``TorchFunctionMode`` rounds every float32 operand of torch's matrix products
 (``mm``, ``bmm``, ``matmul``, ``linear``, ``conv1d/2d``, ``einsum``, ``baddbmm``, ``addmm``, SDPA, and
 ``cdist`` as its matrix-product form) to TF32's 10 or bfloat16's 7 mantissa bits (round to nearest
-even), the products accumulated in float32, as the tensor cores do. The Transformer runs in float32
+even), the products accumulated in float32, as the tensor cores do; in the TF32 rows the point
+transforms take the multiply-adds a GPU allowing TF32 takes (``geometry.transforms``), but where a
+row says they are products. The Transformer runs in float32
 in every row but one, which runs it under bfloat16 autocast for real (the CPU's default). Reports the paper's
 columns, recall and the median rotation error per precision, on validation pairs by default (a
 precision is a choice: never made on the test split).
@@ -30,6 +32,7 @@ from torch.overrides import TorchFunctionMode
 from outputs import cpu_description  # benchmarks/, the script's folder
 from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
+from vrnet_ext.geometry import transforms
 from vrnet_ext.learning.evaluate import evaluate
 from vrnet_ext.model import dgcnn, vrnet
 from vrnet_ext.model.pretrained import load_vrnet
@@ -38,13 +41,21 @@ F = torch.nn.functional
 PRODUCTS = {torch.mm, torch.bmm, torch.matmul, torch.Tensor.__matmul__, torch.Tensor.matmul, torch.Tensor.mm,
             torch.Tensor.bmm, torch.baddbmm, torch.addmm, torch.einsum, F.linear, F.conv1d, F.conv2d,
             F.scaled_dot_product_attention}
-# (name, mantissa bits of the rounded operands, which products, the Transformer's precision): fp32; TF32 in
-# the soft matching only, everywhere; the Transformer under bfloat16 autocast (the CPU's default, really
-# run: its outputs are bfloat16 too); bfloat16 operands in the matching only, everywhere
-VARIANTS = (("fp32", None, "all", "fp32"), ("tf32 matching", 10, "matching", "fp32"), ("tf32", 10, "all", "fp32"),
-            ("bf16 Transformer (autocast)", None, "all", "bf16"), ("bf16 matching", 7, "matching", "fp32"),
-            ("bf16", 7, "all", "fp32"))
-_MATCHING = {"depth": 0}
+# (name, mantissa bits of the rounded operands, which products, the Transformer's precision, whether points
+# are moved and motions composed by matrix products): float32; TF32 in one part only (the soft matching,
+# the DGCNN, its kNN graphs' distances, the Transformer, the correction walk, outside the networks: the
+# points moved by estimates and the motions composed); TF32 everywhere as a GPU allowing it runs now
+# (the transforms as float32 multiply-adds, geometry.transforms) and as before (by products); the
+# Transformer under bfloat16 autocast (really run: its outputs are bfloat16 too); bfloat16 operands in
+# the matching only, everywhere
+VARIANTS = (("fp32", None, "all", "fp32", True), ("tf32 matching", 10, "matching", "fp32", False),
+            ("tf32 DGCNN", 10, "features", "fp32", False), ("tf32 DGCNN graphs", 10, "graphs", "fp32", False),
+            ("tf32 Transformer", 10, "transformer", "fp32", False), ("tf32 walk", 10, "walk", "fp32", False),
+            ("tf32 transforms as products", 10, "outside", "fp32", True), ("tf32", 10, "all", "fp32", False),
+            ("tf32, transforms as products", 10, "all", "fp32", True),
+            ("bf16 Transformer (autocast)", None, "all", "bf16", True), ("bf16 matching", 7, "matching", "fp32", True),
+            ("bf16", 7, "all", "fp32", True))
+_INSIDE = {"matching": 0, "features": 0, "transformer": 0, "walk": 0}  # how deep the running code is in each
 
 
 def round_mantissa(x: torch.Tensor, bits: int) -> torch.Tensor:
@@ -59,14 +70,20 @@ def round_mantissa(x: torch.Tensor, bits: int) -> torch.Tensor:
 
 class RoundedProducts(TorchFunctionMode):
     """Rounds the float32 tensor operands of torch's matrix products to ``bits`` mantissa bits:
-    ``scope`` "all" or "matching" (inside the soft matching only)."""
+    ``scope`` "all", "graphs" (``cdist`` only: the kNN graphs of features), "outside" (products
+    outside every scope of ``_INSIDE``) or one of ``_INSIDE`` (the products inside the soft matching,
+    the DGCNN, the Transformer or the correction walk)."""
 
     def __init__(self, bits: int, scope: str):
         super().__init__()
         self.bits, self.scope = bits, scope
 
     def _applies(self, func) -> bool:
-        if self.scope == "matching" and not _MATCHING["depth"]:
+        if self.scope == "graphs":
+            return func is torch.cdist
+        if self.scope == "outside" and any(_INSIDE.values()):
+            return False
+        if self.scope in _INSIDE and not _INSIDE[self.scope]:
             return False
         return func in PRODUCTS or func is torch.cdist
 
@@ -100,30 +117,38 @@ def as_on_a_gpu():
                                           lambda *args, **kwargs: dense(*args, **{**kwargs, "backend": "torch"})))
 
     def matching(*args, **kwargs):  # the soft matching, inside its scope
-        _MATCHING["depth"] += 1
+        _INSIDE["matching"] += 1
         try:
             return match_clouds(*args, **kwargs)
         finally:
-            _MATCHING["depth"] -= 1
+            _INSIDE["matching"] -= 1
 
     stack.enter_context(mock.patch.object(vrnet, "match_clouds", matching))
     return stack
 
 
-def run(model_name: str, data_dir: Path | None, partition: str, max_items: int | None, batch_size: int) -> list[dict]:
+def run(model_name: str, data_dir: Path | None, partition: str, max_items: int | None, batch_size: int,
+        variants: list[str]) -> list[dict]:
     model, state = load_vrnet(model_name, "cpu")
     cfg = state["config"]
+    for scope, module in (("features", model.features), ("transformer", model.transformer), ("walk", model.walk)):
+        module.register_forward_pre_hook(lambda *_, scope=scope: _INSIDE.__setitem__(scope, _INSIDE[scope] + 1))
+        module.register_forward_hook(lambda *_, scope=scope: _INSIDE.__setitem__(scope, _INSIDE[scope] - 1))
     spec = PairSpec(num_points=cfg.get("num_points", 1024), num_subsampled=cfg.get("num_subsampled", 768))
     data = ModelNet40Pairs(data_dir, partition=partition, setting=cfg["setting"], split=cfg["split"],
                            max_items=max_items, spec=spec, val_fraction=cfg.get("val_fraction", 0.1))
     rows = []
-    for name, bits, scope, transformer_precision in VARIANTS:
+    for name, bits, scope, transformer_precision, transforms_as_products in VARIANTS:
+        if name not in variants:
+            continue
         model.config.transformer_precision = transformer_precision
         start = time.perf_counter()
-        with as_on_a_gpu(), torch.no_grad(), (RoundedProducts(bits, scope) if bits else ExitStack()):
+        with (as_on_a_gpu(), torch.no_grad(), (RoundedProducts(bits, scope) if bits else ExitStack()),
+              mock.patch.object(transforms, "_matmul_would_round",
+                                lambda x, fallback=not transforms_as_products: fallback and torch.is_tensor(x))):
             result = evaluate(model, data, batch_size=batch_size, backend="ext", progress=False)
         rows.append({"precision": name, "mantissa_bits": bits or 23, "scope": scope,
-                     "transformer_precision": transformer_precision,
+                     "transformer_precision": transformer_precision, "transforms_as_products": transforms_as_products,
                      "seconds": time.perf_counter() - start,
                      **{k: v for k, v in result.items() if isinstance(v, (int, float))}})
         print(f"{name}: RMSE(R) {result['RMSE(R)']:.4f}, RE median {result['RE median (deg)']:.4f}, "
@@ -153,12 +178,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--partition", default="val", choices=("val", "test"), help="which pairs")
     parser.add_argument("--max-items", type=int, default=None, help="first N shapes only")
     parser.add_argument("--batch-size", type=int, default=16, help="pairs per forward")
+    parser.add_argument("--variants", nargs="+", choices=[v[0] for v in VARIANTS], default=[v[0] for v in VARIANTS],
+                        metavar="NAME", help="rows to run, by name (fp32 first: the ratios are to it)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads")
     parser.add_argument("--json", type=Path, default=None, help="write the rows here")
     parser.add_argument("--markdown", type=Path, default=None, help="write the table here")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    rows = run(args.model, args.data_dir, args.partition, args.max_items, args.batch_size)
+    if args.variants[0] != "fp32":
+        parser.error("--variants: fp32 must come first (every ratio is to it)")
+    rows = run(args.model, args.data_dir, args.partition, args.max_items, args.batch_size, args.variants)
     note = (f"{args.model} on ModelNet40 {args.partition} pairs ({rows[0]['pairs']}), the model's own protocol; "
             f"GPU paths run on the CPU ({cpu_description()}, {args.threads} threads), matrix-product operands "
             f"rounded (benchmarks/reduced_precision.py), {time.strftime('%Y-%m-%d')}.")

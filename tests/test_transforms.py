@@ -1,7 +1,11 @@
+from unittest import mock
+
 import numpy as np
+import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from vrnet_ext.geometry import transforms
 from vrnet_ext.geometry.transforms import apply, compose, from_normalised, move, to_homogeneous
 
 
@@ -31,3 +35,36 @@ def test_from_normalised_maps_the_clouds_themselves():
     got = from_normalised(torch.tensor(R), torch.tensor(t_normalised), torch.tensor(src_centre),
                           torch.tensor(tgt_centre), scale)
     np.testing.assert_allclose(got[1].numpy(), got_t, atol=1e-12)
+
+
+@pytest.mark.parametrize("tf32_products", [False, True])
+def test_points_move_and_motions_compose_in_float32_where_gpu_products_would_round(tf32_products):
+    """Where a GPU would run float32 matrix products in TF32 (torch allows it), the transforms use
+    multiply-adds instead: errors of float32, not of 10-bit operands (the branch taken here on the CPU
+    by declaring the products rounding)."""
+    rotation_1, rotation_2 = (torch.linalg.qr(torch.randn(4, 3, 3, dtype=torch.float64))[0] for _ in range(2))
+    translation_1, translation_2 = torch.randn(4, 3, dtype=torch.float64), torch.randn(4, 3, dtype=torch.float64)
+    points = torch.randn(4, 500, 3, dtype=torch.float64) * 100
+    exact = transforms.move(points, rotation_1, translation_1), transforms.compose(rotation_2, translation_2,
+                                                                                  rotation_1, translation_1)
+    with mock.patch.object(transforms, "_matmul_would_round", lambda x: tf32_products):
+        moved = transforms.move(points.float(), rotation_1.float(), translation_1.float())
+        rotation, translation = transforms.compose(rotation_2.float(), translation_2.float(), rotation_1.float(),
+                                                   translation_1.float())
+    assert (moved.double() - exact[0]).abs().max() < 1e-4 * 100  # float32 of coordinates up to ~400
+    assert (rotation.double() - exact[1][0]).abs().max() < 1e-6
+    assert (translation.double() - exact[1][1]).abs().max() < 1e-5
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_transforms_on_a_gpu_with_tf32_allowed_keep_float32():
+    rotation = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64))[0]
+    points = torch.randn(20000, 3, dtype=torch.float64) * 100
+    matmul = torch.backends.cuda.matmul
+    previous = matmul.fp32_precision
+    matmul.fp32_precision = "tf32"
+    try:
+        moved = transforms.move(points.float().cuda(), rotation.float().cuda(), torch.zeros(3, device="cuda"))
+    finally:
+        matmul.fp32_precision = previous
+    assert (moved.double().cpu() - points @ rotation.T).abs().max() < 1e-4 * 100

@@ -40,3 +40,12 @@ def device_has_native_bf16(device: torch.device) -> bool:
     if device.type == "cuda":
         return torch.cuda.is_bf16_supported()
     return device.type == "cpu" and cpu_has_native_bf16()
+
+
+@torch.compiler.assume_constant_result
+def cuda_matmul_allows_tf32() -> bool:
+    """Whether torch may run float32 matrix products on a GPU in TF32 (10 mantissa bits per operand):
+    ``torch.backends.cuda.matmul.fp32_precision = "tf32"``, or ``set_float32_matmul_precision("high")``
+    / ``"medium"`` (torch's default: no). A constant for ``torch.compile`` (read when a graph is traced)."""
+    matmul = torch.backends.cuda.matmul
+    return matmul.fp32_precision == "tf32" if hasattr(matmul, "fp32_precision") else bool(matmul.allow_tf32)

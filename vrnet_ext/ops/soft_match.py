@@ -26,6 +26,7 @@ from typing import NamedTuple
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
+from vrnet_ext.runtime import cuda_matmul_allows_tf32
 from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
                                    float32_region, promote_low_precision, values_checked)
 
@@ -125,15 +126,11 @@ def query_block(batch: int, cols: int, max_scores: int = DENSE_BLOCK_MAX_SCORES)
     return max(1, max_scores // max(1, batch * cols))
 
 
-@torch.compiler.assume_constant_result
 def flash_passes() -> int:
     """Tensor-core products per operand pair of the CUDA flash kernel: 1 (TF32) where torch allows
-    TF32 in float32 CUDA matmuls (``torch.backends.cuda.matmul.fp32_precision = "tf32"``, or
-    ``torch.set_float32_matmul_precision("high")``), else 3 (split TF32, about float32's accuracy;
-    torch's default). A constant for ``torch.compile`` (read when a graph is traced)."""
-    matmul = torch.backends.cuda.matmul
-    tf32 = matmul.fp32_precision == "tf32" if hasattr(matmul, "fp32_precision") else matmul.allow_tf32
-    return 1 if tf32 else 3
+    TF32 in float32 CUDA matmuls (:func:`vrnet_ext.runtime.cuda_matmul_allows_tf32`), else 3 (split
+    TF32, about float32's accuracy; torch's default)."""
+    return 1 if cuda_matmul_allows_tf32() else 3
 
 
 @torch.compiler.assume_constant_result
