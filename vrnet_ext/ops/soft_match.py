@@ -26,9 +26,9 @@ from typing import NamedTuple
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.runtime import cuda_matmul_allows_tf32
 from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
                                    float32_region, promote_low_precision, values_checked)
+from vrnet_ext.runtime import cuda_matmul_allows_tf32
 
 
 DENSE_BLOCK_MAX_SCORES = 1 << 26  # scores per dense block off the CPU: 256 MB per float32 copy
