@@ -9,17 +9,19 @@ torch tensors alike (with batch dimensions in front), and is differentiable for 
 from __future__ import annotations
 
 import numpy as np
-import torch
-
-from vrnet_ext.runtime import cuda_matmul_allows_tf32
 
 
 def _matmul_would_round(x) -> bool:
     """Whether a matrix product of ``x`` would run in TF32 (10 bits of each operand kept: a
     thousandth of a cloud's size, 0.06 degrees in a composed rotation): a float32 GPU tensor while
     torch allows TF32 there. Such products are written as multiply-adds in float32 instead."""
-    return (isinstance(x, torch.Tensor) and x.is_cuda and x.dtype == torch.float32
-            and cuda_matmul_allows_tf32())
+    if not getattr(x, "is_cuda", False):  # arrays and CPU tensors (no torch import: `--help` loads none)
+        return False
+    import torch
+
+    from vrnet_ext.runtime import cuda_matmul_allows_tf32
+
+    return x.dtype == torch.float32 and cuda_matmul_allows_tf32()
 
 
 def rotate_rows(points, rotation):
