@@ -84,6 +84,7 @@ def selftest(name: str, x: torch.Tensor) -> torch.Tensor:
     ("shared_race", r"shared-memory race: write-write on shared offset 0"),
     ("invalid_shuffle_width", r"warp shuffle with width 24"),
     ("shuffle_missing_lanes", r"warp collective never completes: .* lanes \{16,17"),
+    ("mma_beside_a_shuffle", r"meet at a tensor-core product and another collective"),
     ("inter_block_race", r"inter-block race on argument 1"),
 ])
 def test_broken_kernels_are_reported(name, finding):

@@ -683,16 +683,10 @@ float tf32_operand(uint32_t bits) {
 // Every lane of the warp has passed its fragments of one m16n8k8 TF32 product (the PTX ISA's layout:
 // groupID g = lane / 4, t = lane % 4; A (row, k): a0 (g, t), a1 (g + 8, t), a2 (g, t + 4),
 // a3 (g + 8, t + 4); B (k, col): b0 (t, g), b1 (t + 4, g); D (row, col): d0 (g, 2t), d1 (g, 2t + 1),
-// d2 (g + 8, 2t), d3 (g + 8, 2t + 1)): every lane's d += a b.
+// d2 (g + 8, 2t), d3 (g + 8, 2t + 1)): every lane's d += a b. (Lanes that never arrive are reported as
+// for any collective of the full warp.)
 void resolve_mma(Worker& w, Thread& last) {
   const int first = last.warp * kWarp;
-  if (last.mask != 0xffffffffu || first + kWarp > static_cast<int>(w.threads.size())) {
-    report(w, "mma-warp", "a tensor-core product needs all 32 lanes of a full warp (mask " + hex(last.mask) +
-                              ") in " + where(w, last));
-    for (int id = first; id < std::min<int>(first + kWarp, static_cast<int>(w.threads.size())); ++id)
-      w.threads[id].state = State::kRunnable;
-    return;
-  }
   for (int id = first; id < first + kWarp; ++id) {
     if (w.threads[id].kind != Collective::kMmaTf32 || w.threads[id].mask != last.mask) {
       report(w, "collective-mismatch", "lanes of warp " + std::to_string(last.warp) +

@@ -8,6 +8,7 @@
 #include <string>
 
 #include "common/cuda_utils.cuh"
+#include "common/tensor_core.cuh"
 
 namespace vrnet {
 namespace {
@@ -74,6 +75,18 @@ __global__ void invalid_shuffle_width_kernel(const float* x, float* out) {
 __global__ void shuffle_missing_lanes_kernel(const float* x, float* out) {
   if (threadIdx.x >= 16) return;
   out[threadIdx.x] = __shfl_down_sync(kFullWarp, x[threadIdx.x], 1);
+}
+
+// Half the warp at a shuffle, the other half (the last to arrive) at a tensor-core product.
+__global__ void mma_beside_a_shuffle_kernel(const float* x, float* out) {
+  float d[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+  if (threadIdx.x >= 16) {
+    const std::uint32_t a[4] = {0, 0, 0, 0}, b[2] = {0, 0};
+    mma_tf32(d, a, b);
+  } else {
+    d[0] = __shfl_sync(kFullWarp, x[threadIdx.x], 0);
+  }
+  out[threadIdx.x] = d[0];
 }
 
 // One float atomicAdd per block into one total: the rounding depends on the order of the blocks.
@@ -171,6 +184,8 @@ at::Tensor selftest(c10::string_view name_view, const at::Tensor& x_in) {
     launch<invalid_shuffle_width_kernel>({dim3(1), dim3(32), 0}, x, out);
   } else if (name == "shuffle_missing_lanes") {
     launch<shuffle_missing_lanes_kernel>({dim3(1), dim3(32), 0}, x, out);
+  } else if (name == "mma_beside_a_shuffle") {
+    launch<mma_beside_a_shuffle_kernel>({dim3(1), dim3(32), 0}, x, out);
   } else if (name == "order_dependent_sum") {
     launch<order_dependent_sum_kernel>({dim3(static_cast<unsigned int>(n)), dim3(32), 0}, x, out);
   } else if (name == "inter_block_race") {
