@@ -110,8 +110,10 @@ class RoundedProducts(TorchFunctionMode):
 def as_on_a_gpu():
     """The model's GPU paths on the CPU: feature graphs by cdist + topk, soft matching by dense products."""
     stack = ExitStack()
+    on_gpu = dgcnn.graph_backend
     stack.enter_context(mock.patch.object(dgcnn, "graph_backend",
-                                          lambda device, channels, backend: "torch" if channels > 3 else backend))
+                                          lambda device, channels, backend: on_gpu(torch.device("cuda"), channels,
+                                                                                   backend)))
     dense, match_clouds = vrnet.soft_match, vrnet.match_clouds
     stack.enter_context(mock.patch.object(vrnet, "soft_match",
                                           lambda *args, **kwargs: dense(*args, **{**kwargs, "backend": "torch"})))
