@@ -79,3 +79,32 @@ def correspondences(K, outlier_ratio, seed=0, noise=0.005):
     outlier = torch.rand(K, generator=g) < outlier_ratio
     q[outlier] = torch.rand(int(outlier.sum()), 3, generator=g, dtype=torch.float64) * 2
     return p, q, R, t, ~outlier
+
+
+def lane_crowded_features(C: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Three query rows and 256 reference rows whose 24 nearest to the first query all lie in the reference
+    rows 8 i and 8 i + 1: one lane's quarter on the tensor cores, more than the 16 candidates it keeps."""
+    query = torch.randn(1, 3, C, generator=generator)
+    ref = torch.randn(1, 256, C, generator=generator) * 10
+    crowd = torch.tensor([j for j in range(96) if j % 8 < 2])
+    ref[0, crowd] = query[0, 0] + 0.1 * torch.randn(len(crowd), C, generator=generator)
+    return query, ref
+
+
+def rounding_biased_features(C: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """One query row and 300 reference rows at squared distances 1 + 1e-6 u from it (u uniform in [0, 1)),
+    with their mirror images far away (the reference mean is then exactly 0, so the rows are centred as
+    given). TF32 rounds the query's first value down by 2^-11 of it and each row's by up to 2^-13: every
+    approximate distance comes out about 1e-3 too large, give or take 2e-4 from row to row, so the lanes
+    keep rows by rounding noise alone, and only the bound's error term stops their ranking being proven."""
+    first = 1 + 0.49 * 2**-10
+    exact_in_tf32 = torch.randint(-4, 5, (300,), generator=generator) * 2**-10
+    below_tf32 = (torch.rand(300, generator=generator, dtype=torch.float64) * 2 - 1) * 2**-13
+    rows_first = 1 + exact_in_tf32.double() + below_tf32
+    squared = 1 + 1e-6 * torch.rand(300, generator=generator, dtype=torch.float64)
+    rest = torch.nn.functional.normalize(torch.randn(300, C - 1, generator=generator, dtype=torch.float64), dim=1)
+    rest = rest * (squared - (first - rows_first) ** 2).sqrt()[:, None]
+    near = torch.cat([rows_first[:, None], rest], dim=1).float()
+    query = torch.zeros(1, 1, C)
+    query[0, 0, 0] = first
+    return query, torch.cat([near, -near])[None]

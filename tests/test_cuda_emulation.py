@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from conftest import DTYPES, non_contiguous, tolerances
+from synthetic import lane_crowded_features, rounding_biased_features
 from vrnet_ext.ops.soft_match import soft_match_reference
 from cuda_emu import build as emu_build
 
@@ -182,6 +183,28 @@ def test_knn_far_from_origin_and_ties(C):
     ref = torch.cat([base, base[:, :10]], dim=1)
     assert_same("knn", base, ref, 12, False, exact=True)
     assert_same("knn", non_contiguous(torch.randn(2, 33, C)), torch.randn(2, 45, C), 5, False, exact=True)
+
+
+@pytest.mark.parametrize("C", [4, 64, 128])
+def test_knn_tensor_core_ranking_proven_or_rescanned(C):
+    """float32 feature rows take the tensor-core path: each lane keeps candidates by approximate (TF32)
+    distances, an exact ranking follows, and a row whose ranking the bound cannot prove is scanned whole.
+    Cases that must fail the proof: a lane holding more of the nearest than it keeps, near-ties finer than
+    TF32's rounding, exact ties on a lattice; and the proof's own cases: a cloud far from the origin, self-excluded
+    batches over several tiles of rows and references."""
+    generator = torch.Generator().manual_seed(C)
+    query, ref = lane_crowded_features(C, generator)
+    for k in (20, 32):
+        assert_same("knn", query, ref, k, False, exact=True)
+    assert_same("knn", *rounding_biased_features(C, generator), 20, False, exact=True)
+    lattice = torch.randint(-2, 3, (1, 500, C), generator=generator).float()
+    assert_same("knn", lattice[:, :40], lattice, 17, False, exact=True)
+    far = torch.randn(1, 70, C, generator=generator) + 1e4
+    assert_same("knn", far, far, 9, True, exact=True)
+    pair = torch.randn(2, 200, C, generator=generator)
+    assert_same("knn", pair, pair, 20, True, exact=True)
+    assert_same("knn", non_contiguous(torch.randn(2, 70, C, generator=generator)),
+                torch.randn(2, 129, C, generator=generator), 1, False, exact=True)
 
 
 @pytest.mark.parametrize("dtype", DTYPES)

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from conftest import DTYPES, requires_cuda_kernels, tolerances
+from synthetic import lane_crowded_features, rounding_biased_features
 from vrnet_ext import ops
 
 pytestmark = requires_cuda_kernels
@@ -59,6 +60,22 @@ def test_knn_features_match_cpu(dtype, C, B, N, M, k):
     differ = cuda[1].cpu() != cpu[1]
     if differ.any():  # dot products round differently on the GPU: only near-ties may swap
         assert (cpu[0][differ] - cuda[0].cpu()[differ]).abs().max() <= 1e-4 * (1 + cpu[0].abs().max())
+
+
+@pytest.mark.parametrize("C,B,N,M,k,exclude", [(64, 4, 1024, 1024, 20, False), (128, 2, 768, 768, 20, False),
+                                               (4, 1, 500, 3000, 32, True), (100, 3, 77, 129, 1, False)])
+def test_knn_tensor_cores_identical_to_cpu(C, B, N, M, k, exclude):
+    """float32 feature rows on TF32 tensor cores: candidates, then the exact ranking, proven or rescanned,
+    so the CPU's distances and indices bit for bit; also where the proof must fail."""
+    generator = torch.Generator().manual_seed(C)
+    query = torch.randn(B, N, C, generator=generator)
+    ref = query if exclude else torch.randn(B, M, C, generator=generator)
+    cases = [(query, ref, k, exclude), (*lane_crowded_features(C, generator), 20, False),
+             (*rounding_biased_features(C, generator), 20, False)]
+    for q, r, neighbours, self_excluded in cases:
+        cpu = ops.knn(q, r, neighbours, exclude_self=self_excluded)
+        cuda = ops.knn(q.cuda(), r.cuda(), neighbours, exclude_self=self_excluded)
+        assert torch.equal(cuda[0].cpu(), cpu[0]) and torch.equal(cuda[1].cpu(), cpu[1])
 
 
 def test_knn_exclude_self_and_chunking():

@@ -103,6 +103,21 @@ __device__ inline FragmentB<kPasses> load_b(const float* tile, int k_step, int c
   return b;
 }
 
+// Row stride (floats) of a shared tile of rows `width` values long whose fragments are read as (g, t) ->
+// g * stride + t (A, and B where B's columns are the tile's rows): 4 mod 32, so the 32 loads hit 32 banks.
+VRNET_HOST_DEVICE constexpr int row_fragment_stride(int width) { return (width + 31) / 32 * 32 + 4; }
+
+// rows x width values of a (rows_total, width) row-major matrix from row `first` into a tile of
+// `stride` floats a row, zeros past its rows and columns; all threads of the block take part.
+__device__ inline void load_tile(const float* __restrict__ source, int64_t first, int64_t rows_total, int width,
+                                 int rows, int stride, float* tile) {
+  for (int i = threadIdx.x; i < rows * stride; i += blockDim.x) {
+    const int row = i / stride, col = i % stride;
+    const int64_t at = first + row;
+    tile[i] = at < rows_total && col < width ? source[at * width + col] : 0.0f;
+  }
+}
+
 // Zeros for an accumulator of n_tiles fragments.
 template <int n_tiles>
 __device__ inline void zero(float (&acc)[n_tiles][4]) {

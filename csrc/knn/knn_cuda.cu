@@ -1,7 +1,9 @@
 // Torch glue of the CUDA kNN op (kernels: knn_kernels.cuh). C = 3 with at least kGridMinRef
 // reference points: the CPU's uniform grid (its box and edge read once per cloud: one host
 // synchronisation), the points sorted by cell on the device, one thread per query searching it.
-// Smaller C = 3 clouds, and rows of up to 128 floats (64 doubles) with k <= 32: the tiled exact scan. Larger C or k:
+// Smaller C = 3 clouds: the tiled exact scan. float32 rows of 4 to 128 values with k <= 32 on GPUs with
+// TF32 tensor cores: candidates from tensor-core products, ranked exactly and proven (knn_kernels.cuh).
+// Otherwise rows of up to 128 floats (64 doubles) with k <= 32: the tiled exact scan. Larger C or k:
 // cuBLAS dot products of the clouds centred on the reference mean, over bounded chunks (never the
 // N x M matrix), merged into per-query candidate buffers, then re-ranked by exact distance with an
 // exhaustive scan where the rounding of the expanded formula could matter (the CPU's definition).
@@ -20,6 +22,7 @@
 #include <vector>
 
 #include "common/cuda_utils.cuh"
+#include "common/tensor_core.cuh"
 #include "knn/knn.h"
 #include "knn/knn_kernels.cuh"
 
@@ -28,18 +31,22 @@ namespace {
 
 constexpr int64_t kChunkElements = 8 << 20;  // dot-product chunk budget (B x queries x refs)
 
-// Calls fn(std::integral_constant<int, KMAX>) with the smallest register buffer that holds k <= 64
-// (ptxas: no local memory up to 64 slots).
-template <typename Fn>
+// Calls fn(std::integral_constant<int, KMAX>) with the smallest register buffer that holds k <= kLargest
+// (8, 16, 32 or 64 slots; ptxas: no local memory up to 64).
+template <int kLargest = kCudaRegisterK, typename Fn>
 void dispatch_kmax(int64_t k, Fn&& fn) {
-  static_assert(kCudaRegisterK == 64, "the buffer sizes below end at kCudaRegisterK");
+  static_assert(kCudaRegisterK == 64 && (kLargest == 32 || kLargest == 64), "the buffer sizes below end at 64");
   if (k <= 8) fn(std::integral_constant<int, 8>{});
   else if (k <= 16) fn(std::integral_constant<int, 16>{});
-  else if (k <= 32) fn(std::integral_constant<int, 32>{});
-  else fn(std::integral_constant<int, 64>{});
+  else if (kLargest == 32 || k <= 32) fn(std::integral_constant<int, 32>{});
+  else if constexpr (kLargest == 64) fn(std::integral_constant<int, 64>{});
 }
 
 LaunchConfig per_query(int64_t N, int64_t B) { return {dim3(blocks_for(N), static_cast<unsigned int>(B)), dim3(kThreads), 0}; }
+// A warp per query row (knn_exact_rows_kernel).
+LaunchConfig per_query_warp(int64_t N, int64_t B) {
+  return {dim3(blocks_for(32 * N), static_cast<unsigned int>(B)), dim3(kThreads), 0};
+}
 
 // k > kCudaRegisterK: rows of queries in chunks of at most kChunkElements differences, exact squared
 // distances, each row sorted (stable, so equal distances keep index order).
@@ -123,9 +130,45 @@ void knn_tiled(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool e
     else if (C <= 64) run(kmax, std::integral_constant<int, 64>{});
     else if constexpr (sizeof(scalar_t) == 4) run(kmax, std::integral_constant<int, 128>{});
   };
-  if (k <= 8) with_rows(std::integral_constant<int, 8>{});
-  else if (k <= 16) with_rows(std::integral_constant<int, 16>{});
-  else with_rows(std::integral_constant<int, 32>{});
+  static_assert(kTiledMaxK == 32, "the register buffers below end at 32 slots");
+  dispatch_kmax<32>(k, with_rows);
+}
+
+// float32 feature rows of up to kKnnTensorCoreMaxC values, k <= kKnnTensorCoreMaxK, on a GPU with TF32
+// tensor cores: candidates by tensor-core products of the clouds centred on the reference mean, then
+// their exact ranking, proven or replaced by an exhaustive scan (knn_kernels.cuh).
+bool fits_tensor_cores(const at::Tensor& query, int64_t k) {
+  const int64_t C = query.size(2);
+  return query.scalar_type() == at::kFloat && C > 3 && C <= kKnnTensorCoreMaxC && k <= kKnnTensorCoreMaxK &&
+         compute_capability_major() >= kTensorCoreMajor;
+}
+
+void knn_tensor_cores(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self, at::Tensor& dist,
+                      at::Tensor& idx) {
+  const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2);
+  const int64_t row_tiles = (N + kKnnTensorCoreRows - 1) / kKnnTensorCoreRows;
+  TORCH_CHECK_VALUE(B * row_tiles < (int64_t{1} << 31), "knn: too many query rows (B * N = ", B * N, ")");
+  const at::Tensor shift = ref.to(at::kDouble).mean(1, /*keepdim=*/true);
+  const at::Tensor query_c = at::sub(query.to(at::kDouble), shift).to(at::kFloat).contiguous();
+  const at::Tensor ref_c = at::sub(ref.to(at::kDouble), shift).to(at::kFloat).contiguous();
+  const at::Tensor query_norm = query_c.square().sum(-1).contiguous();
+  const at::Tensor ref_norm = ref_c.square().sum(-1).contiguous();
+  const at::Tensor ref_norm_max = at::amax(ref_norm, 1).contiguous();
+  at::Tensor cand_dist = at::empty({B, N, kKnnRowCandidates}, query.options());
+  at::Tensor cand_idx = at::empty({B, N, kKnnRowCandidates}, query.options().dtype(at::kInt));
+  const LaunchConfig config{dim3(static_cast<unsigned int>(B * row_tiles)), dim3(kKnnTensorCoreWarps * 32),
+                            sizeof(float) * static_cast<std::size_t>(knn_tensor_core_shared_floats(C))};
+  launch<knn_tensor_core_kernel>(config, query_c, ref_c, query_norm, ref_norm, N, M, static_cast<int>(C),
+                                 exclude_self, row_tiles, cand_dist, cand_idx);
+  at::Tensor exhaustive = at::empty({B, N}, query.options().dtype(at::kInt));
+  static_assert(kKnnTensorCoreMaxK == 32, "the register buffers below end at 32 slots");
+  dispatch_kmax<32>(k, [&](auto kmax) {
+    constexpr int KMAX = decltype(kmax)::value;
+    launch<knn_tensor_core_rerank_kernel<KMAX>>(per_query(N, B), query, ref, cand_dist, cand_idx, query_norm,
+                                                ref_norm_max, N, M, C, k, dist, idx, exhaustive);
+    launch<knn_exact_rows_kernel<float, KMAX>>(per_query_warp(N, B), query, ref, exhaustive, N, M, C, k, exclude_self,
+                                               dist, idx);
+  });
 }
 
 template <typename scalar_t>
@@ -161,7 +204,7 @@ void knn_features(const at::Tensor& query, const at::Tensor& ref, int64_t k, boo
     at::Tensor exhaustive = at::empty({B, N}, query.options().dtype(at::kInt));
     launch<knn_rerank_kernel<scalar_t, KMAX>>(per_query(N, B), query, ref, cand_dist, cand_idx, query_norm,
                                               ref_norm_max, N, M, C, width, k, relative_error, dist, idx, exhaustive);
-    launch<knn_exact_rows_kernel<scalar_t, KMAX>>(per_query(N, B), query, ref, exhaustive, N, M, C, k, exclude_self,
+    launch<knn_exact_rows_kernel<scalar_t, KMAX>>(per_query_warp(N, B), query, ref, exhaustive, N, M, C, k, exclude_self,
                                                   dist, idx);
   });
 }
@@ -178,6 +221,10 @@ std::tuple<at::Tensor, at::Tensor> knn_cuda(const at::Tensor& query_in, const at
   if (N == 0 || B == 0) return {dist, idx};
   if (k > kCudaRegisterK) {
     knn_by_sorting(query, ref, k, exclude_self, dist, idx);
+    return {dist, idx};
+  }
+  if (fits_tensor_cores(query, k)) {
+    knn_tensor_cores(query, ref, k, exclude_self, dist, idx);
     return {dist, idx};
   }
   AT_DISPATCH_FLOATING_TYPES(query.scalar_type(), "knn_cuda", [&] {

@@ -13,6 +13,7 @@
 #include <limits>
 
 #include "common/cuda_device.cuh"
+#include "common/tensor_core.cuh"
 #include "knn/grid.h"
 #include "knn/topk.h"
 
@@ -280,21 +281,227 @@ __global__ void knn_rerank_kernel(const scalar_t* __restrict__ query, const scal
   exhaustive[row] = !(slack <= largest) || !(kth <= largest) || (full && last <= kth + 2 * slack);
 }
 
-// The exact k nearest of each flagged query row, by a scan of all M references.
+// The exact k nearest of each flagged query row, by a scan of all M references: a warp per row (grid:
+// per_query_warp), lane l scanning references l, l + 32, ... into its own KMAX best, then the k best of
+// the 32 lists by k rounds of a warp-wide minimum (ties by lower index; each reference is in one list).
 template <typename scalar_t, int KMAX>
 __global__ void knn_exact_rows_kernel(const scalar_t* __restrict__ query, const scalar_t* __restrict__ ref,
                                       const int32_t* __restrict__ exhaustive, int64_t N, int64_t M, int64_t C,
                                       int64_t k, bool exclude_self, scalar_t* __restrict__ dist_out,
                                       int64_t* __restrict__ idx_out) {
   const int64_t b = blockIdx.y;
-  const int64_t n = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (n >= N || !exhaustive[b * N + n]) return;
+  const int64_t n = (static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x) / 32;
+  const int lane = threadIdx.x % 32;
+  if (n >= N || !exhaustive[b * N + n]) return;  // the whole warp: one row
   const scalar_t* q = query + (b * N + n) * C;
   RegisterTopK<scalar_t, KMAX> top;
   top.reset(static_cast<int32_t>(M));
-  for (int64_t m = 0; m < M; ++m)
+  for (int64_t m = lane; m < M; m += 32)
     if (!(exclude_self && m == n)) top.push(knn_exact_sq_dist(q, ref + (b * M + m) * C, C), static_cast<int32_t>(m));
-  knn_store(top, k, dist_out + (b * N + n) * k, idx_out + (b * N + n) * k);
+  for (int64_t j = 0; j < k; ++j) {
+    scalar_t best = top.dist[0];
+    int32_t best_idx = top.idx[0];
+    for (int offset = 16; offset > 0; offset >>= 1) {
+      const scalar_t other = __shfl_xor_sync(kFullWarp, best, offset);
+      const int32_t other_idx = __shfl_xor_sync(kFullWarp, best_idx, offset);
+      if (TopK<scalar_t>::less(other, other_idx, best, best_idx)) {
+        best = other;
+        best_idx = other_idx;
+      }
+    }
+    if (lane == 0) {
+      dist_out[(b * N + n) * k + j] = best;
+      idx_out[(b * N + n) * k + j] = best_idx;
+    }
+    if (top.idx[0] == best_idx) top.pop_front(static_cast<int32_t>(M));
+  }
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Feature rows (float32, C <= kKnnTensorCoreMaxC, k <= kKnnTensorCoreMaxK) on the TF32 tensor cores.
+// knn_tensor_core_kernel: a block of kKnnTensorCoreWarps warps takes 16 query rows a warp of one
+// batch item and walks over the reference rows in shared-memory tiles of 32; each warp's dot products
+// by m16n8k8 products (one TF32 pass), the approximate squared distances |q|^2 + |r|^2 - 2 q.r of the
+// clouds centred on the reference mean. A row's scores lie with its four lanes (columns 2t, 2t + 1 of
+// each 8-wide tile: lane t of the quad sees a fixed quarter of the reference rows), and each lane
+// keeps the kKnnLaneCandidates best of its quarter for each of its two rows in registers. The four
+// lists of each row (its candidates) go to knn_tensor_core_rerank_kernel, which ranks them by exact
+// distance (knn_exact_sq_dist: the CPU's bits) and proves the result: a reference row a lane dropped
+// lies at or beyond that lane's worst kept approximate distance, so once that bound less the
+// approximation's error exceeds the k-th exact distance (less its own rounding) for every lane whose
+// list is full, no dropped row can be among the k nearest. Rows without that proof are flagged for
+// knn_exact_rows_kernel's exhaustive scan.
+
+constexpr int kKnnTensorCoreWarps = 2;
+constexpr int kKnnTensorCoreRows = kKnnTensorCoreWarps * 16;  // query rows per block
+constexpr int kKnnTensorCoreKeys = 32;                        // reference rows per shared-memory tile
+constexpr int kKnnTensorCoreMaxC = 128;
+constexpr int kKnnTensorCoreMaxK = 32;
+constexpr int kKnnLaneCandidates = 16;                         // per lane and query row
+constexpr int kKnnRowCandidates = 4 * kKnnLaneCandidates;      // per query row: the quad's four lists
+
+// Floats of dynamic shared memory a block uses: the query rows, a reference tile and its norms.
+VRNET_HOST_DEVICE constexpr int knn_tensor_core_shared_floats(int c) {
+  return (kKnnTensorCoreRows + kKnnTensorCoreKeys) * row_fragment_stride(c) + kKnnTensorCoreKeys;
+}
+
+// Bound on |approximate - true| squared distance of centred rows q, r as a multiple of
+// |q|^2 + max |r|^2: one TF32 rounding of each operand (2^-11 each: 2^-10 of |q| |r| <= (|q|^2 + |r|^2) / 2,
+// twice), the tensor cores' float32 accumulation over C products (taken as truncating: 2^-22 each),
+// the norms' sums and the final additions (2^-23 each), with margin.
+VRNET_HOST_DEVICE inline float knn_tensor_core_relative_error(int64_t C) {
+  return 0x1p-10f + static_cast<float>(4 * C + 32) * 0x1p-23f;
+}
+constexpr float kKnnTensorCoreAbsoluteError = 0x1p-100f;  // per channel: subnormal operands flushed to zero
+
+// grid: one block per (batch item, tile of kKnnTensorCoreRows query rows), blockIdx.x = b * row_tiles + tile;
+// kKnnTensorCoreWarps * 32 threads; knn_tensor_core_shared_floats(C) floats of dynamic shared memory.
+// query, ref: centred (B, N, C), (B, M, C); query_norm (B, N), ref_norm (B, M): their squared norms.
+// Writes each query row's four lists (ascending approximate distance; reference index M: empty slot)
+// to cand_dist, cand_idx (B, N, kKnnRowCandidates), lane t's list at t * kKnnLaneCandidates.
+__global__ void knn_tensor_core_kernel(const float* __restrict__ query, const float* __restrict__ ref,
+                                       const float* __restrict__ query_norm, const float* __restrict__ ref_norm,
+                                       int64_t N, int64_t M, int C, bool exclude_self, int64_t row_tiles,
+                                       float* __restrict__ cand_dist, int32_t* __restrict__ cand_idx) {
+  VRNET_DYNAMIC_SHARED(float, shared);
+  const int stride = row_fragment_stride(C);
+  float* q_tile = shared;
+  float* r_tile = q_tile + kKnnTensorCoreRows * stride;
+  float* r_norm = r_tile + kKnnTensorCoreKeys * stride;
+
+  const int64_t b = blockIdx.x / row_tiles;
+  const int64_t row0 = (blockIdx.x % row_tiles) * kKnnTensorCoreRows;
+  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane >> 2, t = lane & 3;
+  const int warp_row = warp * 16;
+  const int steps = (C + 7) / 8;
+
+  load_tile(query + b * N * C, row0, N, C, kKnnTensorCoreRows, stride, q_tile);
+
+  // rows g (slot 0) and g + 8 (slot 1) of the warp's 16
+  int64_t row[2];
+  float q_norm[2];
+  RegisterTopK<float, kKnnLaneCandidates> top[2];
+  VRNET_UNROLL
+  for (int s = 0; s < 2; ++s) {
+    row[s] = row0 + warp_row + g + 8 * s;
+    q_norm[s] = row[s] < N ? query_norm[b * N + row[s]] : 0.0f;
+    top[s].reset(static_cast<int32_t>(M));
+  }
+  const float largest = std::numeric_limits<float>::max();
+
+  for (int64_t j0 = 0; j0 < M; j0 += kKnnTensorCoreKeys) {
+    __syncthreads();  // every warp is done with the previous tile (and the query rows are loaded)
+    load_tile(ref + b * M * C, j0, M, C, kKnnTensorCoreKeys, stride, r_tile);
+    for (int i = threadIdx.x; i < kKnnTensorCoreKeys; i += blockDim.x)
+      r_norm[i] = j0 + i < M ? ref_norm[b * M + j0 + i] : 0.0f;
+    __syncthreads();
+
+    float dot[kKnnTensorCoreKeys / 8][4];
+    warp_products_abt<1>(dot, q_tile, stride, warp_row, r_tile, stride, steps, lane);
+    VRNET_UNROLL
+    for (int n = 0; n < kKnnTensorCoreKeys / 8; ++n)
+      VRNET_UNROLL for (int i = 0; i < 4; ++i) {
+        const int s = i >> 1, col = n * 8 + 2 * t + (i & 1);
+        const int64_t j = j0 + col;
+        if (j >= M || (exclude_self && j == row[s])) continue;
+        float d = (q_norm[s] + r_norm[col]) - 2.0f * dot[n][i];
+        d = d <= largest ? fmaxf(d, 0.0f) : std::numeric_limits<float>::infinity();  // NaN, overflow: +inf
+        if (d <= top[s].worst()) top[s].push(d, static_cast<int32_t>(j));
+      }
+  }
+
+  VRNET_UNROLL
+  for (int s = 0; s < 2; ++s) {
+    if (row[s] >= N) continue;
+    const int64_t at = (b * N + row[s]) * kKnnRowCandidates + t * kKnnLaneCandidates;
+    VRNET_UNROLL
+    for (int i = 0; i < kKnnLaneCandidates; ++i) {
+      cand_dist[at + i] = top[s].dist[i];
+      cand_idx[at + i] = top[s].idx[i];
+    }
+  }
+}
+
+// The k-th smallest approximate distance among a row's four ascending lists (+inf: fewer than k entries).
+__device__ inline float knn_kth_of_lists(const float* d_row, const int32_t* i_row, int64_t M, int64_t k) {
+  int head[4] = {0, 0, 0, 0};
+  float kth = std::numeric_limits<float>::infinity();
+  for (int64_t taken = 0; taken < k; ++taken) {
+    int best = -1;
+    float best_d = std::numeric_limits<float>::infinity();
+    VRNET_UNROLL
+    for (int list = 0; list < 4; ++list) {
+      const int at = list * kKnnLaneCandidates + head[list];
+      if (head[list] < kKnnLaneCandidates && i_row[at] < M && (best < 0 || d_row[at] < best_d)) {
+        best = list;
+        best_d = d_row[at];
+      }
+    }
+    if (best < 0) return std::numeric_limits<float>::infinity();
+    kth = best_d;
+    VRNET_UNROLL
+    for (int list = 0; list < 4; ++list) head[list] += list == best;
+  }
+  return kth;
+}
+
+// One thread per query row: its candidates ranked by exact distance (ties by lower index), the k best
+// written, and the row flagged for the exhaustive scan unless the bound above proves them the k nearest.
+// With A the k-th smallest approximate distance, error the approximation's bound and rho the exact
+// distances' own rounding, a candidate whose approximate distance d has (d - error)(1 - rho) > (A + error)(1 + rho)
+// lies beyond k others whatever the rounding: it is not computed. query, ref: the inputs as given (not
+// centred); query_norm, ref_norm_max (B): the centred squared norms and each cloud's largest.
+template <int KMAX>
+__global__ void knn_tensor_core_rerank_kernel(const float* __restrict__ query, const float* __restrict__ ref,
+                                              const float* __restrict__ cand_dist,
+                                              const int32_t* __restrict__ cand_idx,
+                                              const float* __restrict__ query_norm,
+                                              const float* __restrict__ ref_norm_max, int64_t N, int64_t M,
+                                              int64_t C, int64_t k, float* __restrict__ dist_out,
+                                              int64_t* __restrict__ idx_out, int32_t* __restrict__ exhaustive) {
+  const int64_t b = blockIdx.y;
+  const int64_t n = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (n >= N) return;
+  const int64_t row = b * N + n;
+  const float* q = query + row * C;
+  const float* d_row = cand_dist + row * kKnnRowCandidates;
+  const int32_t* i_row = cand_idx + row * kKnnRowCandidates;
+  const float largest = std::numeric_limits<float>::max();
+  const float error = knn_tensor_core_relative_error(C) * (query_norm[row] + ref_norm_max[b]) +
+                      static_cast<float>(C) * kKnnTensorCoreAbsoluteError;
+  const float rounding = static_cast<float>(C + 16) * 0x1p-23f;  // of a float32 exact distance, relative
+  const float beyond = (knn_kth_of_lists(d_row, i_row, M, k) + error) * (1.0f + rounding);  // +inf: compute all
+
+  RegisterTopK<float, KMAX> top;
+  top.reset(static_cast<int32_t>(M));
+  // A full list (no empty slot) may have dropped rows: their approximate distances are at least its last.
+  float dropped_from = std::numeric_limits<float>::infinity();
+  bool bounded = true;  // false: a full list ends in an overflowed distance, which bounds nothing
+  for (int list = 0; list < 4; ++list) {
+    const int last = (list + 1) * kKnnLaneCandidates - 1;
+    if (i_row[last] < M) {
+      bounded = bounded && d_row[last] <= largest;
+      dropped_from = fminf(dropped_from, d_row[last]);
+    }
+    for (int i = list * kKnnLaneCandidates; i <= last; ++i) {
+      const int64_t m = i_row[i];
+      if (m >= M || (d_row[i] - error) * (1.0f - rounding) > beyond) continue;
+      top.push(knn_exact_sq_dist(q, ref + (b * M + m) * C, C), static_cast<int32_t>(m));
+    }
+  }
+  knn_store(top, k, dist_out + row * k, idx_out + row * k);
+  float kth = 0.0f;
+  int32_t kth_idx = 0;
+  VRNET_UNROLL
+  for (int j = 0; j < KMAX; ++j)
+    if (j == k - 1) {
+      kth = top.dist[j];
+      kth_idx = top.idx[j];
+    }
+  // A dropped row's exact (float32) distance is at least (dropped_from - error) less its own rounding.
+  const bool proven = bounded && kth_idx < M && kth <= largest && error <= largest &&
+                      (dropped_from - error) * (1.0f - rounding) > kth;
+  exhaustive[row] = !proven;
 }
 
 // grad_query[b, n, c] = sum_j 2 g[b, n, j] (q[b, n, c] - r[b, idx, c]).

@@ -58,6 +58,16 @@ struct RegisterTopK {
     }
   }
   VRNET_HOST_DEVICE scalar_t worst() const { return dist[KMAX - 1]; }
+  // Drops the best entry; the others move up, an empty (+inf, sentinel) entry comes in last.
+  VRNET_HOST_DEVICE void pop_front(int32_t sentinel) {
+    VRNET_UNROLL
+    for (int i = 0; i + 1 < KMAX; ++i) {
+      dist[i] = dist[i + 1];
+      idx[i] = idx[i + 1];
+    }
+    dist[KMAX - 1] = std::numeric_limits<scalar_t>::infinity();
+    idx[KMAX - 1] = sentinel;
+  }
   VRNET_HOST_DEVICE void push(scalar_t d, int32_t j) {
     if (!TopK<scalar_t>::less(d, j, dist[KMAX - 1], idx[KMAX - 1])) return;
     bool placed = false;

@@ -27,9 +27,9 @@ constexpr int kFlashMaxWidth = 64;             // largest feature size c and val
 constexpr int kFlashValueTiles = kFlashMaxWidth / 8;
 
 // Row strides of the shared tiles (floats), chosen so that a fragment's 32 loads hit 32 banks:
-// Q and K are read as (g, t) -> g * stride + t (stride = 4 mod 32), V as (t, g) -> t * stride + g
-// (stride = 8 mod 32), P as Q.
-VRNET_HOST_DEVICE constexpr int flash_feature_stride(int c) { return (c + 31) / 32 * 32 + 4; }
+// Q and K are read as (g, t) (row_fragment_stride), V as (t, g) -> t * stride + g (stride = 8 mod 32),
+// P as Q.
+VRNET_HOST_DEVICE constexpr int flash_feature_stride(int c) { return row_fragment_stride(c); }
 VRNET_HOST_DEVICE constexpr int flash_value_stride(int d) { return (d + 31) / 32 * 32 + 8; }
 constexpr int kFlashProbStride = kFlashKeys + 4;
 
@@ -37,17 +37,6 @@ constexpr int kFlashProbStride = kFlashKeys + 4;
 VRNET_HOST_DEVICE constexpr int flash_shared_floats(int c, int d) {
   return (kFlashRows + kFlashKeys) * flash_feature_stride(c) + kFlashKeys * flash_value_stride(d) +
          kFlashRows * kFlashProbStride;
-}
-
-// rows x width values of a (rows_total, width) row-major matrix from row `first` into a tile of
-// `stride` floats a row, zeros past its rows and columns; all threads of the block take part.
-__device__ inline void load_tile(const float* __restrict__ source, int64_t first, int64_t rows_total, int width,
-                                 int rows, int stride, float* tile) {
-  for (int i = threadIdx.x; i < rows * stride; i += blockDim.x) {
-    const int row = i / stride, col = i % stride;
-    const int64_t at = first + row;
-    tile[i] = at < rows_total && col < width ? source[at * width + col] : 0.0f;
-  }
 }
 
 // (value, index) pairs: the larger value, on ties the lower index (the first maximum).

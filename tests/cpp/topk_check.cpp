@@ -1,6 +1,7 @@
 // Checks the kNN top-k buffers of csrc/knn/topk.h against std::sort on random candidate streams with
 // many ties: TopK (runtime k) and RegisterTopK (compile-time capacity KMAX >= k) must both return the
-// k smallest (distance, index) pairs in order. Prints one line per failure; exit status = failures.
+// k smallest (distance, index) pairs in order, and RegisterTopK::pop_front hand its entries out in that
+// order. Prints one line per failure; exit status = failures.
 #include <algorithm>
 #include <cstdio>
 #include <random>
@@ -42,6 +43,19 @@ int check(std::mt19937& rng, int k, int count, int distinct) {
       ++failures;
     }
   }
+  // pop_front hands the entries out in order, then empty (+inf, sentinel) ones.
+  for (int i = 0; i < KMAX; ++i) {
+    const bool has = i < count;
+    const float want_d = has ? expected[i].first : std::numeric_limits<float>::infinity();
+    const int want_i = has ? expected[i].second : count;
+    if (fixed.dist[0] != want_d || fixed.idx[0] != want_i) {
+      std::printf("KMAX=%d count=%d pop %d: want (%g, %d), got (%g, %d)\n", KMAX, count, i, want_d, want_i,
+                  fixed.dist[0], fixed.idx[0]);
+      ++failures;
+    }
+    fixed.pop_front(count);
+  }
+  if (fixed.dist[0] != std::numeric_limits<float>::infinity() || fixed.idx[0] != count) ++failures;
   return failures;
 }
 
