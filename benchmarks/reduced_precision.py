@@ -5,11 +5,11 @@
 On a GPU, torch runs float32 matrix products on TF32 tensor cores where
 ``torch.set_float32_matmul_precision("high")`` allows it (cuDNN's convolutions do by default), and
 in bfloat16 under autocast. Whether the model keeps its errors there is a question of numerics,
-answered here without a GPU: the model runs as it runs on a GPU (the DGCNN's feature graphs by
-``cdist`` + ``topk``, the soft matching by dense products; the compiled Procrustes solves in
-float64) while a ``TorchFunctionMode`` rounds every float32 operand of torch's matrix products
-(``mm``, ``bmm``, ``matmul``, ``linear``, ``conv1d/2d``, ``einsum``, ``baddbmm``, ``addmm``, SDPA, and
-``cdist`` as its matrix-product form) to TF32's 10 or bfloat16's 7 mantissa bits (round to nearest
+answered here without a GPU: the model runs as it runs on a GPU (the soft matching by dense products;
+the DGCNN's feature graphs by the compiled kNN, whose tensor-core candidates are ranked by exact
+distance, as on the CPU; the compiled Procrustes solves in float64) while a ``TorchFunctionMode``
+rounds every float32 operand of torch's matrix products (``mm``, ``bmm``, ``matmul``, ``linear``,
+``conv1d/2d``, ``einsum``, ``baddbmm``, ``addmm``, SDPA) to TF32's 10 or bfloat16's 7 mantissa bits (round to nearest
 even), the products accumulated in float32, as the tensor cores do; in the TF32 rows the point
 transforms take the multiply-adds a GPU allowing TF32 takes (``geometry.transforms``), but where a
 row says they are products. The Transformer runs in float32
@@ -34,7 +34,7 @@ from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.geometry import transforms
 from vrnet_ext.learning.evaluate import evaluate
-from vrnet_ext.model import dgcnn, vrnet
+from vrnet_ext.model import vrnet
 from vrnet_ext.model.pretrained import load_vrnet
 
 F = torch.nn.functional
@@ -43,13 +43,13 @@ PRODUCTS = {torch.mm, torch.bmm, torch.matmul, torch.Tensor.__matmul__, torch.Te
             F.scaled_dot_product_attention}
 # (name, mantissa bits of the rounded operands, which products, the Transformer's precision, whether points
 # are moved and motions composed by matrix products): float32; TF32 in one part only (the soft matching,
-# the DGCNN, its kNN graphs' distances, the Transformer, the correction walk, outside the networks: the
+# the DGCNN, the Transformer, the correction walk, outside the networks: the
 # points moved by estimates and the motions composed); TF32 everywhere as a GPU allowing it runs now
 # (the transforms as float32 multiply-adds, geometry.transforms) and as before (by products); the
 # Transformer under bfloat16 autocast (really run: its outputs are bfloat16 too); bfloat16 operands in
 # the matching only, everywhere
 VARIANTS = (("fp32", None, "all", "fp32", True), ("tf32 matching", 10, "matching", "fp32", False),
-            ("tf32 DGCNN", 10, "features", "fp32", False), ("tf32 DGCNN graphs", 10, "graphs", "fp32", False),
+            ("tf32 DGCNN", 10, "features", "fp32", False),
             ("tf32 Transformer", 10, "transformer", "fp32", False), ("tf32 walk", 10, "walk", "fp32", False),
             ("tf32 transforms as products", 10, "outside", "fp32", True), ("tf32", 10, "all", "fp32", False),
             ("tf32, transforms as products", 10, "all", "fp32", True),
@@ -70,22 +70,19 @@ def round_mantissa(x: torch.Tensor, bits: int) -> torch.Tensor:
 
 class RoundedProducts(TorchFunctionMode):
     """Rounds the float32 tensor operands of torch's matrix products to ``bits`` mantissa bits:
-    ``scope`` "all", "graphs" (``cdist`` only: the kNN graphs of features), "outside" (products
-    outside every scope of ``_INSIDE``) or one of ``_INSIDE`` (the products inside the soft matching,
-    the DGCNN, the Transformer or the correction walk)."""
+    ``scope`` "all", "outside" (products outside every scope of ``_INSIDE``) or one of ``_INSIDE`` (the
+    products inside the soft matching, the DGCNN, the Transformer or the correction walk)."""
 
     def __init__(self, bits: int, scope: str):
         super().__init__()
         self.bits, self.scope = bits, scope
 
     def _applies(self, func) -> bool:
-        if self.scope == "graphs":
-            return func is torch.cdist
         if self.scope == "outside" and any(_INSIDE.values()):
             return False
         if self.scope in _INSIDE and not _INSIDE[self.scope]:
             return False
-        return func in PRODUCTS or func is torch.cdist
+        return func in PRODUCTS
 
     def _round(self, value):
         if isinstance(value, torch.Tensor) and value.dtype == torch.float32:
@@ -98,22 +95,14 @@ class RoundedProducts(TorchFunctionMode):
         kwargs = kwargs or {}
         if not self._applies(func):
             return func(*args, **kwargs)
-        if func is torch.cdist and args[0].dtype == torch.float32:
-            x, y = args[0], args[1]  # the matrix-product form a GPU uses for large inputs
-            products = torch.matmul(self._round(x), self._round(y).mT)
-            squared = (x * x).sum(-1, keepdim=True) + (y * y).sum(-1).unsqueeze(-2) - 2 * products
-            return squared.clamp_min(0).sqrt()
         args, kwargs = self._round(args), {k: self._round(v) for k, v in kwargs.items()}
         return func(*args, **kwargs)
 
 
 def as_on_a_gpu():
-    """The model's GPU paths on the CPU: feature graphs by cdist + topk, soft matching by dense products."""
+    """The model's GPU paths on the CPU: soft matching by dense products (the feature graphs are the
+    compiled kNN's on either device)."""
     stack = ExitStack()
-    on_gpu = dgcnn.graph_backend
-    stack.enter_context(mock.patch.object(dgcnn, "graph_backend",
-                                          lambda device, channels, backend: on_gpu(torch.device("cuda"), channels,
-                                                                                   backend)))
     dense, match_clouds = vrnet.soft_match, vrnet.match_clouds
     stack.enter_context(mock.patch.object(vrnet, "soft_match",
                                           lambda *args, **kwargs: dense(*args, **{**kwargs, "backend": "torch"})))

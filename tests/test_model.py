@@ -1,3 +1,4 @@
+import importlib
 from dataclasses import replace
 
 import pytest
@@ -552,10 +553,22 @@ def test_second_pass_options_are_checked(field, value):
         VRNetConfig(**{field: value})
 
 
-def test_feature_graphs_on_a_gpu_use_the_reference_knn():
+@pytest.mark.parametrize("tensor_cores", [True, False])
+def test_feature_graphs_on_a_gpu(monkeypatch, tensor_cores):
+    """On a GPU, graphs of learned features take the compiled kNN where it runs on the tensor cores, else
+    the reference; graphs of the points, and every graph off the GPU, the backend asked for."""
     from vrnet_ext.model.dgcnn import graph_backend
 
-    gpu, cpu = torch.device("cuda", 0), torch.device("cpu")
-    assert graph_backend(gpu, 64, "ext") == "torch" and graph_backend(gpu, 4, "ext") == "torch"
-    assert graph_backend(gpu, 3, "ext") == "ext"  # the points: the compiled kNN is 6x ahead there
-    assert graph_backend(cpu, 64, "ext") == "ext" and graph_backend(cpu, 64, "torch") == "torch"
+    knn_module = importlib.import_module("vrnet_ext.ops.knn")  # the module (vrnet_ext.ops.knn is the op)
+    monkeypatch.setattr(knn_module, "cuda_has_tensor_cores", lambda device: tensor_cores)
+    gpu, cpu, f32 = torch.device("cuda", 0), torch.device("cpu"), torch.float32
+    on_gpu = "ext" if tensor_cores else "torch"
+    assert graph_backend(gpu, f32, 64, 20, "ext") == on_gpu
+    assert graph_backend(gpu, torch.bfloat16, 128, 20, "ext") == on_gpu
+    assert graph_backend(gpu, f32, 256, 20, "ext") == "torch" and graph_backend(gpu, f32, 64, 33, "ext") == "torch"
+    assert graph_backend(gpu, torch.float64, 64, 20, "ext") == "torch"
+    assert graph_backend(gpu, f32, 3, 20, "ext") == "ext"  # the points: the compiled kNN is 6x ahead there
+    assert graph_backend(cpu, f32, 64, 20, "ext") == "ext" and graph_backend(cpu, f32, 64, 20, "torch") == "torch"
+    assert graph_backend(gpu, f32, 64, 20, "torch") == "torch"
+
+

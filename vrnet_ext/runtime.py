@@ -49,3 +49,14 @@ def cuda_matmul_allows_tf32() -> bool:
     / ``"medium"`` (torch's default: no). A constant for ``torch.compile`` (read when a graph is traced)."""
     matmul = torch.backends.cuda.matmul
     return matmul.fp32_precision == "tf32" if hasattr(matmul, "fp32_precision") else bool(matmul.allow_tf32)
+
+
+@torch.compiler.assume_constant_result
+def _tensor_cores(device_index: int) -> bool:
+    return torch.cuda.get_device_capability(device_index)[0] >= 8
+
+
+def cuda_has_tensor_cores(device: torch.device) -> bool:
+    """Whether the CUDA ``device`` has TF32 tensor cores (compute capability 8.0 or later): what the
+    compiled kernels that run on them need. A constant for ``torch.compile``."""
+    return _tensor_cores(torch.cuda.current_device() if device.index is None else device.index)

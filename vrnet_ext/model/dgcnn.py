@@ -8,16 +8,20 @@ from torch.nn import functional as F
 from vrnet_ext.nn import EdgeConv
 from vrnet_ext.nn.pointwise import cached_folded_affine, can_fold
 from vrnet_ext.ops import knn
+from vrnet_ext.ops.knn import on_tensor_cores
 
 
-def graph_backend(device: torch.device, channels: int, backend: str) -> str:
-    """The kNN backend for a graph over features of ``channels`` values on ``device``.
+def graph_backend(device: torch.device, dtype: torch.dtype, channels: int, k: int, backend: str) -> str:
+    """The kNN backend for a graph of k neighbours over features of ``channels`` values on ``device``.
 
-    On a GPU the compiled kNN of C > 3 trails ``cdist`` + ``topk`` (H200, B = 28, N = 1024,
-    C = 64: 8.9 against 2.9 ms); its exact distances at any offset from the origin are not needed
-    for learned features, only the indices, so there the reference builds those graphs. Elsewhere,
-    and for the points themselves, ``backend``."""
-    return "torch" if device.type == "cuda" and channels > 3 else backend
+    On a GPU the compiled kNN of C > 3 searches on the tensor cores where :func:`ops.knn.on_tensor_cores`
+    says so; elsewhere on a GPU it trails ``cdist`` + ``topk`` (H200, B = 28, N = 1024, C = 64: 8.9
+    against 2.9 ms), and since a graph of learned features needs only the indices, not exact distances
+    at any offset from the origin, the reference builds it there. Elsewhere, and for the points
+    themselves, ``backend``."""
+    if device.type == "cuda" and channels > 3 and not on_tensor_cores(device, dtype, channels, k):
+        return "torch"
+    return backend
 
 
 class DGCNN(nn.Module):
@@ -47,7 +51,7 @@ class DGCNN(nn.Module):
         outputs = []
         for layer in self.layers:
             features = x.transpose(1, 2).detach()
-            graph = graph_backend(features.device, features.shape[-1], backend)
+            graph = graph_backend(features.device, features.dtype, features.shape[-1], self.k, backend)
             idx = knn(features, features, self.k, backend=graph)[1]
             x = layer(x, idx, backend=backend)
             outputs.append(x)

@@ -2,16 +2,33 @@
 
 Compiled kernel: a uniform-grid search for C = 3 and, for other C, GEMM tiles (256 queries x 1024
 refs) scanned by a per-query reservoir (candidates under the running k-th distance are buffered
-and pruned with nth_element); neither builds the N x M distance matrix. Reference:
-``torch.cdist`` + ``topk``.
+and pruned with nth_element); neither builds the N x M distance matrix. On a GPU with TF32 tensor
+cores, float32 rows of 4 to ``TENSOR_CORE_MAX_CHANNELS`` values and k up to ``TENSOR_CORE_MAX_K``
+(:func:`on_tensor_cores`) take candidates from TF32 products of the clouds centred on the reference
+mean, rank them by exact distance, and prove the ranking with a bound on the products' error (rows
+without the proof are scanned whole): the CPU's distances and indices. Reference: ``torch.cdist`` +
+``topk``.
 """
 from __future__ import annotations
 
 import torch
 
 from vrnet_ext._extension import has_extension, use_extension
-from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
-                                   float32_region, promote_low_precision, trusted_values, values_checked)
+from vrnet_ext.ops._checks import (LOW_PRECISION_DTYPES, check_finite, check_float, check_same, check_shape,
+                                   first_order_only, float32_region, promote_low_precision, trusted_values,
+                                   values_checked)
+from vrnet_ext.runtime import cuda_has_tensor_cores
+
+TENSOR_CORE_MAX_CHANNELS = 128  # the CUDA tensor-core search: rows of 4 to this many values ...
+TENSOR_CORE_MAX_K = 32  # ... and at most this many neighbours (its register lists)
+
+
+def on_tensor_cores(device: torch.device, dtype: torch.dtype, channels: int, k: int) -> bool:
+    """Whether the compiled kNN searches rows of ``channels`` values of ``dtype`` on ``device`` for k
+    neighbours on its TF32 tensor cores (float32 or promoted to it, 3 < channels <=
+    TENSOR_CORE_MAX_CHANNELS, k <= TENSOR_CORE_MAX_K, a GPU of compute capability 8.0 or later)."""
+    return (device.type == "cuda" and (dtype == torch.float32 or dtype in LOW_PRECISION_DTYPES)
+            and 3 < channels <= TENSOR_CORE_MAX_CHANNELS and k <= TENSOR_CORE_MAX_K and cuda_has_tensor_cores(device))
 
 
 def _validate(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool) -> None:

@@ -28,7 +28,7 @@ import torch
 from vrnet_ext._extension import has_extension, use_extension
 from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
                                    float32_region, promote_low_precision, values_checked)
-from vrnet_ext.runtime import cuda_matmul_allows_tf32
+from vrnet_ext.runtime import cuda_has_tensor_cores, cuda_matmul_allows_tf32
 
 
 DENSE_BLOCK_MAX_SCORES = 1 << 26  # scores per dense block off the CPU: 256 MB per float32 copy
@@ -133,19 +133,12 @@ def flash_passes() -> int:
     return 1 if cuda_matmul_allows_tf32() else 3
 
 
-@torch.compiler.assume_constant_result
-def has_tensor_cores(device_index: int) -> bool:
-    """Whether the GPU has TF32 tensor cores (compute capability 8.0 or later). A constant for
-    ``torch.compile``."""
-    return torch.cuda.get_device_capability(device_index)[0] >= 8
-
-
 def flash_fits(query: torch.Tensor, values: torch.Tensor) -> bool:
     """Whether the CUDA flash kernel takes this problem: float32 on a GPU with TF32 tensor cores, c and
     D at most FLASH_MAX_WIDTH."""
     return (query.device.type == "cuda" and query.dtype == torch.float32
             and query.shape[2] <= FLASH_MAX_WIDTH and values.shape[2] <= FLASH_MAX_WIDTH
-            and has_tensor_cores(torch.cuda.current_device() if query.device.index is None else query.device.index))
+            and cuda_has_tensor_cores(query.device))
 
 
 class _SoftMatchFlash(torch.autograd.Function):
