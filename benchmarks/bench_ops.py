@@ -77,9 +77,11 @@ def _knn_case(B, N, C, k, quick=True, skip_torch=None):
     def make():
         return (_clouds(B, N, C),)
     impls = {b: (lambda x, b=b: ops.knn(x, x, k, backend=b)) for b in ("ext", "torch")}
+    if C > 3:  # the plain composite (ties in any order; distances by the matrix-product form on a GPU)
+        impls["cdist + topk"] = lambda x: torch.cdist(x, x).topk(k, dim=-1, largest=False)
     if importlib.util.find_spec("torch_cluster"):
         impls["torch_cluster"] = _torch_cluster_knn(k)
-    skip = {"torch": skip_torch} if skip_torch else None
+    skip = {name: skip_torch for name in ("torch", "cdist + topk")} if skip_torch else None
     return Case("knn", f"C={C} B={B} N=M={N} k={k}", make, impls, quick, skip)
 
 
@@ -377,8 +379,10 @@ def cuda_cases() -> list[Case]:
         _knn_case(8, 16384, 3, 20),
         _knn_case(1, 100000, 3, 20, skip_torch="the reference needs ~80 GB (two 100k x 100k matrices)"),
         _knn_case(1, 50000, 3, 1),  # an ICP iteration's correspondences
-        _knn_case(28, 1024, 64, 20),
+        _knn_case(28, 1024, 64, 20),  # the DGCNN's feature graphs in a training step
+        _knn_case(28, 1024, 128, 20),
         _knn_case(8, 4096, 64, 20),
+        _knn_case(1, 100000, 64, 20, skip_torch="a 100k x 100k matrix needs 40 GB"),
         _graph_case("edge_features", lambda x, i, b: ops.edge_features(x, i, backend=b), 28, 64, 1024, 20),
         _graph_case("gather_reduce", lambda x, i, b: ops.gather_reduce(x, i, "max", backend=b), 28, 64, 1024, 20),
         _edge_conv_case(28, 64, 64, 1024, 20),

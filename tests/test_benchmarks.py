@@ -96,6 +96,33 @@ def test_reduced_precision_writes_a_row_per_variant(tmp_path):
     assert all(r["pairs"] == rows[0]["pairs"] > 0 and r["RMSE(R)"] >= 0 for r in rows)
 
 
+def test_knn_proof_model_fails_where_the_kernel_must_scan_whole():
+    """The model of the tensor-core kNN's proof (benchmarks/knn_proof_rate.py) on the emulator tests' cases:
+    rows whose lists are kept by rounding noise, or crowded into one lane, are not proven; random rows are."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import torch
+    from knn_proof_rate import proven_rows
+    from synthetic import lane_crowded_features, rounding_biased_features
+
+    generator = torch.Generator().manual_seed(0)
+    query, ref = rounding_biased_features(64, generator)
+    assert not proven_rows(query[0], ref[0], 20).any()
+    query, ref = lane_crowded_features(64, generator)
+    assert not proven_rows(query[0], ref[0], 20)[0]
+    rows = torch.randn(500, 64, generator=generator)
+    assert proven_rows(rows, rows, 20).float().mean() > 0.99
+
+
+@requires_modelnet
+def test_knn_proof_rate_writes_a_row_per_width(tmp_path):
+    out = tmp_path / "proof.json"
+    run([str(ROOT / "benchmarks" / "knn_proof_rate.py"), "--models", "vrnet-pv-upc-rcp", "--pairs", "1",
+         "--data-dir", str(MODELNET_DIR), "--json", str(out)], tmp_path)
+    rows = json.loads(out.read_text())["rows"]
+    assert {r["C"] for r in rows} == {32, 64, 128}
+    assert all(0 <= r["proven"] <= r["rows"] and r["rows"] > 0 for r in rows)
+
+
 LIDAR = ROOT.parent / "shared" / "data" / "scenes" / "lidar_pair"
 REAL_PAIRS = ROOT.parent / "shared" / "data" / "scenes" / "real_pairs"
 
