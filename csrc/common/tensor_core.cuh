@@ -108,13 +108,15 @@ __device__ inline FragmentB<kPasses> load_b(const float* tile, int k_step, int c
 VRNET_HOST_DEVICE constexpr int row_fragment_stride(int width) { return (width + 31) / 32 * 32 + 4; }
 
 // rows x width values of a (rows_total, width) row-major matrix from row `first` into a tile of
-// `stride` floats a row, zeros past its rows and columns; all threads of the block take part.
+// `stride` floats a row, zeros past its rows and in its columns up to the next multiple of 8 (what the
+// products read); all threads of the block take part, a warp per row (coalesced, no division).
 __device__ inline void load_tile(const float* __restrict__ source, int64_t first, int64_t rows_total, int width,
                                  int rows, int stride, float* tile) {
-  for (int i = threadIdx.x; i < rows * stride; i += blockDim.x) {
-    const int row = i / stride, col = i % stride;
+  const int warps = blockDim.x / 32, lane = threadIdx.x % 32, read = (width + 7) / 8 * 8;
+  for (int row = threadIdx.x / 32; row < rows; row += warps) {
     const int64_t at = first + row;
-    tile[i] = at < rows_total && col < width ? source[at * width + col] : 0.0f;
+    for (int col = lane; col < read; col += 32)
+      tile[row * stride + col] = at < rows_total && col < width ? source[at * width + col] : 0.0f;
   }
 }
 
