@@ -369,10 +369,7 @@ __global__ void knn_tensor_core_kernel(const float* __restrict__ query, const fl
   float* r_tile = q_tile + kKnnTensorCoreRows * stride;
   float* r_norm = r_tile + kKnnTensorCoreKeys * stride;
 
-  const int64_t b = blockIdx.x / row_tiles;
-  const int64_t row0 = (blockIdx.x % row_tiles) * kKnnTensorCoreRows;
-  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane >> 2, t = lane & 3;
-  const int warp_row = warp * 16;
+  const auto [b, row0, warp, lane, g, t, warp_row] = RowTileThread(row_tiles, kKnnTensorCoreRows);
   const int steps = (C + 7) / 8;
 
   load_tile(query + b * N * C, row0, N, C, kKnnTensorCoreRows, stride, q_tile);

@@ -80,10 +80,7 @@ __global__ void soft_match_flash_kernel(const float* __restrict__ query, const f
   float* v_tile = k_tile + kFlashKeys * feature_stride;
   float* p_tile = v_tile + kFlashKeys * value_stride;
 
-  const int64_t b = blockIdx.x / row_tiles;
-  const int64_t row0 = (blockIdx.x % row_tiles) * kFlashRows;
-  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane >> 2, t = lane & 3;
-  const int warp_row = warp * 16;
+  const auto [b, row0, warp, lane, g, t, warp_row] = RowTileThread(row_tiles, kFlashRows);
   const int feature_steps = (C + 7) / 8, value_tiles = (D + 7) / 8;
 
   load_tile(query + b * N * C, row0, N, C, kFlashRows, feature_stride, q_tile);
@@ -204,10 +201,7 @@ __global__ void soft_match_flash_grad_kv_kernel(const float* __restrict__ query,
   float* row_lse = p_tiles + 2 * kFlashBackWarps * 16 * kFlashProbStride;
   float* row_delta = row_lse + kFlashBackTile;
 
-  const int64_t b = blockIdx.x / key_tiles;
-  const int64_t j0 = (blockIdx.x % key_tiles) * kFlashBackRows;
-  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane >> 2, t = lane & 3;
-  const int warp_row = warp * 16;
+  const auto [b, j0, warp, lane, g, t, warp_row] = RowTileThread(key_tiles, kFlashBackRows);
   float* pt_tile = p_tiles + warp * 2 * 16 * kFlashProbStride;
   float* dst_tile = pt_tile + 16 * kFlashProbStride;
   const int feature_steps = (C + 7) / 8, value_steps = (D + 7) / 8;
@@ -267,10 +261,7 @@ __global__ void soft_match_flash_grad_query_kernel(const float* __restrict__ que
   float* v_tile = k_tile + kFlashBackTile * fs;    // their values
   float* ds_tiles = v_tile + kFlashBackTile * vs;  // per warp: dS (16 queries x 32 keys)
 
-  const int64_t b = blockIdx.x / row_tiles;
-  const int64_t row0 = (blockIdx.x % row_tiles) * kFlashBackRows;
-  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane >> 2, t = lane & 3;
-  const int warp_row = warp * 16;
+  const auto [b, row0, warp, lane, g, t, warp_row] = RowTileThread(row_tiles, kFlashBackRows);
   float* ds_tile = ds_tiles + warp * 2 * 16 * kFlashProbStride;
   const int feature_steps = (C + 7) / 8, value_steps = (D + 7) / 8;
 
