@@ -13,6 +13,7 @@
 #include <ATen/ops/amin.h>
 #include <ATen/ops/bmm.h>
 #include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
 #include <ATen/ops/where.h>
 #include <ATen/ops/sub.h>
 #include <ATen/ops/zeros_like.h>
@@ -148,11 +149,14 @@ void knn_tensor_cores(const at::Tensor& query, const at::Tensor& ref, int64_t k,
   const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2);
   const int64_t row_tiles = (N + kKnnTensorCoreRows - 1) / kKnnTensorCoreRows;
   TORCH_CHECK_VALUE(B * row_tiles < (int64_t{1} << 31), "knn: too many query rows (B * N = ", B * N, ")");
-  const at::Tensor shift = ref.to(at::kDouble).mean(1, /*keepdim=*/true);
-  const at::Tensor query_c = at::sub(query.to(at::kDouble), shift).to(at::kFloat).contiguous();
-  const at::Tensor ref_c = at::sub(ref.to(at::kDouble), shift).to(at::kFloat).contiguous();
-  const at::Tensor query_norm = query_c.square().sum(-1).contiguous();
-  const at::Tensor ref_norm = ref_c.square().sum(-1).contiguous();
+  at::Tensor mean = at::empty({B, C}, query.options().dtype(at::kDouble));
+  launch<knn_mean_kernel>(LaunchConfig{dim3(static_cast<unsigned int>(B), static_cast<unsigned int>((C + 31) / 32)),
+                                       dim3(32, kKnnMeanSlices), 0},
+                          ref, M, C, mean);
+  at::Tensor query_c = at::empty_like(query), ref_c = at::empty_like(ref);
+  at::Tensor query_norm = at::empty({B, N}, query.options()), ref_norm = at::empty({B, M}, query.options());
+  launch<knn_centre_kernel>(per_query(N, B), query, mean, N, C, query_c, query_norm);
+  launch<knn_centre_kernel>(per_query(M, B), ref, mean, M, C, ref_c, ref_norm);
   const at::Tensor ref_norm_max = at::amax(ref_norm, 1).contiguous();
   at::Tensor cand_dist = at::empty({B, N, kKnnRowCandidates}, query.options());
   at::Tensor cand_idx = at::empty({B, N, kKnnRowCandidates}, query.options().dtype(at::kInt));
