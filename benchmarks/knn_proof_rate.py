@@ -3,14 +3,16 @@
     python benchmarks/knn_proof_rate.py [--models vrnet-pv-upc-rcp ...] [--pairs 8] [--json F] [--markdown F]
 
 On a GPU with TF32 tensor cores, ``ops.knn`` of float32 feature rows keeps candidates by approximate
-(TF32) distances, four lists of 16 a row, ranks them by exact distance, and proves the ranking with a
-bound on the products' error; a row without the proof is scanned exhaustively, which costs a full
-row of exact distances (docs/gpu.md). How many rows need that scan depends on the data, and this script
-measures it without a GPU by modelling the kernel's arithmetic: the centred rows' operands rounded to
-TF32 as ``cvt.rna`` does, the products accumulated in float64 (the proof's bound covers any float32
-accumulation), the lists and the proof's test as the kernel writes them. Data: the DGCNN feature
-graphs (k = 20, the point itself included) of shipped models on ModelNet40 validation pairs, standard
-normal rows of the same sizes, and of the paper preset's widths.
+distances from tensor-core products, four lists of 16 a row, ranks them by exact distance, and proves
+the ranking with a bound on the products' error; a row without the proof is scanned exhaustively,
+which costs a full row of exact distances (docs/gpu.md). How many rows need that scan depends on the
+data, and this script measures it without a GPU by modelling the kernel's arithmetic: each centred
+operand split into two TF32 parts as ``cvt.rna`` rounds them, the three products of the parts (all but
+small x small) accumulated in float64 (the proof's bound covers any float32 accumulation), the lists
+and the proof's test as the kernel writes them; and, for comparison, with one TF32 product per pair.
+Data: the DGCNN feature graphs (k = 20, the point itself included) of shipped models on ModelNet40
+validation pairs, standard normal rows of the same sizes and of the paper preset's widths, and the
+FPFH descriptors of two kitchen fragments (k = 1: the registration pipeline's matching).
 """
 from __future__ import annotations
 
@@ -21,13 +23,19 @@ from pathlib import Path
 import torch
 
 from outputs import cpu_description, write_outputs  # benchmarks/, the script's folder
+from vrnet_ext import ops
 from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter
 from vrnet_ext.data.modelnet import ModelNet40Pairs
+from vrnet_ext.geometry.features import describe
+from vrnet_ext.geometry.io import read_points
 from vrnet_ext.model import dgcnn
 from vrnet_ext.model.pretrained import load_pretrained
 
 LANES, LANE_CANDIDATES = 4, 16  # csrc/knn/knn_kernels.cuh: a row's four lanes, the candidates each keeps
+PASSES = (3, 1)  # the kernel's three-pass products, and one TF32 product for comparison
 PAPER_PRESET_WIDTHS = (64, 128)  # the paper preset's feature graphs (dgcnn_channels 64, 64, 128, 256)
+DEFAULT_SCENES = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes"
+KITCHEN_PAIR = ("cloud_bin_0.ply", "cloud_bin_4.ply")
 
 
 def to_tf32(x: torch.Tensor) -> torch.Tensor:
@@ -36,13 +44,30 @@ def to_tf32(x: torch.Tensor) -> torch.Tensor:
     return ((bits + 0x1000) & ~0x1FFF).view(torch.float32)
 
 
-def proven_rows(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
-    """(N,) bool: which rows of ``query`` (N, C) the tensor-core kNN proves against ``ref`` (M, C)."""
+def tf32_products(a: torch.Tensor, b: torch.Tensor, passes: int) -> torch.Tensor:
+    """a (N, C) bᵀ (C, M) as the tensor cores compute it in ``passes`` (1: TF32 operands; 3: each operand
+    split into TF32 parts hi + lo, the products hi hi + hi lo + lo hi), accumulated in float64."""
+    a_hi, b_hi = to_tf32(a), to_tf32(b)
+    products = a_hi.double() @ b_hi.double().T
+    if passes == 3:
+        a_lo, b_lo = to_tf32(a - a_hi), to_tf32(b - b_hi)
+        products += a_hi.double() @ b_lo.double().T + a_lo.double() @ b_hi.double().T
+    return products.float()
+
+
+def relative_error(channels: int, passes: int) -> float:
+    """The kernel's bound on an approximate distance's error, per |q|^2 + max |r|^2 (knn_kernels.cuh)."""
+    return (8 * channels + 64) * 2**-23 if passes == 3 else 2**-10 + (4 * channels + 32) * 2**-23
+
+
+def proven_rows(query: torch.Tensor, ref: torch.Tensor, k: int, passes: int = 3) -> torch.Tensor:
+    """(N,) bool: which rows of ``query`` (N, C) the tensor-core kNN proves against ``ref`` (M, C) with
+    ``passes`` products per operand pair."""
     channels = query.shape[1]
     mean = ref.double().mean(0, keepdim=True)
     query_c, ref_c = (query.double() - mean).float(), (ref.double() - mean).float()
     query_norm, ref_norm = query_c.square().sum(-1), ref_c.square().sum(-1)
-    dots = (to_tf32(query_c).double() @ to_tf32(ref_c).double().T).float()
+    dots = tf32_products(query_c, ref_c, passes)
     approx = (query_norm[:, None] + ref_norm[None] - 2 * dots).clamp_min(0)
     exact = torch.cdist(query.double(), ref.double()).square().float()
     lane = (torch.arange(ref.shape[0]) % 8) // 2
@@ -54,7 +79,7 @@ def proven_rows(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
         if len(columns) > LANE_CANDIDATES:
             dropped_from = torch.minimum(dropped_from, approx[:, columns].gather(1, order[:, -1:]).squeeze(1))
     kth = exact.gather(1, torch.cat(candidates, dim=1)).sort(dim=1).values[:, k - 1]
-    error = (2**-10 + (4 * channels + 32) * 2**-23) * (query_norm + ref_norm.max()) + channels * 2**-100
+    error = relative_error(channels, passes) * (query_norm + ref_norm.max()) + channels * 2**-100
     rounding = (channels + 16) * 2**-23
     return (dropped_from - error) * (1 - rounding) > kth
 
@@ -81,38 +106,70 @@ def feature_graphs(model_name: str, data_dir: Path | None, pairs: int) -> list[t
     return seen
 
 
+def fpfh_descriptors(scenes: Path, voxel: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The FPFH descriptors (float32, 33 values) of two 3DMatch kitchen fragments at ``voxel``: what the
+    registration pipeline matches (each point's nearest descriptor, k = 1)."""
+    views = []
+    for name in KITCHEN_PAIR:
+        points = torch.as_tensor(read_points(scenes / "3dmatch_redkitchen" / name), dtype=torch.float64)
+        views.append(describe(ops.voxel_downsample(points, voxel).numpy(), voxel).descriptors.float())
+    return views[0], views[1]
+
+
+def measured(source: str, width: int, k: int, proofs_by_passes: dict[int, list[torch.Tensor]]) -> list[dict]:
+    rows = []
+    for passes, results in proofs_by_passes.items():
+        proven = torch.cat(results)
+        rows.append({"source": source, "C": width, "k": k, "passes": passes, "graphs": len(results),
+                     "rows": len(proven), "proven": int(proven.sum()), "proven_share": float(proven.float().mean())})
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--models", nargs="+", default=["vrnet-pv-upc-rcp", "vrnet-pv-nd-rcp"],
                         help="shipped model names or checkpoints")
     parser.add_argument("--data-dir", type=Path, default=None, help=DATA_DIR_HELP)
+    parser.add_argument("--scenes", type=Path, default=DEFAULT_SCENES, help="the shared scenes folder (FPFH rows)")
+    parser.add_argument("--fpfh-voxels", type=float, nargs="*", default=[0.05, 0.025],
+                        help="voxel sizes (m) of the FPFH rows (none: no FPFH rows)")
     parser.add_argument("--pairs", type=int, default=8, help="validation pairs per model")
-    parser.add_argument("--k", type=int, default=20, help="neighbours per row (the DGCNN's)")
+    parser.add_argument("--k", type=int, default=20, help="neighbours per row of the feature graphs (the DGCNN's)")
     parser.add_argument("--json", default=None, help="write the rows here")
     parser.add_argument("--markdown", default=None, help="write the table here")
     args = parser.parse_args(argv)
     rows = []
     generator = torch.Generator().manual_seed(0)
+
+    def both(query, ref, k):
+        return {passes: proven_rows(query, ref, k, passes) for passes in PASSES}
+
+    def collect(source, width, k, cases):
+        proofs = {passes: [] for passes in PASSES}
+        for query, ref in cases:
+            for passes, proven in both(query, ref, k).items():
+                proofs[passes].append(proven)
+        rows.extend(measured(source, width, k, proofs))
+
     for model_name in args.models:
         by_width: dict[int, list[torch.Tensor]] = {}
         for features in feature_graphs(model_name, args.data_dir, args.pairs):
-            by_width.setdefault(features.shape[1], []).append(proven_rows(features, features, args.k))
-        for width, proofs in sorted(by_width.items()):
-            shape = (len(proofs[0]), width)
-            normal = [proven_rows(x, x, args.k) for x in torch.randn(len(proofs), *shape, generator=generator)]
-            for source, results in ((f"{model_name} feature graphs", proofs), ("standard normal rows", normal)):
-                proven = torch.cat(results)
-                rows.append({"source": source, "C": width, "graphs": len(results), "rows": len(proven),
-                             "proven": int(proven.sum()), "proven_share": float(proven.float().mean())})
+            by_width.setdefault(features.shape[1], []).append(features)
+        for width, graphs in sorted(by_width.items()):
+            collect(f"{model_name} feature graphs", width, args.k, [(x, x) for x in graphs])
+            normal = torch.randn(len(graphs), *graphs[0].shape, generator=generator)
+            collect("standard normal rows", width, args.k, [(x, x) for x in normal])
     for width in PAPER_PRESET_WIDTHS:  # the paper preset's graphs in a training step: 1,024 points
-        proven = torch.cat([proven_rows(x, x, args.k) for x in torch.randn(4, 1024, width, generator=generator)])
-        rows.append({"source": "standard normal rows, 1,024 a graph", "C": width, "graphs": 4, "rows": len(proven),
-                     "proven": int(proven.sum()), "proven_share": float(proven.float().mean())})
-    note = (f"The tensor-core kNN's proof modelled on the CPU ({cpu_description()}), k = {args.k}, "
+        collect("standard normal rows, 1,024 a graph", width, args.k,
+                [(x, x) for x in torch.randn(4, 1024, width, generator=generator)])
+    for voxel in args.fpfh_voxels:
+        source, target = fpfh_descriptors(args.scenes, voxel)
+        collect(f"FPFH, kitchen fragments, {100 * voxel:g} cm voxels", source.shape[1], 1, [(source, target)])
+    note = (f"The tensor-core kNN's proof modelled on the CPU ({cpu_description()}), "
             f"{args.pairs} ModelNet40 validation pairs per model, {time.strftime('%Y-%m-%d')}.")
-    lines = [note, "", "| data | C | graphs | rows | proven |", "|---|---:|---:|---:|---:|"]
-    lines += [f"| {r['source']} | {r['C']} | {r['graphs']} | {r['rows']} | {100 * r['proven_share']:.2f} % |"
-              for r in rows]
+    lines = [note, "", "| data | C | k | passes | graphs | rows | proven |", "|---|---:|---:|---:|---:|---:|---:|"]
+    lines += [f"| {r['source']} | {r['C']} | {r['k']} | {r['passes']} | {r['graphs']} | {r['rows']} | "
+              f"{100 * r['proven_share']:.2f} % |" for r in rows]
     write_outputs("\n".join(lines), {"note": note, "rows": rows}, args.markdown, args.json)
     return 0
 

@@ -94,9 +94,10 @@ def lane_crowded_features(C: int, generator: torch.Generator) -> tuple[torch.Ten
 def rounding_biased_features(C: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """One query row and 300 reference rows at squared distances 1 + 1e-6 u from it (u uniform in [0, 1)),
     with their mirror images far away (the reference mean is then exactly 0, so the rows are centred as
-    given). TF32 rounds the query's first value down by 2^-11 of it and each row's by up to 2^-13: every
-    approximate distance comes out about 1e-3 too large, give or take 2e-4 from row to row, so the lanes
-    keep rows by rounding noise alone, and only the bound's error term stops their ranking being proven."""
+    given). TF32 rounds the query's first value down by 2^-11 of it and each row's by up to 2^-13: with one
+    TF32 product per pair every approximate distance would come out about 1e-3 too large, give or take 2e-4
+    from row to row, and lanes would keep rows by rounding noise; split products narrow that to ~1e-7, still
+    far wider than the rows' differences, so no row's ranking may be proven."""
     first = 1 + 0.49 * 2**-10
     exact_in_tf32 = torch.randint(-4, 5, (300,), generator=generator) * 2**-10
     below_tf32 = (torch.rand(300, generator=generator, dtype=torch.float64) * 2 - 1) * 2**-13

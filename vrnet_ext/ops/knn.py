@@ -4,9 +4,9 @@ Compiled kernel: a uniform-grid search for C = 3 and, for other C, GEMM tiles (2
 refs) scanned by a per-query reservoir (candidates under the running k-th distance are buffered
 and pruned with nth_element); neither builds the N x M distance matrix. On a GPU with TF32 tensor
 cores, float32 rows of 4 to ``TENSOR_CORE_MAX_CHANNELS`` values and k up to ``TENSOR_CORE_MAX_K``
-(:func:`on_tensor_cores`) take candidates from TF32 products of the clouds centred on the reference
-mean, rank them by exact distance, and prove the ranking with a bound on the products' error (rows
-without the proof are scanned whole): the CPU's distances and indices. Reference: ``torch.cdist`` +
+(:func:`on_tensor_cores`) take candidates from tensor-core products (three TF32 passes) of the clouds
+centred on the reference mean, rank them by exact distance, and prove the ranking with a bound on the
+products' error (rows without the proof are scanned whole): the CPU's distances and indices. Reference: ``torch.cdist`` +
 ``topk``.
 """
 from __future__ import annotations
