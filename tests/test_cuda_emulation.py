@@ -190,8 +190,8 @@ def test_knn_tensor_core_ranking_proven_or_rescanned(C):
     """float32 feature rows take the tensor-core path: each lane keeps candidates by approximate (TF32)
     distances, an exact ranking follows, and a row whose ranking the bound cannot prove is scanned whole.
     Cases that must fail the proof: a lane holding more of the nearest than it keeps, near-ties finer than
-    TF32's rounding, exact ties on a lattice; and the proof's own cases: a cloud far from the origin, self-excluded
-    batches over several tiles of rows and references."""
+    the products' error, exact ties on a lattice, norms that overflow; and the proof's own cases: a cloud far from
+    the origin, self-excluded batches over several tiles of rows and references."""
     generator = torch.Generator().manual_seed(C)
     query, ref = lane_crowded_features(C, generator)
     for k in (20, 32):
@@ -205,6 +205,10 @@ def test_knn_tensor_core_ranking_proven_or_rescanned(C):
     assert_same("knn", pair, pair, 20, True, exact=True)
     assert_same("knn", non_contiguous(torch.randn(2, 70, C, generator=generator)),
                 torch.randn(2, 129, C, generator=generator), 1, False, exact=True)
+    overflowing = torch.randn(1, 90, C, generator=generator)
+    overflowing[0, 7] *= 1e25  # its squared norm, and its distances, overflow float32
+    assert_same("knn", overflowing, overflowing, 12, False, exact=True)
+    assert_same("knn", overflowing * 1e20, overflowing[:, :40], 5, False, exact=True)
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
