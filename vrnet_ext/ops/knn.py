@@ -19,8 +19,10 @@ from vrnet_ext.ops._checks import (LOW_PRECISION_DTYPES, check_finite, check_flo
                                    values_checked)
 from vrnet_ext.runtime import cuda_has_tensor_cores
 
-TENSOR_CORE_MAX_CHANNELS = 128  # the CUDA tensor-core search: rows of 4 to this many values ...
-TENSOR_CORE_MAX_K = 32  # ... and at most this many neighbours (its register lists)
+# The CUDA tensor-core search (csrc/knn/knn_kernels.cuh: kKnnTensorCoreMaxC, kKnnTensorCoreMaxK; its shared
+# tiles and register lists): rows of 4 to TENSOR_CORE_MAX_CHANNELS values, at most TENSOR_CORE_MAX_K neighbours.
+TENSOR_CORE_MAX_CHANNELS = 128
+TENSOR_CORE_MAX_K = 32
 
 
 def on_tensor_cores(device: torch.device, dtype: torch.dtype, channels: int, k: int) -> bool:
