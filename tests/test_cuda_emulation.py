@@ -449,12 +449,13 @@ def test_voxel_downsample_bad_input_same_errors():
 FLASH_EPS = {3: 2.0 ** -22, 1: 2.0 ** -12}  # score error per unit of scale * max|q| * max|k| (3 passes, TF32)
 
 
-def flash_errors(query, key, values, scale, passes):
+def flash_errors(query, key, values, scale, passes, target_blocks=0):
     """The emulated flash kernel's largest errors against float64, in units of what its tensor-core
     rounding allows: out, lse (both should be at most 1) and the argmax (equal wherever the float64
-    peak leads the runner-up by more than the score tolerance)."""
+    peak leads the runner-up by more than the score tolerance). ``target_blocks``: as the op's (0: the
+    keys in one part)."""
     CASES["soft_match_flash"] += 1
-    out, lse, argmax = emu_op("soft_match_flash")(query, key, values, scale, passes)
+    out, lse, argmax = emu_op("soft_match_flash")(query, key, values, scale, passes, target_blocks)
     ref = soft_match_reference(query.double(), key.double(), values.double(), scale)
     span = abs(scale) * query.double().norm(dim=-1).max() * key.double().norm(dim=-1).max()
     score_tol = FLASH_EPS[passes] * (1 + span) + 1e-6 * ref.lse.abs().max()
@@ -479,6 +480,21 @@ def test_soft_match_flash(passes, B, N, M, C, D):
 
 
 @pytest.mark.parametrize("passes", [3, 1])
+@pytest.mark.parametrize("B,N,M,target_blocks", [(1, 70, 600, 64), (2, 5, 2100, 64), (1, 5, 4200, 64),
+                                                 (3, 10, 700, 3)])
+def test_soft_match_flash_keys_in_parts(passes, B, N, M, target_blocks):
+    """Few query rows: the keys split into parts of at least 256 (2, 8 and 15 parts, the last shorter than
+    the others; none where the rows already fill target_blocks), then combined."""
+    query, key, values = torch.randn(B, N, 24), torch.randn(B, M, 24), torch.randn(B, M, 35)
+    out_err, lse_err, argmax_ok = flash_errors(query, key, values, 24 ** -0.5, passes, target_blocks)
+    assert out_err <= 1 and lse_err <= 1 and argmax_ok
+    unit = torch.nn.functional.normalize(key, dim=-1)
+    unit[:, M - 1] = unit[:, 5]  # the peak in the first and the last part: the first wins
+    _, _, argmax = emu_op("soft_match_flash")(unit[:, [5, 5]] * 4, unit, values, 1.0, passes, target_blocks)
+    assert argmax.eq(5).all()
+
+
+@pytest.mark.parametrize("passes", [3, 1])
 def test_soft_match_flash_sharp_far_and_ties(passes):
     """Features far from the origin with a sharp scale (the row peak dominates; the rescaling of the
     accumulators when the maximum grows tile after tile), keys repeated (the first peak wins),
@@ -490,7 +506,7 @@ def test_soft_match_flash_sharp_far_and_ties(passes):
     out_err, lse_err, argmax_ok = flash_errors(query, key, values, 0.05, passes)
     assert out_err <= 1 and lse_err <= 1 and argmax_ok
     unit = torch.nn.functional.normalize(key, dim=-1)
-    _, _, argmax = emu_op("soft_match_flash")(unit[:, [3, 70, 3]] * 5, unit, values, 1.0, passes)
+    _, _, argmax = emu_op("soft_match_flash")(unit[:, [3, 70, 3]] * 5, unit, values, 1.0, passes, 0)
     assert argmax.eq(3).all()  # the peak, reached at 3, 6, 10 and 70: the first
     out_err, lse_err, argmax_ok = flash_errors(non_contiguous(query), non_contiguous(key), values, -0.2, passes)
     assert out_err <= 1 and lse_err <= 1 and argmax_ok
@@ -501,7 +517,7 @@ def flash_gradient_errors(query, key, values, scale, passes):
     units of what its tensor-core rounding allows (each should be at most 1)."""
     CASES["soft_match_flash_backward"] += 1
     grad_out, grad_lse = torch.randn(*query.shape[:2], values.shape[2]), torch.randn(*query.shape[:2])
-    out, lse, _ = emu_op("soft_match_flash")(query, key, values, scale, passes)
+    out, lse, _ = emu_op("soft_match_flash")(query, key, values, scale, passes, 0)
     got = emu_op("soft_match_flash_backward")(grad_out, grad_lse, query, key, values, out, lse, scale, passes)
     leaves = [t.double().requires_grad_() for t in (query, key, values)]
     ref = soft_match_reference(*leaves, scale)
@@ -546,7 +562,7 @@ def test_soft_match_flash_autograd(with_lse, create_graph):
         inputs = [torch.randn(2, 50, 12), torch.randn(2, 70, 12), torch.randn(2, 70, 5)]
         weights = torch.randn(2, 50, 5), torch.randn(2, 50)
         results = []
-        for run in (lambda q, k, v: soft_match_module._SoftMatchFlash.apply(q, k, v, 0.3, 3),
+        for run in (lambda q, k, v: soft_match_module._SoftMatchFlash.apply(q, k, v, 0.3, 3, 0),
                     lambda q, k, v: soft_match_reference(q, k, v, 0.3)):
             leaves = [t.clone().requires_grad_() for t in inputs]
             out, lse, _ = run(*leaves)
@@ -563,7 +579,7 @@ def test_soft_match_flash_autograd(with_lse, create_graph):
 
 def test_soft_match_flash_backward_bad_input():
     query, key, values = torch.randn(1, 5, 8), torch.randn(1, 6, 8), torch.randn(1, 6, 3)
-    out, lse, _ = emu_op("soft_match_flash")(query, key, values, 1.0, 3)
+    out, lse, _ = emu_op("soft_match_flash")(query, key, values, 1.0, 3, 0)
     grad_out, grad_lse = torch.randn(1, 5, 3), torch.randn(1, 5)
     for args, message in [((grad_out[:, :4], grad_lse, query, key, values, out, lse, 1.0, 3), "grad_out"),
                           ((grad_out, grad_lse, query, key, values, out, lse[:, :4], 1.0, 3), "lse"),
@@ -574,12 +590,12 @@ def test_soft_match_flash_backward_bad_input():
 
 def test_soft_match_flash_bad_input():
     good = torch.randn(1, 5, 8), torch.randn(1, 6, 8), torch.randn(1, 6, 3)
-    for args, message in [((*good, 1.0, 2), "passes"), ((torch.randn(1, 5, 65), torch.randn(1, 6, 65), good[2], 1.0, 3),
-                                                        "at most 64"),
-                          ((good[0], good[1], torch.randn(1, 6, 65), 1.0, 3), "at most 64"),
-                          ((*(t.double() for t in good), 1.0, 3), "float32"),
-                          ((good[0], good[1], good[2][:, :5], 1.0, 3), "values"),
-                          ((*good, math.inf, 3), "scale")]:
+    for args, message in [((*good, 1.0, 2, 0), "passes"),
+                          ((torch.randn(1, 5, 65), torch.randn(1, 6, 65), good[2], 1.0, 3, 0), "at most 64"),
+                          ((good[0], good[1], torch.randn(1, 6, 65), 1.0, 3, 0), "at most 64"),
+                          ((*(t.double() for t in good), 1.0, 3, 0), "float32"),
+                          ((good[0], good[1], good[2][:, :5], 1.0, 3, 0), "values"),
+                          ((*good, math.inf, 3, 0), "scale")]:
         with pytest.raises((ValueError, TypeError), match=message):
             emu_op("soft_match_flash")(*args)
 

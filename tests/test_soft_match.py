@@ -66,8 +66,9 @@ def test_gradcheck_and_opcheck(device):
         q, k, v = (t.detach().float() for t in (query, key, values))
         if not flash_fits(q, v):
             return
-        out, lse, _ = torch.ops.vrnet_ext.soft_match_flash(q, k, v, 0.5, 3)
-        opcheck(torch.ops.vrnet_ext.soft_match_flash.default, (q, k, v, 0.5, 3))
+        out, lse, _ = torch.ops.vrnet_ext.soft_match_flash(q, k, v, 0.5, 3, 0)
+        opcheck(torch.ops.vrnet_ext.soft_match_flash.default, (q, k, v, 0.5, 3, 0))
+        opcheck(torch.ops.vrnet_ext.soft_match_flash.default, (q, k, v, 0.5, 1, 1 << 20))  # keys split
         opcheck(torch.ops.vrnet_ext.soft_match_flash_backward.default,
                 (torch.randn_like(out), torch.randn_like(lse), q, k, v, out, lse, 0.5, 1))
         return

@@ -60,3 +60,14 @@ def cuda_has_tensor_cores(device: torch.device) -> bool:
     """Whether the CUDA ``device`` has TF32 tensor cores (compute capability 8.0 or later): what the
     compiled kernels that run on them need. A constant for ``torch.compile``."""
     return _tensor_cores(torch.cuda.current_device() if device.index is None else device.index)
+
+
+@torch.compiler.assume_constant_result
+def _multiprocessors(device_index: int) -> int:
+    return torch.cuda.get_device_properties(device_index).multi_processor_count
+
+
+def cuda_multiprocessors(device: torch.device) -> int:
+    """The streaming multiprocessors of the CUDA ``device`` (132 on an H100 / H200). A constant for
+    ``torch.compile``."""
+    return _multiprocessors(torch.cuda.current_device() if device.index is None else device.index)

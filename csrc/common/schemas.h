@@ -21,7 +21,7 @@
   X("pairwise_distance_loss_backward(Tensor grad_loss, Tensor x, Tensor y, Tensor loss) -> (Tensor, Tensor)") \
   X("soft_match(Tensor query, Tensor key, Tensor values, float scale) -> (Tensor, Tensor, Tensor)") \
   X("soft_match_backward(Tensor grad_out, Tensor grad_lse, Tensor query, Tensor key, Tensor values, Tensor out, Tensor lse, float scale) -> (Tensor, Tensor, Tensor)") \
-  X("soft_match_flash(Tensor query, Tensor key, Tensor values, float scale, int passes) -> (Tensor, Tensor, Tensor)") \
+  X("soft_match_flash(Tensor query, Tensor key, Tensor values, float scale, int passes, int target_blocks) -> (Tensor, Tensor, Tensor)") \
   X("soft_match_flash_backward(Tensor grad_out, Tensor grad_lse, Tensor query, Tensor key, Tensor values, Tensor out, Tensor lse, float scale, int passes) -> (Tensor, Tensor, Tensor)") \
   X("normals(Tensor points, Tensor idx, float[] viewpoint) -> Tensor") \
   X("fpfh(Tensor points, Tensor normals, Tensor idx, Tensor dist2, float radius) -> Tensor") \

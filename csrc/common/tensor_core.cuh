@@ -107,16 +107,17 @@ __device__ inline FragmentB<kPasses> load_b(const float* tile, int k_step, int c
 // g * stride + t (A, and B where B's columns are the tile's rows): 4 mod 32, so the 32 loads hit 32 banks.
 VRNET_HOST_DEVICE constexpr int row_fragment_stride(int width) { return (width + 31) / 32 * 32 + 4; }
 
-// Where a thread of a block over rows of one batch item works: blockIdx.x = b * tiles + tile, the block's
-// `rows` rows from `first` (16 a warp, the warp's from first + warp_row); lane = 4 g + t as in the fragments.
-// Taken apart where used: const auto [b, first, warp, lane, g, t, warp_row] = RowTileThread(tiles, rows);
+// Where a thread of a block over rows of one batch item works: block = b * tiles + tile (blockIdx.x, or
+// a part of it), the block's `rows` rows from `first` (16 a warp, the warp's from first + warp_row); lane =
+// 4 g + t as in the fragments. Taken apart where used:
+//   const auto [b, first, warp, lane, g, t, warp_row] = RowTileThread(blockIdx.x, tiles, rows);
 struct RowTileThread {
   int64_t b, first;
   int warp, lane, g, t, warp_row;
 
-  __device__ RowTileThread(int64_t tiles, int rows)
-      : b(blockIdx.x / tiles), first(static_cast<int64_t>(blockIdx.x % tiles) * rows), warp(threadIdx.x / 32),
-        lane(threadIdx.x % 32), g(lane >> 2), t(lane & 3), warp_row(warp * 16) {}
+  __device__ RowTileThread(int64_t block, int64_t tiles, int rows)
+      : b(block / tiles), first(block % tiles * rows), warp(threadIdx.x / 32), lane(threadIdx.x % 32), g(lane >> 2),
+        t(lane & 3), warp_row(warp * 16) {}
 };
 
 // rows x width values of a (rows_total, width) row-major matrix from row `first` into a tile of

@@ -408,7 +408,7 @@ __global__ void knn_tensor_core_kernel(const float* __restrict__ query, const fl
   float* r_tile = q_tile + kKnnTensorCoreRows * stride;
   float* r_norm = r_tile + kKnnTensorCoreKeys * stride;
 
-  const auto [b, row0, warp, lane, g, t, warp_row] = RowTileThread(row_tiles, kKnnTensorCoreRows);
+  const auto [b, row0, warp, lane, g, t, warp_row] = RowTileThread(blockIdx.x, row_tiles, kKnnTensorCoreRows);
   const int steps = (C + 7) / 8;
 
   load_tile(query + b * N * C, row0, N, C, kKnnTensorCoreRows, stride, q_tile);

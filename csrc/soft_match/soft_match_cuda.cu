@@ -27,10 +27,19 @@ void check_flash_inputs(const at::Tensor& query, const at::Tensor& values, int64
               "soft_match_flash needs TF32 tensor cores (compute capability 8.0 or later)");
 }
 
+// Parts of the keys each tile of query rows is split into: enough for B x row tiles x parts to reach
+// target_blocks (a few per multiprocessor: few query rows would leave most of a GPU idle), at most
+// kFlashMaxSplits, each of at least kFlashMinSplitKeys keys.
+int64_t key_splits_for(int64_t blocks, int64_t M, int64_t target_blocks) {
+  if (blocks >= target_blocks) return 1;
+  const int64_t wanted = (target_blocks + blocks - 1) / blocks;
+  return std::max<int64_t>(1, std::min<int64_t>({wanted, kFlashMaxSplits, M / kFlashMinSplitKeys}));
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor> soft_match_flash_cuda(const at::Tensor& query_in,
                                                                      const at::Tensor& key_in,
                                                                      const at::Tensor& values_in, double scale,
-                                                                     int64_t passes) {
+                                                                     int64_t passes, int64_t target_blocks) {
   check_soft_match_inputs(query_in, key_in, values_in, scale);
   VRNET_CUDA_GUARD(query_in);
   check_flash_inputs(query_in, values_in, passes);
@@ -43,14 +52,30 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> soft_match_flash_cuda(const at::T
   if (B * N == 0) return {out, lse, argmax};
   const int64_t row_tiles = (N + kFlashRows - 1) / kFlashRows;
   TORCH_CHECK_VALUE(B * row_tiles < (int64_t{1} << 31), "soft_match_flash: too many query rows (B * N = ", B * N, ")");
-  const LaunchConfig config{dim3(static_cast<unsigned int>(B * row_tiles)), dim3(kFlashThreads),
+  int64_t key_splits = key_splits_for(B * row_tiles, M, target_blocks);
+  const int64_t key_tiles = (M + kFlashKeys - 1) / kFlashKeys;
+  const int64_t split_keys = (key_tiles + key_splits - 1) / key_splits * kFlashKeys;
+  key_splits = (M + split_keys - 1) / split_keys;  // none empty
+  at::Tensor partial_acc, partial_max, partial_sum, partial_peak;
+  if (key_splits > 1) {
+    partial_acc = at::empty({B, key_splits, N, D}, query.options());
+    partial_max = at::empty({B, key_splits, N}, query.options());
+    partial_sum = at::empty({B, key_splits, N}, query.options());
+    partial_peak = at::empty({B, key_splits, N}, argmax.options());
+  }
+  const LaunchConfig config{dim3(static_cast<unsigned int>(B * row_tiles * key_splits)), dim3(kFlashThreads),
                             sizeof(float) * static_cast<std::size_t>(flash_shared_floats(C, D))};
   const float scale_f = static_cast<float>(scale);
-  if (passes == 3) {
-    launch<soft_match_flash_kernel<3>>(config, query, key, values, N, M, C, D, scale_f, row_tiles, out, lse, argmax);
-  } else {
-    launch<soft_match_flash_kernel<1>>(config, query, key, values, N, M, C, D, scale_f, row_tiles, out, lse, argmax);
-  }
+  const auto run = [&](auto passes_constant) {
+    launch<soft_match_flash_kernel<decltype(passes_constant)::value>>(
+        config, query, key, values, N, M, C, D, scale_f, row_tiles, key_splits, split_keys, out, lse, argmax,
+        partial_acc, partial_max, partial_sum, partial_peak);
+  };
+  if (passes == 3) run(std::integral_constant<int, 3>{});
+  else run(std::integral_constant<int, 1>{});
+  if (key_splits > 1)
+    launch<soft_match_flash_combine_kernel>(per_item(B * N), partial_acc, partial_max, partial_sum, partial_peak, B * N,
+                                            N, key_splits, D, out, lse, argmax);
   return {out, lse, argmax};
 }
 

@@ -5,7 +5,8 @@
 // tiles of 32 held in shared memory: each warp's scores S = scale Q Kᵀ by m16n8k8 products, the
 // online-softmax recurrence per row (running maximum m, normaliser l, the accumulated P V rescaled by
 // exp(m_old - m_new) when the maximum grows), P = exp(S - m) through the warp's slice of shared
-// memory into the A operand of O += P V. No N x M matrix; no atomics (deterministic).
+// memory into the A operand of O += P V. No N x M matrix; no atomics (deterministic). Few query rows:
+// the keys in parts, a block per (row tile, part), combined by soft_match_flash_combine_kernel.
 // Rows are held by lanes as the products' D fragments place them: rows g and g + 8 of the warp's 16,
 // columns 2t and 2t + 1 of each 8-wide tile (common/tensor_core.cuh); a row's four lanes combine
 // their maxima and sums by shuffles.
@@ -24,6 +25,8 @@ constexpr int kFlashThreads = kFlashWarps * 32;
 constexpr int kFlashRows = kFlashWarps * 16;  // query rows per block
 constexpr int kFlashKeys = 32;                 // keys per shared-memory tile
 constexpr int kFlashMaxWidth = 64;             // largest feature size c and value width D
+constexpr int kFlashMaxSplits = 16;            // parts of the keys a row tile's blocks may take
+constexpr int kFlashMinSplitKeys = 256;        // keys per part at least (the partials' cost amortised)
 constexpr int kFlashValueTiles = kFlashMaxWidth / 8;
 
 // Row strides of the shared tiles (floats), chosen so that a fragment's 32 loads hit 32 banks:
@@ -66,13 +69,20 @@ __device__ inline void store_rows(const float (&acc)[kFlashValueTiles][4], const
   }
 }
 
-// grid: one block per (batch item, tile of 64 query rows), blockIdx.x = b * row_tiles + tile;
-// kFlashThreads threads; flash_shared_floats(C, D) floats of dynamic shared memory.
+// grid: one block per (batch item, tile of 64 query rows, part of the keys), blockIdx.x = (b * row_tiles +
+// tile) * key_splits + split, the split's keys from split * split_keys (a multiple of kFlashKeys);
+// kFlashThreads threads; flash_shared_floats(C, D) floats of dynamic shared memory. One split: the
+// outputs. More: each split's rows unnormalised (the sum of exp(s - m) v), its maximum m, sum of
+// exp(s - m) and first peak, at (b * key_splits + split) * N + row of partial_acc (times D), partial_max,
+// partial_sum, partial_peak, for soft_match_flash_combine_kernel.
 template <int kPasses>
 __global__ void soft_match_flash_kernel(const float* __restrict__ query, const float* __restrict__ key,
                                         const float* __restrict__ values, int64_t N, int64_t M, int C, int D,
-                                        float scale, int64_t row_tiles, float* __restrict__ out,
-                                        float* __restrict__ lse, int64_t* __restrict__ argmax) {
+                                        float scale, int64_t row_tiles, int64_t key_splits, int64_t split_keys,
+                                        float* __restrict__ out, float* __restrict__ lse,
+                                        int64_t* __restrict__ argmax, float* __restrict__ partial_acc,
+                                        float* __restrict__ partial_max, float* __restrict__ partial_sum,
+                                        int64_t* __restrict__ partial_peak) {
   VRNET_DYNAMIC_SHARED(float, shared);
   const int feature_stride = flash_feature_stride(C), value_stride = flash_value_stride(D);
   float* q_tile = shared;
@@ -80,7 +90,9 @@ __global__ void soft_match_flash_kernel(const float* __restrict__ query, const f
   float* v_tile = k_tile + kFlashKeys * feature_stride;
   float* p_tile = v_tile + kFlashKeys * value_stride;
 
-  const auto [b, row0, warp, lane, g, t, warp_row] = RowTileThread(row_tiles, kFlashRows);
+  const auto [b, row0, warp, lane, g, t, warp_row] = RowTileThread(blockIdx.x / key_splits, row_tiles, kFlashRows);
+  const int64_t split = blockIdx.x % key_splits;
+  const int64_t keys_begin = split * split_keys, keys_end = keys_begin + split_keys < M ? keys_begin + split_keys : M;
   const int feature_steps = (C + 7) / 8, value_tiles = (D + 7) / 8;
 
   load_tile(query + b * N * C, row0, N, C, kFlashRows, feature_stride, q_tile);
@@ -91,24 +103,24 @@ __global__ void soft_match_flash_kernel(const float* __restrict__ query, const f
   float acc[kFlashValueTiles][4];
   zero(acc);
 
-  for (int64_t j0 = 0; j0 < M; j0 += kFlashKeys) {
+  for (int64_t j0 = keys_begin; j0 < keys_end; j0 += kFlashKeys) {
     __syncthreads();  // every warp is done with the previous tiles (and Q is loaded)
-    load_tile(key + b * M * C, j0, M, C, kFlashKeys, feature_stride, k_tile);
-    load_tile(values + b * M * D, j0, M, D, kFlashKeys, value_stride, v_tile);
+    load_tile(key + b * M * C, j0, keys_end, C, kFlashKeys, feature_stride, k_tile);
+    load_tile(values + b * M * D, j0, keys_end, D, kFlashKeys, value_stride, v_tile);
     __syncthreads();
 
     float score[kFlashKeys / 8][4];
     warp_products_abt<kPasses>(score, q_tile, feature_stride, warp_row, k_tile, feature_stride, feature_steps, lane);
 
-    // scale, mask the keys past M, and each row's first maximum in the tile
+    // scale, mask the keys past the split's, and each row's first maximum in the tile
     float tile_max[2] = {-INFINITY, -INFINITY};
     int64_t tile_peak[2] = {M, M};
     VRNET_UNROLL
     for (int n = 0; n < kFlashKeys / 8; ++n)
       VRNET_UNROLL for (int i = 0; i < 4; ++i) {
         const int64_t j = j0 + n * 8 + 2 * t + (i & 1);
-        score[n][i] = j < M ? score[n][i] * scale : -INFINITY;
-        if (j < M) take_first_max(tile_max[i >> 1], tile_peak[i >> 1], score[n][i], j);
+        score[n][i] = j < keys_end ? score[n][i] * scale : -INFINITY;
+        if (j < keys_end) take_first_max(tile_max[i >> 1], tile_peak[i >> 1], score[n][i], j);
       }
     float alpha[2], shift[2];
     VRNET_UNROLL
@@ -150,6 +162,21 @@ __global__ void soft_match_flash_kernel(const float* __restrict__ query, const f
                               kFlashKeys / 8, value_tiles, lane);
   }
 
+  if (key_splits > 1) {
+    const int64_t part = (b * key_splits + split) * N;
+    const float ones[2] = {1.0f, 1.0f};
+    VRNET_UNROLL
+    for (int s = 0; s < 2; ++s) {
+      const int64_t row = row0 + warp_row + g + 8 * s;
+      if (row < N && t == 0) {
+        partial_max[part + row] = row_max[s];
+        partial_sum[part + row] = row_sum[s];
+        partial_peak[part + row] = row_peak[s];
+      }
+    }
+    store_rows(acc, ones, row0 + warp_row, N, D, partial_acc + part * D, lane);
+    return;
+  }
   float inverse_sum[2];
   VRNET_UNROLL
   for (int s = 0; s < 2; ++s) {
@@ -161,6 +188,38 @@ __global__ void soft_match_flash_kernel(const float* __restrict__ query, const f
     }
   }
   store_rows(acc, inverse_sum, row0 + warp_row, N, D, out + b * N * D, lane);
+}
+
+// The key splits of soft_match_flash_kernel combined, a thread per query row r = b * N + n (BN rows):
+// m the largest split maximum, each split weighted by exp(m_split - m), in split order (deterministic);
+// the first peak of the first split that reaches m.
+__global__ void soft_match_flash_combine_kernel(const float* __restrict__ partial_acc,
+                                                const float* __restrict__ partial_max,
+                                                const float* __restrict__ partial_sum,
+                                                const int64_t* __restrict__ partial_peak, int64_t BN, int64_t N,
+                                                int64_t key_splits, int D, float* __restrict__ out,
+                                                float* __restrict__ lse, int64_t* __restrict__ argmax) {
+  const int64_t r = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (r >= BN) return;
+  const int64_t first = (r / N * key_splits) * N + r % N;  // split s of row r at first + s * N
+  float row_max = -INFINITY;
+  int64_t peak = 0;
+  for (int64_t s = 0; s < key_splits; ++s)
+    take_first_max(row_max, peak, partial_max[first + s * N], partial_peak[first + s * N]);
+  float weight[kFlashMaxSplits];
+  float row_sum = 0.0f;
+  for (int64_t s = 0; s < key_splits; ++s) {
+    weight[s] = expf(partial_max[first + s * N] - row_max);
+    row_sum += partial_sum[first + s * N] * weight[s];
+  }
+  lse[r] = row_max + logf(row_sum);
+  argmax[r] = peak;
+  const float inverse_sum = 1.0f / row_sum;
+  for (int d = 0; d < D; ++d) {
+    float total = 0.0f;
+    for (int64_t s = 0; s < key_splits; ++s) total += partial_acc[(first + s * N) * D + d] * weight[s];
+    out[r * D + d] = total * inverse_sum;
+  }
 }
 
 // ---------------------------------------------------------------------------------------------------
@@ -201,7 +260,7 @@ __global__ void soft_match_flash_grad_kv_kernel(const float* __restrict__ query,
   float* row_lse = p_tiles + 2 * kFlashBackWarps * 16 * kFlashProbStride;
   float* row_delta = row_lse + kFlashBackTile;
 
-  const auto [b, j0, warp, lane, g, t, warp_row] = RowTileThread(key_tiles, kFlashBackRows);
+  const auto [b, j0, warp, lane, g, t, warp_row] = RowTileThread(blockIdx.x, key_tiles, kFlashBackRows);
   float* pt_tile = p_tiles + warp * 2 * 16 * kFlashProbStride;
   float* dst_tile = pt_tile + 16 * kFlashProbStride;
   const int feature_steps = (C + 7) / 8, value_steps = (D + 7) / 8;
@@ -261,7 +320,7 @@ __global__ void soft_match_flash_grad_query_kernel(const float* __restrict__ que
   float* v_tile = k_tile + kFlashBackTile * fs;    // their values
   float* ds_tiles = v_tile + kFlashBackTile * vs;  // per warp: dS (16 queries x 32 keys)
 
-  const auto [b, row0, warp, lane, g, t, warp_row] = RowTileThread(row_tiles, kFlashBackRows);
+  const auto [b, row0, warp, lane, g, t, warp_row] = RowTileThread(blockIdx.x, row_tiles, kFlashBackRows);
   float* ds_tile = ds_tiles + warp * 2 * 16 * kFlashProbStride;
   const int feature_steps = (C + 7) / 8, value_steps = (D + 7) / 8;
 

@@ -28,11 +28,14 @@ import torch
 from vrnet_ext._extension import has_extension, use_extension
 from vrnet_ext.ops._checks import (check_finite, check_float, check_same, check_shape, first_order_only,
                                    float32_region, promote_low_precision, values_checked)
-from vrnet_ext.runtime import cuda_has_tensor_cores, cuda_matmul_allows_tf32
+from vrnet_ext.runtime import cuda_has_tensor_cores, cuda_matmul_allows_tf32, cuda_multiprocessors
 
 
 DENSE_BLOCK_MAX_SCORES = 1 << 26  # scores per dense block off the CPU: 256 MB per float32 copy
 FLASH_MAX_WIDTH = 64  # largest c and D of the CUDA flash kernel (its shared-memory tiles)
+# Blocks per multiprocessor the flash forward aims for: few query rows split the keys into parts until
+# the GPU holds about this many blocks each (its registers and shared memory allow three or four).
+FLASH_BLOCKS_PER_MULTIPROCESSOR = 4
 
 
 class SoftMatch(NamedTuple):
@@ -96,7 +99,7 @@ class _SoftMatchInBlocks(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_out, grad_lse, _grad_argmax):
         grads = recomputed_gradients(*ctx.saved_tensors, grad_out, grad_lse, ctx.scale, ctx.block)
-        return (*grads, None, None)
+        return (*grads, None, None, None)
 
 
 def recomputed_gradients(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, grad_out: torch.Tensor,
@@ -142,13 +145,14 @@ def flash_fits(query: torch.Tensor, values: torch.Tensor) -> bool:
 
 
 class _SoftMatchFlash(torch.autograd.Function):
-    """The CUDA flash kernels (``passes`` 1 or 3): the forward, and the backward recomputing the
+    """The CUDA flash kernels (``passes`` 1 or 3): the forward (its keys split into parts where fewer
+    than ``target_blocks`` blocks would hold the query rows), and the backward recomputing the
     probabilities tile by tile from the saved log-normaliser with the forward's arithmetic. Where the
     backward itself is differentiated (``create_graph``), :func:`recomputed_gradients` instead."""
 
     @staticmethod
-    def forward(ctx, query, key, values, scale: float, passes: int):
-        out, lse, argmax = torch.ops.vrnet_ext.soft_match_flash(query, key, values, scale, passes)
+    def forward(ctx, query, key, values, scale: float, passes: int, target_blocks: int):
+        out, lse, argmax = torch.ops.vrnet_ext.soft_match_flash(query, key, values, scale, passes, target_blocks)
         ctx.save_for_backward(query, key, values, out, lse)
         ctx.scale, ctx.passes = scale, passes
         ctx.mark_non_differentiable(argmax)
@@ -163,7 +167,7 @@ class _SoftMatchFlash(torch.autograd.Function):
         else:
             grads = torch.ops.vrnet_ext.soft_match_flash_backward(grad_out, grad_lse, query, key, values, out, lse,
                                                                  ctx.scale, ctx.passes)
-        return (*grads, None, None)
+        return (*grads, None, None, None)
 
 
 def check_lse_finite(lse: torch.Tensor, scale: float) -> None:
@@ -211,7 +215,8 @@ def soft_match(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, sca
         for name, t in (("query", query), ("key", key), ("values", values)):
             check_finite(t, name)
         if compiled and flash_fits(query, values):
-            result = SoftMatch(*_SoftMatchFlash.apply(query, key, values, scale, flash_passes()))
+            target_blocks = FLASH_BLOCKS_PER_MULTIPROCESSOR * cuda_multiprocessors(query.device)
+            result = SoftMatch(*_SoftMatchFlash.apply(query, key, values, scale, flash_passes(), target_blocks))
             check_lse_finite(result.lse, scale)
         else:
             with float32_region(query):
@@ -229,7 +234,7 @@ if has_extension():
                 query.new_empty((B, N), dtype=torch.int64))
 
     @torch.library.register_fake("vrnet_ext::soft_match_flash")
-    def _soft_match_flash_fake(query, key, values, scale, passes):
+    def _soft_match_flash_fake(query, key, values, scale, passes, target_blocks):
         return _soft_match_fake(query, key, values, scale)
 
     @torch.library.register_fake("vrnet_ext::soft_match_flash_backward")
