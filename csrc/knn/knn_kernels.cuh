@@ -387,11 +387,13 @@ VRNET_HOST_DEVICE constexpr int knn_tensor_core_shared_floats(int c) {
 // |q|^2 + max |r|^2, for three-pass products: each operand's two TF32 parts miss it by 2^-22 of it and the
 // dropped product of the small parts is 2^-22 of |q_c r_c| (about 3.1 2^-22 |q| |r| in all, |q| |r| <=
 // (|q|^2 + |r|^2) / 2), the tensor cores' float32 accumulation of 3 C products (taken as truncating: 2^-22
-// each), twice for -2 q.r; the norms' sums and the final additions (2^-23 each); with margin.
+// each), twice for -2 q.r; the norms' sums and the final additions (2^-23 each); the centred values' own
+// rounding (2^-24 of each, 2^-22 of the norms in the distance); with margin. Split parts too small for a
+// normal float (flushed to zero) err by at most 2^-126 each: kKnnTensorCoreAbsoluteError per channel.
 VRNET_HOST_DEVICE inline float knn_tensor_core_relative_error(int64_t C) {
   return static_cast<float>(8 * C + 64) * 0x1p-23f;
 }
-constexpr float kKnnTensorCoreAbsoluteError = 0x1p-100f;  // per channel: subnormal operands flushed to zero
+constexpr float kKnnTensorCoreAbsoluteError = 0x1p-100f;  // per channel (with the relative term: any |q|, |r|)
 
 // grid: one block per (batch item, tile of kKnnTensorCoreRows query rows), blockIdx.x = b * row_tiles + tile;
 // kKnnTensorCoreWarps * 32 threads; knn_tensor_core_shared_floats(C) floats of dynamic shared memory.
