@@ -151,10 +151,12 @@ __device__ inline scalar_t knn_exact_sq_dist(const scalar_t* q, const scalar_t* 
       partial[l] = add_rn(partial[l], mul_rn(diff, diff));
     }
   }
-  for (int l = 0; c < C; ++c, ++l) {
-    const scalar_t diff = sub_rn(q[c], r[c]);
-    partial[l] = add_rn(partial[l], mul_rn(diff, diff));
-  }
+#pragma unroll
+  for (int l = 0; l < 8; ++l)  // the last C % 8 channels (unrolled: the partials stay in registers)
+    if (c + l < C) {
+      const scalar_t diff = sub_rn(q[c + l], r[c + l]);
+      partial[l] = add_rn(partial[l], mul_rn(diff, diff));
+    }
   return add_rn(add_rn(add_rn(partial[0], partial[1]), add_rn(partial[2], partial[3])),
                 add_rn(add_rn(partial[4], partial[5]), add_rn(partial[6], partial[7])));
 }
