@@ -1,4 +1,4 @@
-"""How often the tensor-core kNN proves its ranking, modelled on the CPU: the share of query rows it does not scan whole.
+"""How often the tensor-core kNN proves its ranking (modelled on the CPU): the share of rows it does not scan whole.
 
     python benchmarks/knn_proof_rate.py [--models vrnet-pv-upc-rcp ...] [--pairs 8] [--json F] [--markdown F]
 
@@ -24,15 +24,17 @@ import torch
 
 from outputs import cpu_description, write_outputs  # benchmarks/, the script's folder
 from vrnet_ext import ops
-from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter
+from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter, device_name
 from vrnet_ext.data.modelnet import ModelNet40Pairs
 from vrnet_ext.geometry.features import describe
 from vrnet_ext.geometry.io import read_points
 from vrnet_ext.model import dgcnn
 from vrnet_ext.model.pretrained import load_pretrained
+from vrnet_ext.ops.knn import tensor_core_unproven_rows
 
 LANES, LANE_CANDIDATES = 4, 16  # csrc/knn/knn_kernels.cuh: a row's four lanes, the candidates each keeps
-PASSES = (3, 1)  # the kernel's three-pass products, and one TF32 product for comparison
+KERNEL_PASSES = 3  # csrc/knn/knn_kernels.cuh: kKnnTensorCorePasses
+PASSES = (KERNEL_PASSES, 1)  # the kernel's products, and one TF32 product for comparison
 PAPER_PRESET_WIDTHS = (64, 128)  # the paper preset's feature graphs (dgcnn_channels 64, 64, 128, 256)
 DEFAULT_SCENES = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes"
 KITCHEN_PAIR = ("cloud_bin_0.ply", "cloud_bin_4.ply")
@@ -116,40 +118,47 @@ def fpfh_descriptors(scenes: Path, voxel: float) -> tuple[torch.Tensor, torch.Te
     return views[0], views[1]
 
 
-def measured(source: str, width: int, k: int, proofs_by_passes: dict[int, list[torch.Tensor]]) -> list[dict]:
+def summary(source: str, width: int, k: int, proofs_by_passes: dict[int, list[torch.Tensor]],
+            on_gpu: list[torch.Tensor]) -> list[dict]:
+    """One row per pass count: the modelled proofs, and (three passes) the GPU kernel's where it ran."""
     rows = []
     for passes, results in proofs_by_passes.items():
         proven = torch.cat(results)
-        rows.append({"source": source, "C": width, "k": k, "passes": passes, "graphs": len(results),
-                     "rows": len(proven), "proven": int(proven.sum()), "proven_share": float(proven.float().mean())})
+        row = {"source": source, "C": width, "k": k, "passes": passes, "graphs": len(results), "rows": len(proven),
+               "proven": int(proven.sum()), "proven_share": float(proven.float().mean())}
+        if on_gpu and passes == KERNEL_PASSES:
+            row["proven_on_gpu"] = int(torch.cat(on_gpu).sum())
+        rows.append(row)
     return rows
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
-    parser.add_argument("--models", nargs="+", default=["vrnet-pv-upc-rcp", "vrnet-pv-nd-rcp"],
-                        help="shipped model names or checkpoints")
+    parser.add_argument("--models", nargs="*", default=["vrnet-pv-upc-rcp", "vrnet-pv-nd-rcp"],
+                        help="shipped models (names or checkpoints) whose feature graphs are measured (none: none)")
     parser.add_argument("--data-dir", type=Path, default=None, help=DATA_DIR_HELP)
     parser.add_argument("--scenes", type=Path, default=DEFAULT_SCENES, help="the shared scenes folder (FPFH rows)")
     parser.add_argument("--fpfh-voxels", type=float, nargs="*", default=[0.05, 0.025],
                         help="voxel sizes (m) of the FPFH rows (none: no FPFH rows)")
     parser.add_argument("--pairs", type=int, default=8, help="validation pairs per model")
     parser.add_argument("--k", type=int, default=20, help="neighbours per row of the feature graphs (the DGCNN's)")
+    parser.add_argument("--device", type=device_name, default="cpu",
+                        help="cuda: also count the rows the kernel proves there (ops.knn.tensor_core_unproven_rows)")
     parser.add_argument("--json", default=None, help="write the rows here")
     parser.add_argument("--markdown", default=None, help="write the table here")
     args = parser.parse_args(argv)
+    device = torch.device(args.device)
     rows = []
     generator = torch.Generator().manual_seed(0)
 
-    def both(query, ref, k):
-        return {passes: proven_rows(query, ref, k, passes) for passes in PASSES}
-
     def collect(source, width, k, cases):
-        proofs = {passes: [] for passes in PASSES}
+        proofs, on_gpu = {passes: [] for passes in PASSES}, []
         for query, ref in cases:
-            for passes, proven in both(query, ref, k).items():
-                proofs[passes].append(proven)
-        rows.extend(measured(source, width, k, proofs))
+            for passes in PASSES:
+                proofs[passes].append(proven_rows(query, ref, k, passes))
+            if device.type == "cuda":
+                on_gpu.append(~tensor_core_unproven_rows(query[None].to(device), ref[None].to(device), k)[0].cpu())
+        rows.extend(summary(source, width, k, proofs, on_gpu))
 
     for model_name in args.models:
         by_width: dict[int, list[torch.Tensor]] = {}
@@ -165,11 +174,14 @@ def main(argv: list[str] | None = None) -> int:
     for voxel in args.fpfh_voxels:
         source, target = fpfh_descriptors(args.scenes, voxel)
         collect(f"FPFH, kitchen fragments, {100 * voxel:g} cm voxels", source.shape[1], 1, [(source, target)])
-    note = (f"The tensor-core kNN's proof modelled on the CPU ({cpu_description()}), "
+    where = f", the kernel's own on {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""
+    note = (f"The tensor-core kNN's proof modelled on the CPU ({cpu_description()}){where}, "
             f"{args.pairs} ModelNet40 validation pairs per model, {time.strftime('%Y-%m-%d')}.")
-    lines = [note, "", "| data | C | k | passes | graphs | rows | proven |", "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = [note, "", "| data | C | k | passes | graphs | rows | proven | proven on the GPU |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
     lines += [f"| {r['source']} | {r['C']} | {r['k']} | {r['passes']} | {r['graphs']} | {r['rows']} | "
-              f"{100 * r['proven_share']:.2f} % |" for r in rows]
+              f"{100 * r['proven_share']:.2f} % | "
+              + (f"{100 * r['proven_on_gpu'] / r['rows']:.2f} % |" if "proven_on_gpu" in r else "|") for r in rows]
     write_outputs("\n".join(lines), {"note": note, "rows": rows}, args.markdown, args.json)
     return 0
 

@@ -6,6 +6,7 @@
 #define VRNET_OP_SCHEMAS(X) \
   X("knn(Tensor query, Tensor ref, int k, bool exclude_self) -> (Tensor, Tensor)") \
   X("knn_backward(Tensor grad_dist2, Tensor query, Tensor ref, Tensor idx) -> (Tensor, Tensor)") \
+  X("knn_unproven_rows(Tensor query, Tensor ref, int k, bool exclude_self) -> Tensor") \
   X("edge_features(Tensor x, Tensor idx) -> Tensor") \
   X("edge_features_backward(Tensor grad_out, Tensor idx, int num_points) -> Tensor") \
   X("gather_reduce(Tensor values, Tensor idx, str reduce) -> (Tensor, Tensor)") \

@@ -144,8 +144,10 @@ bool fits_tensor_cores(const at::Tensor& query, int64_t k) {
          compute_capability_major() >= kTensorCoreMajor;
 }
 
-void knn_tensor_cores(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self, at::Tensor& dist,
-                      at::Tensor& idx) {
+// The tensor-core search up to its proof: dist, idx written for every row (proven or not); returns the
+// rows (B, N) int32 whose ranking is not proven, which knn_exact_rows_kernel then scans whole.
+at::Tensor knn_tensor_core_ranking(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self,
+                                   at::Tensor& dist, at::Tensor& idx) {
   const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2);
   const int64_t row_tiles = (N + kKnnTensorCoreRows - 1) / kKnnTensorCoreRows;
   TORCH_CHECK_VALUE(B * row_tiles < (int64_t{1} << 31), "knn: too many query rows (B * N = ", B * N, ")");
@@ -164,15 +166,39 @@ void knn_tensor_cores(const at::Tensor& query, const at::Tensor& ref, int64_t k,
                             sizeof(float) * static_cast<std::size_t>(knn_tensor_core_shared_floats(C))};
   launch<knn_tensor_core_kernel>(config, query_c, ref_c, query_norm, ref_norm, N, M, static_cast<int>(C),
                                  exclude_self, row_tiles, cand_dist, cand_idx);
-  at::Tensor exhaustive = at::empty({B, N}, query.options().dtype(at::kInt));
+  at::Tensor unproven = at::empty({B, N}, query.options().dtype(at::kInt));
   static_assert(kKnnTensorCoreMaxK == 32, "the register buffers below end at 32 slots");
   dispatch_kmax<32>(k, [&](auto kmax) {
-    constexpr int KMAX = decltype(kmax)::value;
-    launch<knn_tensor_core_rerank_kernel<KMAX>>(per_query(N, B), query, ref, cand_dist, cand_idx, query_norm,
-                                                ref_norm_max, N, M, C, k, dist, idx, exhaustive);
-    launch<knn_exact_rows_kernel<float, KMAX>>(per_query_warp(N, B), query, ref, exhaustive, N, M, C, k, exclude_self,
-                                               dist, idx);
+    launch<knn_tensor_core_rerank_kernel<decltype(kmax)::value>>(per_query(N, B), query, ref, cand_dist, cand_idx,
+                                                                 query_norm, ref_norm_max, N, M, C, k, dist, idx,
+                                                                 unproven);
   });
+  return unproven;
+}
+
+void knn_tensor_cores(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self, at::Tensor& dist,
+                      at::Tensor& idx) {
+  const at::Tensor unproven = knn_tensor_core_ranking(query, ref, k, exclude_self, dist, idx);
+  const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2);
+  dispatch_kmax<32>(k, [&](auto kmax) {
+    launch<knn_exact_rows_kernel<float, decltype(kmax)::value>>(per_query_warp(N, B), query, ref, unproven, N, M, C,
+                                                                k, exclude_self, dist, idx);
+  });
+}
+
+// Diagnostics: the rows (B, N) bool the tensor-core search would scan whole (see knn_tensor_core_ranking).
+at::Tensor knn_unproven_rows_cuda(const at::Tensor& query_in, const at::Tensor& ref_in, int64_t k, bool exclude_self) {
+  check_knn_inputs(query_in, ref_in, k, exclude_self);
+  VRNET_CUDA_GUARD(query_in);
+  const at::Tensor query = query_in.contiguous(), ref = ref_in.contiguous();
+  TORCH_CHECK_VALUE(fits_tensor_cores(query, k), "knn_unproven_rows: the tensor-core search takes float32 rows of 4 ",
+                    "to ", kKnnTensorCoreMaxC, " values and k <= ", kKnnTensorCoreMaxK,
+                    " on a GPU of compute capability ", kTensorCoreMajor, ".0 or later");
+  const int64_t B = query.size(0), N = query.size(1);
+  at::Tensor dist = at::empty({B, N, k}, query.options());
+  at::Tensor idx = at::empty({B, N, k}, query.options().dtype(at::kLong));
+  if (B * N == 0) return at::empty({B, N}, query.options().dtype(at::kBool));
+  return knn_tensor_core_ranking(query, ref, k, exclude_self, dist, idx).to(at::kBool);
 }
 
 template <typename scalar_t>
@@ -208,8 +234,8 @@ void knn_features(const at::Tensor& query, const at::Tensor& ref, int64_t k, boo
     at::Tensor exhaustive = at::empty({B, N}, query.options().dtype(at::kInt));
     launch<knn_rerank_kernel<scalar_t, KMAX>>(per_query(N, B), query, ref, cand_dist, cand_idx, query_norm,
                                               ref_norm_max, N, M, C, width, k, relative_error, dist, idx, exhaustive);
-    launch<knn_exact_rows_kernel<scalar_t, KMAX>>(per_query_warp(N, B), query, ref, exhaustive, N, M, C, k, exclude_self,
-                                                  dist, idx);
+    launch<knn_exact_rows_kernel<scalar_t, KMAX>>(per_query_warp(N, B), query, ref, exhaustive, N, M, C, k,
+                                                  exclude_self, dist, idx);
   });
 }
 
@@ -273,6 +299,7 @@ std::tuple<at::Tensor, at::Tensor> knn_backward_cuda(const at::Tensor& grad_in, 
 VRNET_CUDA_IMPL(m) {
   m.impl("knn", &knn_cuda);
   m.impl("knn_backward", &knn_backward_cuda);
+  m.impl("knn_unproven_rows", &knn_unproven_rows_cuda);
 }
 
 }  // namespace vrnet

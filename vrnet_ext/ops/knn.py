@@ -6,8 +6,8 @@ and pruned with nth_element); neither builds the N x M distance matrix. On a GPU
 cores, float32 rows of 4 to ``TENSOR_CORE_MAX_CHANNELS`` values and k up to ``TENSOR_CORE_MAX_K``
 (:func:`on_tensor_cores`) take candidates from tensor-core products (three TF32 passes) of the clouds
 centred on the reference mean, rank them by exact distance, and prove the ranking with a bound on the
-products' error (rows without the proof are scanned whole): the CPU's distances and indices. Reference: ``torch.cdist`` +
-``topk``.
+products' error (rows without the proof are scanned whole): the CPU's distances and indices.
+Reference: ``torch.cdist`` + ``topk``.
 """
 from __future__ import annotations
 
@@ -131,12 +131,29 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool = Fal
         return knn_reference(query, ref, k, exclude_self)
 
 
+def tensor_core_unproven_rows(query: torch.Tensor, ref: torch.Tensor, k: int,
+                              exclude_self: bool = False) -> torch.Tensor:
+    """Diagnostics of the CUDA tensor-core search (:func:`on_tensor_cores` must hold): (B, N) bool, the
+    query rows whose candidates' ranking its error bound cannot prove, which :func:`knn` then scans whole
+    (each costs a full row of exact distances). ``benchmarks/knn_proof_rate.py`` models the same on the CPU."""
+    _validate(query, ref, k, exclude_self)
+    if not on_tensor_cores(query.device, query.dtype, query.shape[2], k):
+        raise ValueError(f"the tensor-core search takes float32 rows of 4 to {TENSOR_CORE_MAX_CHANNELS} values on a "
+                         f"GPU of compute capability 8.0 or later, k <= {TENSOR_CORE_MAX_K}; got "
+                         f"{query.dtype} rows of {query.shape[2]} on {query.device}, k = {k}")
+    return torch.ops.vrnet_ext.knn_unproven_rows(query.float(), ref.float(), k, exclude_self)
+
+
 if has_extension():
 
     @torch.library.register_fake("vrnet_ext::knn")
     def _knn_fake(query, ref, k, exclude_self):
         shape = (query.shape[0], query.shape[1], k)
         return query.new_empty(shape), query.new_empty(shape, dtype=torch.int64)
+
+    @torch.library.register_fake("vrnet_ext::knn_unproven_rows")
+    def _knn_unproven_rows_fake(query, ref, k, exclude_self):
+        return query.new_empty(query.shape[:2], dtype=torch.bool)
 
     @torch.library.register_fake("vrnet_ext::knn_backward")
     def _knn_backward_fake(grad_dist2, query, ref, idx):
