@@ -99,7 +99,7 @@ class _SoftMatchInBlocks(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_out, grad_lse, _grad_argmax):
         grads = recomputed_gradients(*ctx.saved_tensors, grad_out, grad_lse, ctx.scale, ctx.block)
-        return (*grads, None, None, None)
+        return (*grads, None, None)
 
 
 def recomputed_gradients(query: torch.Tensor, key: torch.Tensor, values: torch.Tensor, grad_out: torch.Tensor,
