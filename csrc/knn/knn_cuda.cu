@@ -144,6 +144,29 @@ bool fits_tensor_cores(const at::Tensor& query, int64_t k) {
          compute_capability_major() >= kTensorCoreMajor;
 }
 
+// query (B, N, C) and ref (B, M, C) less the reference cloud's mean (in float64, rounded to scalar_t), their
+// squared norms (B, N), (B, M) and each cloud's largest reference norm (B): the centred clouds both
+// approximate searches (GEMM chunks, tensor cores) take their dot products of.
+struct CentredClouds {
+  at::Tensor query, ref, query_norm, ref_norm, ref_norm_max;
+};
+
+template <typename scalar_t>
+CentredClouds centre_on_reference(const at::Tensor& query, const at::Tensor& ref) {
+  const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2);
+  at::Tensor mean = at::empty({B, C}, query.options().dtype(at::kDouble));
+  launch<knn_mean_kernel<scalar_t>>(
+      LaunchConfig{dim3(static_cast<unsigned int>(B), static_cast<unsigned int>((C + 31) / 32)),
+                   dim3(32, kKnnMeanSlices), 0},
+      ref, M, C, mean);
+  CentredClouds out{at::empty_like(query), at::empty_like(ref), at::empty({B, N}, query.options()),
+                    at::empty({B, M}, query.options()), at::Tensor()};
+  launch<knn_centre_kernel<scalar_t>>(per_query(N, B), query, mean, N, C, out.query, out.query_norm);
+  launch<knn_centre_kernel<scalar_t>>(per_query(M, B), ref, mean, M, C, out.ref, out.ref_norm);
+  out.ref_norm_max = at::amax(out.ref_norm, 1).contiguous();
+  return out;
+}
+
 // The tensor-core search up to its proof: dist, idx written for every row (proven or not); returns the
 // rows (B, N) int32 whose ranking is not proven, which knn_exact_rows_kernel then scans whole.
 at::Tensor knn_tensor_core_ranking(const at::Tensor& query, const at::Tensor& ref, int64_t k, bool exclude_self,
@@ -151,15 +174,7 @@ at::Tensor knn_tensor_core_ranking(const at::Tensor& query, const at::Tensor& re
   const int64_t B = query.size(0), N = query.size(1), M = ref.size(1), C = query.size(2);
   const int64_t row_tiles = (N + kKnnTensorCoreRows - 1) / kKnnTensorCoreRows;
   TORCH_CHECK_VALUE(B * row_tiles < (int64_t{1} << 31), "knn: too many query rows (B * N = ", B * N, ")");
-  at::Tensor mean = at::empty({B, C}, query.options().dtype(at::kDouble));
-  launch<knn_mean_kernel>(LaunchConfig{dim3(static_cast<unsigned int>(B), static_cast<unsigned int>((C + 31) / 32)),
-                                       dim3(32, kKnnMeanSlices), 0},
-                          ref, M, C, mean);
-  at::Tensor query_c = at::empty_like(query), ref_c = at::empty_like(ref);
-  at::Tensor query_norm = at::empty({B, N}, query.options()), ref_norm = at::empty({B, M}, query.options());
-  launch<knn_centre_kernel>(per_query(N, B), query, mean, N, C, query_c, query_norm);
-  launch<knn_centre_kernel>(per_query(M, B), ref, mean, M, C, ref_c, ref_norm);
-  const at::Tensor ref_norm_max = at::amax(ref_norm, 1).contiguous();
+  const auto [query_c, ref_c, query_norm, ref_norm, ref_norm_max] = centre_on_reference<float>(query, ref);
   at::Tensor cand_dist = at::empty({B, N, kKnnRowCandidates}, query.options());
   at::Tensor cand_idx = at::empty({B, N, kKnnRowCandidates}, query.options().dtype(at::kInt));
   const LaunchConfig config{dim3(static_cast<unsigned int>(B * row_tiles)), dim3(kKnnTensorCoreWarps * 32),
@@ -208,12 +223,7 @@ void knn_features(const at::Tensor& query, const at::Tensor& ref, int64_t k, boo
   // Candidates kept per query before the exact re-ranking (a margin over k for near-ties).
   const int64_t width = std::min<int64_t>(kCudaRegisterK, std::max<int64_t>(k, 2 * k + 16));
   const scalar_t relative_error = static_cast<scalar_t>(8 * (C + 2)) * std::numeric_limits<scalar_t>::epsilon();
-  const at::Tensor shift = ref.to(at::kDouble).mean(1, /*keepdim=*/true);
-  const at::Tensor query_c = at::sub(query.to(at::kDouble), shift).to(query.scalar_type()).contiguous();
-  const at::Tensor ref_c = at::sub(ref.to(at::kDouble), shift).to(ref.scalar_type()).contiguous();
-  const at::Tensor query_norm = query_c.square().sum(-1).contiguous();
-  const at::Tensor ref_norm = ref_c.square().sum(-1).contiguous();
-  const at::Tensor ref_norm_max = std::get<0>(ref_norm.max(1)).contiguous();
+  const auto [query_c, ref_c, query_norm, ref_norm, ref_norm_max] = centre_on_reference<scalar_t>(query, ref);
   at::Tensor cand_dist = at::empty({B, N, width}, query.options());
   at::Tensor cand_idx = at::empty({B, N, width}, query.options().dtype(at::kLong));
   const int64_t query_chunk = std::min<int64_t>(N, std::max<int64_t>(1, kChunkElements / (B * std::min<int64_t>(M, 1024))));

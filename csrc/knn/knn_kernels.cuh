@@ -338,7 +338,9 @@ __global__ void knn_exact_rows_kernel(const scalar_t* __restrict__ query, const 
 // Each reference cloud's mean in float64: grid (B, ceil(C / 32)), block (32, kKnnMeanSlices); thread (c, s)
 // sums points s, s + kKnnMeanSlices, ... of channel c, the slices then added in order (deterministic).
 constexpr int kKnnMeanSlices = 8;
-__global__ void knn_mean_kernel(const float* __restrict__ points, int64_t M, int64_t C, double* __restrict__ mean) {
+template <typename scalar_t>
+__global__ void knn_mean_kernel(const scalar_t* __restrict__ points, int64_t M, int64_t C,
+                                double* __restrict__ mean) {
   VRNET_SHARED(double, partial, 32 * kKnnMeanSlices);
   const int64_t b = blockIdx.x, c = static_cast<int64_t>(blockIdx.y) * 32 + threadIdx.x;
   double sum = 0.0;
@@ -352,17 +354,18 @@ __global__ void knn_mean_kernel(const float* __restrict__ points, int64_t M, int
   mean[b * C + c] = total / static_cast<double>(M);
 }
 
-// rows (B, R, C) less their cloud's mean (B, C), in float64, rounded to float32, and their squared norms
+// rows (B, R, C) less their cloud's mean (B, C), in float64, rounded to scalar_t, and their squared norms
 // (B, R): a thread per row (grid as per_query).
-__global__ void knn_centre_kernel(const float* __restrict__ rows, const double* __restrict__ mean, int64_t R,
-                                  int64_t C, float* __restrict__ centred, float* __restrict__ norms) {
+template <typename scalar_t>
+__global__ void knn_centre_kernel(const scalar_t* __restrict__ rows, const double* __restrict__ mean, int64_t R,
+                                  int64_t C, scalar_t* __restrict__ centred, scalar_t* __restrict__ norms) {
   const int64_t b = blockIdx.y, r = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (r >= R) return;
-  const float* x = rows + (b * R + r) * C;
-  float* y = centred + (b * R + r) * C;
-  float norm = 0.0f;
+  const scalar_t* x = rows + (b * R + r) * C;
+  scalar_t* y = centred + (b * R + r) * C;
+  scalar_t norm = 0;
   for (int64_t c = 0; c < C; ++c) {
-    y[c] = static_cast<float>(static_cast<double>(x[c]) - mean[b * C + c]);
+    y[c] = static_cast<scalar_t>(static_cast<double>(x[c]) - mean[b * C + c]);
     norm = add_rn(norm, mul_rn(y[c], y[c]));
   }
   norms[b * R + r] = norm;
