@@ -271,3 +271,15 @@ def test_the_vector_and_the_portable_feature_search_agree(tmp_path):
     results = under_each_cpu_dispatch(script, tmp_path)
     for (dist_vector, idx_vector), (dist_generic, idx_generic) in zip(*results):
         assert torch.equal(dist_vector, dist_generic) and torch.equal(idx_vector, idx_generic)
+
+
+def test_tensor_core_diagnostics_refuse_what_the_tensor_cores_do_not_search():
+    """ops.knn.tensor_core_unproven_rows names why it cannot answer (here: a CPU tensor, float64, wide rows)."""
+    from vrnet_ext.ops.knn import tensor_core_unproven_rows
+
+    rows = torch.randn(1, 40, 16)
+    for query, k in ((rows, 5), (rows.double(), 5), (torch.randn(1, 40, 200), 5)):
+        with pytest.raises(ValueError, match="tensor-core search takes float32 rows"):
+            tensor_core_unproven_rows(query, query, k)
+    with pytest.raises(ValueError, match="k must be in"):
+        tensor_core_unproven_rows(rows, rows, 41)
