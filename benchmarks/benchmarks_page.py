@@ -94,6 +94,7 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "ops_avx2": "kNN, EdgeConv and L2 loss timings on a CPU without AVX-512 (`bench_ops.py --quick --only knn,pairwise_distance_loss,EdgeConv`)",
     "inference_amx_h200_host": "ModelNet40 inference speed on an AMX CPU, 2 threads on 2 cores of the GPU machine's host (`bench_inference.py --pairs 64 --variants torch ext \"ext, bf16 Transformer\"`)",
     "inference_amx_vm": "ModelNet40 inference speed on an AMX CPU, a quiet 2-core machine, 2 threads (`bench_inference.py`)",
+    "inference_zen4_vm": "ModelNet40 inference speed on an AVX512-BF16 CPU without AMX (AMD EPYC), 2 cores, 2 threads, after the attention kernel stopped serving CPUs without AMX (`bench_inference.py --pairs 64`)",
     "ops_amx_vm": "Op timings on an AMX CPU, a quiet 2-core machine, 2 threads, beside Open3D, pykdtree, small_gicp, roma and SDPA (`bench_ops.py`)",
     "ops_soft_match_amx_vm": "Soft matching timings on an AMX CPU, denormals flushed inside the op (`bench_ops.py --only soft_match`)",
     "inference_cuda_h200": "ModelNet40 inference speed on an NVIDIA H200 (`bench_inference.py --device cuda --pairs 64 --variants torch ext \"ext, bf16 Transformer\"`)",

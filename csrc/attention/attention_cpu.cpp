@@ -278,8 +278,14 @@ at::Tensor attention_cpu(const at::Tensor& q_in, const at::Tensor& k_in, const a
   return out;
 }
 
+// Whether attention_cpu's products for heads of `head_channels` run on AMX tiles: where they do not,
+// its plain loops are many times slower than torch's own kernel, so the Python wrapper asks first.
+bool attention_on_amx(int64_t head_channels) { return products_on_amx(head_channels); }
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(vrnet_ext, CPU, m) { m.impl("attention", &attention_cpu); }
+
+TORCH_LIBRARY_FRAGMENT(vrnet_ext, m) { m.def("attention_on_amx(int head_channels) -> bool", &attention_on_amx); }
 
 }  // namespace vrnet

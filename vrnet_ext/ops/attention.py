@@ -3,13 +3,14 @@
 ``q`` (B, H, N, D), ``k`` and ``v`` (B, H, M, D) -> (B, H, N, D),
 ``out[b, h, i] = softmax_j(scale q[b, h, i] . k[b, h, j]) v[b, h, j]`` (``scale`` default 1 / sqrt(D)).
 The reference is ``F.scaled_dot_product_attention``. The compiled CPU kernel serves inference on
-bfloat16 heads (the Transformer's attention under its bfloat16 autocast) on a CPU that multiplies
-bfloat16 in hardware (AVX512-BF16 / AMX): scores, exponentials and sums in float32, the softmax
-weights rounded to bfloat16 for their product with ``v`` (as torch's fused CPU kernel does), both
-products on AMX tiles where the CPU has them, a softmax on AVX-512 with a base-2 exponential.
+bfloat16 heads (the Transformer's attention under its bfloat16 autocast) where its two products run
+on AMX tiles (:func:`products_on_amx`: an AMX CPU, heads of 16, 32, 48 or 64 channels): scores,
+exponentials and sums in float32, the softmax weights rounded to bfloat16 for their product with
+``v`` (as torch's fused CPU kernel does), a softmax on AVX-512 with a base-2 exponential.
 Every other call (float32 or float64 heads, a gradient to record, dropout, more than ``MAX_KEYS``
-keys, a CPU without bfloat16 products, where the kernel's portable loops are many times slower
-than torch's kernel, a device without the kernel) runs the reference, which is differentiable.
+keys, a CPU without AMX or a head size the tiles do not take, where the kernel's products are plain
+loops, ~15x slower than torch's kernel, a device without the kernel) runs the reference, which is
+differentiable.
 The result's memory is (B, N, H, D) either way (a point's heads form one row).
 """
 from __future__ import annotations
@@ -21,7 +22,6 @@ from torch.nn import functional as F
 
 from vrnet_ext._extension import has_extension, use_extension
 from vrnet_ext.ops._checks import check_tensor
-from vrnet_ext.runtime import cpu_has_native_bf16
 
 MAX_KEYS = 1 << 16  # the kernel keeps 64 x M float32 scores per thread; longer key sets stream in torch's kernel
 
@@ -59,10 +59,22 @@ def attention_reference(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, scale
     return F.scaled_dot_product_attention(q, k, v, dropout_p=dropout_p, scale=scale)
 
 
+_ON_AMX: dict[int, bool] = {}  # head channels -> the kernel's answer, asked once per size
+
+
+@torch.compiler.assume_constant_result
+def products_on_amx(head_channels: int) -> bool:
+    """Whether the compiled kernel multiplies heads of ``head_channels`` channels on AMX tiles (the
+    kernel's own answer; False without the extension). A constant for ``torch.compile``."""
+    if head_channels not in _ON_AMX:
+        _ON_AMX[head_channels] = has_extension() and bool(torch.ops.vrnet_ext.attention_on_amx(head_channels))
+    return _ON_AMX[head_channels]
+
+
 def _kernel_serves(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, dropout_p: float, backend: str) -> bool:
     records_gradient = torch.is_grad_enabled() and (q.requires_grad or k.requires_grad or v.requires_grad)
     return (use_extension(backend, q.device) and q.device.type == "cpu" and q.dtype == torch.bfloat16
-            and dropout_p == 0 and not records_gradient and k.shape[2] <= MAX_KEYS and cpu_has_native_bf16())
+            and dropout_p == 0 and not records_gradient and k.shape[2] <= MAX_KEYS and products_on_amx(q.shape[3]))
 
 
 def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, scale: float | None = None,
