@@ -43,8 +43,9 @@ def add_solve_options(parser, default: str) -> None:
     parser.add_argument("--rotation-search-below", type=unit_interval, default=None,
                         help="register a pair again from its source turned by each of the 23 other rotations of a "
                              "cube when fewer than this share of its RCPs agree with its estimate (after the second "
-                             "pass), and keep the start whose RCPs agree most: any rotation, at 46 more passes per "
-                             f"searched pair (one pass per start); 0: never (default: {default})")
+                             "pass), and keep the start whose estimate brings the source nearest the target (the "
+                             "median distance to the nearest target point): any rotation, at 46 more passes per "
+                             f"searched pair (a pass and a second look per start); 0: never (default: {default})")
     parser.add_argument("--consistency-radius", type=positive_float, default=None,
                         help=f"how near its estimate an RCP must lie to agree with it, in the clouds' units "
                              f"(default: {default})")
