@@ -509,3 +509,23 @@ def test_a_synthetic_range_scan_sees_the_near_surface_once_per_pixel():
     assert np.abs(scan[:, 2] - 1.0).max() < 0.05  # every point on the near plane, depth 1 m along the view
     pixels = (1.0 / pixel) ** 2  # the near plane's area in pixels (about 4 grid points each)
     assert 0.9 * pixels < len(scan) < 1.1 * pixels, len(scan)
+
+
+@requires_modelnet
+def test_finetune_validation_compares_two_models_on_validation_pairs_with_one_solve(tmp_path):
+    from vrnet_ext.model.pretrained import weights_path
+
+    run([str(ROOT / "benchmarks" / "finetune_validation.py"), "--before", "vrnet-pv-upc-rcp",
+         "--after", str(weights_path("vrnet-pv-upc-rcp")), "--max-items", "3", "--batch-size", "3",
+         "--search-below", "0.5", "--irls-iterations", "0", "--data-dir", str(MODELNET_DIR),
+         "--json", "val.json", "--markdown", "val.md"], tmp_path)
+    record = json.loads((tmp_path / "val.json").read_text())
+    assert record["partition"] == "val" and (record["setting"], record["split"]) == ("PV", "UPC")
+    assert record["solve"]["irls_iterations"] == 0 and "rotation_search_below" not in record["solve"]
+    rows = record["rows"]
+    assert [(r["rotations"], r["rotation_search_below"]) for r in rows[:3]] == [("so3", 0.5), ("symmetric", 0.0),
+                                                                               ("protocol", 0.0)]
+    for before, after in zip(rows[:3], rows[3:]):  # the same weights under both names: the same errors
+        assert before["pairs"] == after["pairs"] == 3 and before["model"] != after["model"]
+        assert before["rmse_r"] == after["rmse_r"] and before["recall"] == after["recall"]
+    assert "| so3 |" in (tmp_path / "val.md").read_text()

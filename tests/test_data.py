@@ -6,7 +6,8 @@ from scipy.spatial.transform import Rotation
 
 from conftest import MODELNET_DIR, requires_modelnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec, load_h5, make_pair
-from vrnet_ext.data.protocol import random_motion
+from vrnet_ext.data.protocol import cube_residual, random_motion
+from vrnet_ext.geometry.transforms import cube_rotations
 
 
 def test_rotation_is_dcp_rx_ry_rz():
@@ -40,6 +41,20 @@ def test_so3_rotations_are_uniform():
     angles = np.sort(np.arccos(np.clip((np.trace(rotations, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     expected = (angles - np.sin(angles)) / np.pi
     assert np.abs(np.arange(1, 2001) / 2000 - expected).max() < 0.04  # Kolmogorov-Smirnov, 2000 draws
+
+
+def test_cube_residual_rotations_are_what_the_nearest_cube_start_leaves():
+    cube = cube_rotations()
+    small = Rotation.from_rotvec(np.deg2rad(40.0) * np.array([0.6, -0.8, 0.0])).as_matrix()
+    for start in cube:  # a rotation 40 degrees from a start is brought back to those 40 degrees
+        np.testing.assert_allclose(cube_residual(small @ start), small, atol=1e-12)
+    rotations = np.stack([random_motion(np.random.default_rng(seed), 45.0, 0.5, "cube_residual")[0]
+                          for seed in range(2000)])
+    angles = np.rad2deg(np.arccos(np.clip((np.trace(rotations, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert angles.max() <= 62.81 and angles.max() > 55  # the whole cell of the identity, up to its corners
+    # the identity is the nearest rotation of the cube to every draw, and the draws lean no way
+    assert (np.einsum("nij,kij->nk", rotations, cube).argmax(axis=1) == 0).all()
+    assert np.abs(rotations.mean(axis=0) - np.diag(np.diag(rotations.mean(axis=0)))).max() < 0.05
 
 
 def test_pairs_follow_the_rotation_range_and_a_bad_one_is_refused():

@@ -21,8 +21,9 @@ SPLITS = ("UPC", "UC", "ND")
 DEFAULT_SPLIT = "UPC"
 # How a pair's rotation is drawn (vrnet_ext.data.protocol.random_motion): "protocol", the paper's,
 # each Euler angle in [0, max_angle]; "symmetric", each in [-max_angle, max_angle]; "so3", uniform
-# over all rotations (max_angle unused).
-ROTATION_RANGES = ("protocol", "symmetric", "so3")
+# over all rotations (max_angle unused); "cube_residual", a uniform rotation turned back by the cube
+# rotation nearest it: what is left from the rotation search's nearest start (at most 62.8 degrees).
+ROTATION_RANGES = ("protocol", "symmetric", "so3", "cube_residual")
 DEFAULT_ROTATION_RANGE = "protocol"
 
 DEFAULT_MODEL = "vrnet-pv-upc-rcp"  # the shipped ModelNet40 model of the paper's main cell

@@ -17,7 +17,9 @@ from vrnet_ext.names import (AUTO_DEVICE, BACKENDS, DEFAULT_BACKEND, DEFAULT_ROT
 
 
 ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0, 45] degrees (the paper's); "
-                       "symmetric = in [-45, 45]; so3 = uniform over all rotations")
+                       "symmetric = in [-45, 45]; so3 = uniform over all rotations; cube_residual = a uniform "
+                       "rotation turned back by the cube rotation nearest it (what the rotation search's "
+                       "nearest start leaves)")
 # The estimate's inference-time options: the robust solve, the second pass and the rotation search.
 EVAL_PARTITIONS = ("test", "val")  # vrnet eval --partition (ModelNet40Pairs partitions a model is measured on)
 SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "rotation_search_below",

@@ -4,7 +4,10 @@
   scipy's ``Rotation.from_euler('zyx', [az, ay, ax])`` (extrinsic z, then y, then x);
   translation uniform in [-0.5, 0.5] per axis. ``tgt = R src + t``. Beyond the protocol
   (``rotation_range``): each angle in [-max_angle, max_angle] ("symmetric"), or R uniform over all
-  rotations ("so3", a normalised 4-d Gaussian as the quaternion).
+  rotations ("so3", a normalised 4-d Gaussian as the quaternion), or such a rotation turned back by
+  the rotation of the cube nearest it ("cube_residual": what the rotation search's nearest start
+  leaves, uniform over the rotations within 62.8 degrees that are nearer the identity than any
+  other rotation of the cube).
 * Settings (crops are taken in each cloud's own frame):
   CO all points; PV the ``num_subsampled`` points nearest to a random far point
   (``far_points="prnet"``, the paper's main tables: U[0,1]^3 + 500 s (1,1,1), s in {1,-1}, the SAME
@@ -28,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vrnet_ext.geometry.transforms import move
+from vrnet_ext.geometry.transforms import cube_rotations, move
 from vrnet_ext.names import DEFAULT_ROTATION_RANGE, MIXED, ROTATION_RANGES, SETTINGS
 
 FAR_POINTS = ("prnet", "sphere", "mixed", "symmetric")
@@ -79,8 +82,10 @@ def random_motion(rng: np.random.Generator, max_angle_deg: float, max_translatio
     module docstring)."""
     from scipy.spatial.transform import Rotation  # here, not at import: `vrnet register` never needs it
 
-    if rotation_range == "so3":
+    if rotation_range in ("so3", "cube_residual"):
         turn = Rotation.from_quat(rng.standard_normal(4))  # normalised by scipy: uniform over SO(3)
+        if rotation_range == "cube_residual":
+            turn = Rotation.from_matrix(cube_residual(turn.as_matrix()))
         az, ay, ax = turn.as_euler("zyx")
     else:
         low = -max_angle_deg if rotation_range == "symmetric" else 0.0
@@ -88,6 +93,14 @@ def random_motion(rng: np.random.Generator, max_angle_deg: float, max_translatio
     rotation = Rotation.from_euler("zyx", [az, ay, ax]).as_matrix()
     translation = rng.uniform(-max_translation, max_translation, size=3)
     return rotation, translation, np.rad2deg([az, ay, ax])
+
+
+def cube_residual(rotation: np.ndarray) -> np.ndarray:
+    """(3, 3) R -> R G^T with G the rotation of the cube nearest R (largest trace of R G^T): the
+    rotation left to register from the rotation search's start G."""
+    cube = cube_rotations()
+    nearest = cube[np.argmax(np.einsum("ij,kij->k", rotation, cube))]
+    return rotation @ nearest.T
 
 
 def far_point(rng: np.random.Generator, scheme: str) -> np.ndarray:

@@ -18,13 +18,17 @@ from vrnet_ext.names import DEFAULT_ROTATION_RANGE
 # Model-config fields an export may change: they choose how the estimate is solved, not the weights.
 INFERENCE_FIELDS = ("procrustes_points", "irls_iterations", "irls_kernel", "irls_scale", "second_pass_below",
                     "rotation_search_below", "consistency_radius")
+# How a card names the rotations of the ranges without a largest angle.
+UNIFORM_ROTATIONS = {"so3": "so3: uniform over all rotations",
+                     "cube_residual": "cube_residual: uniform over all rotations, each turned back by the cube "
+                                      "rotation nearest it (at most 62.8 degrees)"}
 
 
 def training_facts(checkpoint: str | os.PathLike, name: str | None = None) -> dict:
     """What a model card says about training, read from a ``vrnet train`` checkpoint and the
     ``metrics.jsonl`` beside it: setting, split, preset, the rotations of its training pairs (how
-    drawn, the largest angle; unused for ``so3``), the selected epoch, steps, wall time, the
-    shipped model its warm starts began from and the wall time of the runs since
+    drawn, the largest angle; unused for ``so3`` and ``cube_residual``), the selected epoch, steps,
+    wall time, the shipped model its warm starts began from and the wall time of the runs since
     (:mod:`vrnet_ext.learning.lineage`), and that epoch's validation metrics.
 
     ``name``: the name the model will be shipped under. When it is the name of the model the chain
@@ -39,8 +43,7 @@ def training_facts(checkpoint: str | os.PathLike, name: str | None = None) -> di
                                               "max_train_items", "val_fraction", "seed")}
     drawn, largest = config.get("rotation_range", DEFAULT_ROTATION_RANGE), config.get("train_max_angle", 45.0)
     lowest = -largest if drawn == "symmetric" else 0
-    facts["rotations"] = ("so3: uniform over all rotations" if drawn == "so3"
-                          else f"{drawn}: each Euler angle in [{lowest:g}, {largest:g}] degrees")
+    facts["rotations"] = UNIFORM_ROTATIONS.get(drawn, f"{drawn}: each Euler angle in [{lowest:g}, {largest:g}] degrees")
     starting_point, runs_seconds = _starting_point(lineage_of(state, str(checkpoint)), name)
     facts.update(stage=state.get("stage"), epoch=(state.get("epoch") or 0) + 1, step=state.get("step"),
                  train_seconds=round(run_seconds(state), 1), starting_point=starting_point,
