@@ -20,8 +20,8 @@
 
 VRNet runs as the paper's does: the configured passes only, never the second pass a shipped model
 takes where its RCPs disagree with its estimate (``second_pass_below`` set to 0). The same
-deterministic test pairs for every method (seed 1234). ``--max-items`` evaluates the first N
-test shapes (the JSON says how many). Nothing here selects or tunes anything.
+deterministic test pairs for every method (seed 1234). ``--max-items`` evaluates N test shapes
+spread evenly over the split (the JSON says how many). Nothing here selects or tunes anything.
 """
 from __future__ import annotations
 
@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
                              "source-VCP and source-target pairs against VRNet alone")
     parser.add_argument("--model", default="vrnet-pv-upc-rcp", help="shipped name or checkpoint")
     parser.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
-    parser.add_argument("--max-items", type=int, default=None, help="first N test shapes only (default: all)")
+    parser.add_argument("--max-items", type=int, default=None, help="N test shapes spread evenly over the split (default: all)")
     parser.add_argument("--batch-size", type=int, default=16, help="pairs per network forward")
     parser.add_argument("--out-dir", type=Path, default=Path("."), help="where ablation_NAME.json and .png go")
     args = parser.parse_args(argv)

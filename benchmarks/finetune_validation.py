@@ -5,7 +5,7 @@ beyond the protocol's and the protocol's own: the comparison a ModelNet40 model 
         [--setting PV --split ND] [--max-items 300] [--search-below 0.1] [solve flags]
         [--json val.json] [--markdown val.md]
 
-Pairs: the first ``--max-items`` shapes of the ``val`` partition (held out of TRAIN by every run,
+Pairs: ``--max-items`` shapes spread evenly over the ``val`` partition (held out of TRAIN by every run,
 never the test split) of the cell (default: the one ``--before`` was trained for), seed 1234, in
 three sets of rotations: uniform over SO(3) with the rotation search (``rotation_search_below`` =
 ``--search-below``), each Euler angle in [-45, 45] degrees (``symmetric``) and the protocol's
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
             + measure(args.after_label, args.after, solve, cell, args))
     machine = f"{cpu_description()}, torch {torch.__version__}, {torch.get_num_threads()} threads"
     date = datetime.date.today().isoformat()
-    caption = (f"{cell[0]} / {cell[1]}, the first {args.max_items} validation shapes (seed 1234; never the test split), "
+    caption = (f"{cell[0]} / {cell[1]}, {args.max_items} validation shapes spread over the partition (seed 1234; never the test split), "
                f"before and after the fine-tune, both solved as {args.before}'s file says"
                f"{' with ' + str(solve_overrides(args)) if solve_overrides(args) else ''}. Recall: rotation error below "
                f"5 degrees and translation error below 0.1; RMSE(R): the paper's (Euler angles); search: "

@@ -248,6 +248,7 @@ def evaluate_cell(name: str, model, config: dict, setting: str, split: str, args
               f"RMSE(t) {row['RMSE(t)']:.4f}, {row['seconds_per_pair'] * 1e3:.1f} ms/pair", flush=True)
     return {"model": name, "weights": weights_digest(name), "solve": solve_of(model.config), "setting": setting,
             "split": split, "pairs": len(data),
+            "shapes": "the whole split" if args.max_items is None else "spread evenly over the split",
             "views": VIEW_PROTOCOL, "rotations": args.rotation_range, "swapped": args.swap, "methods": rows,
             "paper": {k: dict(zip(COLUMNS[:4], v)) for k, v in PAPER.get((setting, split), {}).items()}}
 
@@ -287,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="methods to run: VRNet, its VCPs alone, VRNet in two passes, ICP, FPFH + RANSAC")
     parser.add_argument("--settings", nargs="+", choices=SETTINGS, default=None,
                         help="only these settings of the models' cells (default: every cell a model serves)")
-    parser.add_argument("--max-items", type=int, default=None, help="first N test shapes only (default: all)")
+    parser.add_argument("--max-items", type=int, default=None, help="N test shapes spread evenly over the split (default: all)")
     parser.add_argument("--batch-size", type=int, default=16, help="pairs per network forward")
     parser.add_argument("--icp-max-distance", type=float, default=1.0, help="ICP's correspondence reach")
     parser.add_argument("--fpfh-voxel", type=float, default=0.05, help="FPFH + RANSAC's voxel edge")

@@ -167,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data-dir", type=Path, default=None,
                         help="folder of modelnet40_1024_{train,test}.h5 (None: as `vrnet eval` finds it)")
     parser.add_argument("--partition", default="val", choices=("val", "test"), help="which pairs")
-    parser.add_argument("--max-items", type=int, default=None, help="first N shapes only")
+    parser.add_argument("--max-items", type=int, default=None, help="N shapes spread evenly over the split only")
     parser.add_argument("--batch-size", type=int, default=16, help="pairs per forward")
     parser.add_argument("--variants", nargs="+", choices=[v[0] for v in VARIANTS], default=[v[0] for v in VARIANTS],
                         metavar="NAME", help="rows to run, by name (fp32 first: the ratios are to it)")

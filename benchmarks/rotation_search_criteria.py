@@ -5,7 +5,7 @@ start each criterion would keep, against the best any start reaches.
     python benchmarks/rotation_search_criteria.py [--models vrnet-pv-nd-rcp ...] [--pairs 60]
                                                   [--rotation-range so3] [--json criteria.json]
 
-Pairs: the first ``--pairs`` shapes of each model's cell, partition ``val`` (the shapes training
+Pairs: ``--pairs`` shapes spread evenly over each model's cell, partition ``val`` (the shapes training
 holds out for choosing), seed 99, rotations drawn by ``--rotation-range``. Per pair and start: the
 model's estimate from the source turned by the start, then a pass from that estimate, whichever
 agrees more with its RCPs (as ``VRNet._rotation_search`` takes each start). Criteria, each keeping

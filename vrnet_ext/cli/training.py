@@ -188,7 +188,8 @@ def add_eval(sub) -> None:
                         "out of the train split to choose checkpoints by (the same pairs as its validation): compare "
                         "fine-tunes and settings there, never on test")
     p.add_argument("--max-items", type=positive_int, default=None,
-                   help="evaluate the first N shapes of --partition only (default: all of it)")
+                   help="evaluate N shapes of --partition spread evenly over it (its classes in proportion; "
+                        "default: all of it)")
     p.add_argument("--iterations", type=positive_int, default=None,
                    help="ICP-like passes (paper Table 'with iteration') (default: the model's)")
     add_solve_options(p, "the model's")

@@ -55,6 +55,15 @@ def load_h5(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return points, labels
 
 
+def spread_positions(count: int, wanted: int) -> np.ndarray:
+    """``min(wanted, count)`` of the positions 0 .. count - 1, evenly spaced from 0: a sample of a list
+    sorted by class holds every class in proportion (ModelNet40's files list their shapes by class,
+    so their first 100 test shapes are all airplanes)."""
+    if wanted >= count:
+        return np.arange(count)
+    return np.arange(wanted) * count // wanted
+
+
 # The val / train division of TRAIN is drawn with this seed in every run, whatever the run's own
 # seed: a model warm-started from another run never trains on that run's validation shapes.
 HOLDOUT_SEED = 1234
@@ -71,7 +80,8 @@ class ModelNet40Pairs(Dataset):
         val_fraction: share of the train shapes held out as ``val`` (drawn with :data:`HOLDOUT_SEED`,
             disjoint from train).
         classes: optional subset of labels to keep (after the split's own filter).
-        max_items: keep at most this many shapes (after filtering), for small runs.
+        max_items: keep at most this many shapes (after filtering), for small runs and samples: spread
+            evenly over the list (:func:`spread_positions`), whose files hold the shapes class by class.
         seed: seed of the pairs. Test and val pairs are fixed per (seed, item); train pairs vary
             with :meth:`set_epoch` and are reproducible from (seed, epoch, index).
         spec: :class:`PairSpec` overrides (point counts, angles).
@@ -106,7 +116,7 @@ class ModelNet40Pairs(Dataset):
         if classes is not None:
             keep = keep[np.isin(labels[keep], classes)]
         if max_items is not None:
-            keep = keep[:max_items]
+            keep = keep[spread_positions(keep.size, max_items)]
         if keep.size == 0:
             raise ValueError(f"no shapes left for partition={partition} split={split} classes={classes}")
         self.points = points[keep]
