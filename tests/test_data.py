@@ -6,6 +6,7 @@ from scipy.spatial.transform import Rotation
 
 from conftest import MODELNET_DIR, requires_modelnet
 from vrnet_ext.data import ModelNet40Pairs, PairSpec, load_h5, make_pair
+from vrnet_ext.data.modelnet import spread_positions
 from vrnet_ext.data.protocol import cube_residual, random_motion
 from vrnet_ext.geometry.transforms import cube_rotations
 
@@ -41,6 +42,19 @@ def test_so3_rotations_are_uniform():
     angles = np.sort(np.arccos(np.clip((np.trace(rotations, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     expected = (angles - np.sin(angles)) / np.pi
     assert np.abs(np.arange(1, 2001) / 2000 - expected).max() < 0.04  # Kolmogorov-Smirnov, 2000 draws
+
+
+def test_spread_positions_sample_a_class_sorted_list_in_proportion():
+    assert spread_positions(10, 4).tolist() == [0, 2, 5, 7]
+    assert spread_positions(3, 5).tolist() == [0, 1, 2] and spread_positions(7, 7).tolist() == list(range(7))
+    labels = np.repeat(np.arange(40), 25)  # a file of 40 classes of 25 shapes, listed class by class
+    assert np.bincount(labels[spread_positions(labels.size, 80)], minlength=40).tolist() == [2] * 40
+
+
+@requires_modelnet
+def test_max_items_keeps_shapes_of_every_class():
+    pairs = ModelNet40Pairs(MODELNET_DIR, partition="test", setting="PV", max_items=100)
+    assert len(pairs) == 100 and np.unique(pairs.labels).size >= 30  # not the first class's 100 airplanes
 
 
 def test_cube_residual_rotations_are_what_the_nearest_cube_start_leaves():
