@@ -106,8 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     cell = (args.setting or config.get("setting"), args.split or config.get("split"))
     if cell[0] not in SETTINGS or cell[1] not in SPLITS:
         raise SystemExit(f"--before {args.before} names no single cell ({cell[0]} / {cell[1]}): give --setting and --split")
-    searches = "rotation_search_below"  # each set of pairs says whether it searches
-    solve = {key: config["model"][key] for key in INFERENCE_FIELDS if key in config["model"] and key != searches}
+    # each set of pairs says whether it searches; each model searches about its own training rotations
+    own = ("rotation_search_below", "rotation_search_centre")
+    solve = {key: config["model"][key] for key in INFERENCE_FIELDS if key in config["model"] and key not in own}
     solve.update(solve_overrides(args))
     rows = (measure(f"{args.before} (before)", args.before, solve, cell, args)
             + measure(args.after_label, args.after, solve, cell, args))

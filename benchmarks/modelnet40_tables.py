@@ -55,7 +55,7 @@ from vrnet_ext.geometry.metrics import summarize
 from vrnet_ext.learning.export import INFERENCE_FIELDS
 from vrnet_ext.model import VRNetConfig
 from vrnet_ext.ops import kabsch
-from vrnet_ext.model.checkpoints import read_checkpoint
+from vrnet_ext.model.checkpoints import model_values, read_checkpoint
 from vrnet_ext.model.pretrained import available, cells, load_vrnet, weights_path
 from vrnet_ext.names import DEFAULT_ROTATION_RANGE, ROTATION_RANGES
 from vrnet_ext.registration import IcpFailure, IcpSettings, icp
@@ -184,12 +184,13 @@ def solve_options(name: str) -> dict:
     :func:`solve_of`): a measurement holds for these and its weights; ``vrnet export`` may change
     them without touching the weights."""
     path = weights_path(name) if name in available("vrnet") else Path(name)
-    return solve_of(VRNetConfig.from_dict(read_checkpoint(path)["config"]["model"]))
+    return solve_of(VRNetConfig.from_dict(model_values(read_checkpoint(path)["config"], str(path))))
 
 
 def solve_of(config: VRNetConfig) -> dict:
     """The model config's inference-time fields (:data:`vrnet_ext.learning.export.INFERENCE_FIELDS`)."""
-    return {field: getattr(config, field) for field in INFERENCE_FIELDS}
+    values = config.to_dict()  # JSON's types (lists), as the measurements record them
+    return {field: values[field] for field in INFERENCE_FIELDS}
 
 
 def weights_digest(name: str) -> str:

@@ -268,3 +268,35 @@ def test_eval_names_a_bad_device_before_reading_a_checkpoint(capsys):
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert "argument --device: not a device name" in err and "not a vrnet checkpoint" not in err
+
+
+@pytest.mark.parametrize("drawn, largest, centre", [(None, None, 22.5), ("protocol", 30.0, 15.0),
+                                                    ("symmetric", 45.0, 0.0), ("so3", None, 0.0)])
+def test_a_file_searches_about_the_rotations_it_was_trained_on(tmp_path, drawn, largest, centre):
+    config = VRNetConfig.small(**TINY).to_dict()
+    del config["rotation_search_centre"]  # as files written before the field
+    torch.manual_seed(0)
+    weights = VRNet(VRNetConfig.from_dict(config)).state_dict()
+    training = {"model": config, "setting": "PV", "split": "UPC"}
+    training.update({k: v for k, v in (("rotation_range", drawn), ("train_max_angle", largest)) if v is not None})
+    torch.save({"model": weights, "config": training}, tmp_path / "run.pt")
+    model, _ = load_model(tmp_path / "run.pt")
+    assert model.config.rotation_search_centre == (centre,) * 3
+    shipped = export_pretrained(tmp_path / "run.pt", tmp_path / "shipped.pt", {})
+    assert read_checkpoint(shipped)["config"]["model"]["rotation_search_centre"] == [centre] * 3  # said, not implied
+    named = dict(config, rotation_search_centre=[0.0, 10.0, -5.0])  # a file naming its centre keeps it
+    torch.save({"model": weights, "config": dict(training, model=named)}, tmp_path / "named.pt")
+    assert load_model(tmp_path / "named.pt")[0].config.rotation_search_centre == (0.0, 10.0, -5.0)
+
+
+@pytest.mark.parametrize("training", [{"rotation_range": "octant"}, {"train_max_angle": float("nan")},
+                                      {"train_max_angle": 400.0}, {"train_max_angle": "45"},
+                                      {"model_centre": [0.0, 0.0]}, {"model_centre": [float("nan"), 0.0, 0.0]}])
+def test_a_bad_search_centre_or_training_range_is_refused_naming_the_file(tmp_path, training):
+    config = VRNetConfig.small(**TINY).to_dict()
+    del config["rotation_search_centre"]
+    if "model_centre" in training:
+        config["rotation_search_centre"] = training.pop("model_centre")
+    torch.save({"model": {}, "config": {"model": config, **training}}, tmp_path / "odd.pt")
+    with pytest.raises(CheckpointError, match=str(tmp_path / "odd.pt")):
+        load_model(tmp_path / "odd.pt")

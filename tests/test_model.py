@@ -1,6 +1,7 @@
 import importlib
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -470,16 +471,17 @@ def _nearest_median(src, tgt, rotation, translation):
     return torch.cdist(moved, tgt.double()).min(dim=-1).values.median(dim=-1).values
 
 
-def test_the_rotation_search_keeps_the_start_that_brings_each_doubtful_pair_closest():
-    from vrnet_ext.geometry.transforms import cube_rotations
+@pytest.mark.parametrize("centre", [(0.0, 0.0, 0.0), (22.5, 22.5, 22.5)])
+def test_the_rotation_search_keeps_the_start_that_brings_each_doubtful_pair_closest(centre):
+    from vrnet_ext.geometry.transforms import search_starts
 
     src, tgt = turned_pairs()
-    starts = torch.as_tensor(cube_rotations(), dtype=src.dtype)
+    starts = torch.as_tensor(np.concatenate([np.eye(3)[None], search_starts(centre)]), dtype=src.dtype)
     plain = small_model(consistency_radius=1.0).eval()
     with torch.no_grad():
         first = plain(src, tgt)
         runs = [_looked_twice(plain, src, tgt, g) for g in starts[1:]]
-    distance = torch.stack([_nearest_median(src, tgt, run[0], run[1]) for run in runs], dim=1)  # (B, 23)
+    distance = torch.stack([_nearest_median(src, tgt, run[0], run[1]) for run in runs], dim=1)  # (B, S)
     best = distance.argmin(dim=1)
     below = float(first.consistency.sort().values[-2])  # every pair but the most consistent one searches
     searched = first.consistency < below
@@ -487,7 +489,7 @@ def test_the_rotation_search_keeps_the_start_that_brings_each_doubtful_pair_clos
     assert turned.any(), "some searched pair must take a start (a kept row: the second-pass tests)"
     found_R = torch.stack([runs[int(b)][0][i] for i, b in enumerate(best)])
     found_t = torch.stack([runs[int(b)][1][i] for i, b in enumerate(best)])
-    model = small_model(consistency_radius=1.0, rotation_search_below=below).eval()
+    model = small_model(consistency_radius=1.0, rotation_search_below=below, rotation_search_centre=centre).eval()
     with torch.no_grad():
         out = model(src, tgt)
     pick = turned[:, None, None]
@@ -547,6 +549,7 @@ def test_the_shipped_model_registers_any_rotation_with_the_search():
 @pytest.mark.parametrize("field, value", [("second_pass_below", 1.5), ("second_pass_below", -0.1),
                                           ("second_pass_below", float("nan")), ("consistency_radius", 0.0),
                                           ("rotation_search_below", 2.0), ("rotation_search_below", float("nan")),
+                                          ("rotation_search_centre", (0.0, 0.0)), ("rotation_search_centre", (0, 0, 200)),
                                           ("consistency_radius", float("inf"))])
 def test_second_pass_options_are_checked(field, value):
     with pytest.raises(ValueError, match=field):

@@ -67,3 +67,28 @@ def test_transforms_on_a_gpu_with_tf32_allowed_keep_float32():
     finally:
         matmul.fp32_precision = previous
     assert (moved.double().cpu() - points @ rotation.T).abs().max() < 1e-4 * 100
+
+
+def _angles_deg(rotations):
+    return np.rad2deg(np.arccos(np.clip((np.trace(rotations, axis1=-2, axis2=-1) - 1) / 2, -1, 1)))
+
+
+def test_the_search_starts_leave_every_motion_near_the_identity_and_near_the_centre():
+    from vrnet_ext.geometry.transforms import cube_rotations, search_starts
+
+    cube = cube_rotations()
+    np.testing.assert_array_equal(search_starts(), cube[1:])  # about the identity: the 23 other cube rotations
+    centre_angles = (22.5, 22.5, 22.5)
+    starts = search_starts(centre_angles)
+    assert starts.shape == (47, 3, 3)
+    np.testing.assert_array_equal(starts[:23], cube[1:])
+    np.testing.assert_allclose(starts @ starts.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (47, 3, 3)), atol=1e-12)
+    centre = Rotation.from_euler("zyx", centre_angles, degrees=True).as_matrix()
+    motions = Rotation.random(3000, random_state=7).as_matrix()
+    left = motions[:, None] @ starts[None, 23:].transpose(0, 1, 3, 2)  # what each centred start leaves, M G^T
+    from_centre = _angles_deg(left @ centre.T).min(axis=1)
+    assert from_centre.max() <= 62.81 and from_centre.max() > 55  # every motion, up to the cells' corners
+    from_identity = _angles_deg(motions[:, None] @ cube[None].transpose(0, 1, 3, 2)).min(axis=1)
+    assert from_identity.max() <= 62.81
+    with pytest.raises(ValueError):
+        search_starts((1.0, 2.0))

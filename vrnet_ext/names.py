@@ -25,6 +25,7 @@ DEFAULT_SPLIT = "UPC"
 # rotation nearest it: what is left from the rotation search's nearest start (at most 62.8 degrees).
 ROTATION_RANGES = ("protocol", "symmetric", "so3", "cube_residual")
 DEFAULT_ROTATION_RANGE = "protocol"
+DEFAULT_MAX_ANGLE = 45.0  # the protocol's largest Euler angle, in degrees
 
 DEFAULT_MODEL = "vrnet-pv-upc-rcp"  # the shipped ModelNet40 model of the paper's main cell
 DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-real"  # the shipped scene model (vrnet register --method vrnet)

@@ -23,13 +23,13 @@ ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0,
 # The estimate's inference-time options: the robust solve, the second pass and the rotation search.
 EVAL_PARTITIONS = ("test", "val")  # vrnet eval --partition (ModelNet40Pairs partitions a model is measured on)
 SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "rotation_search_below",
-              "consistency_radius")
+              "rotation_search_centre", "consistency_radius")
 
 
 def add_solve_options(parser, default: str) -> None:
     """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale``, ``--second-pass-below``,
-    ``--rotation-search-below``, ``--consistency-radius`` (VRNetConfig's fields of these names); ``default`` says what applies
-    when a flag is not given."""
+    ``--rotation-search-below``, ``--rotation-search-centre``, ``--consistency-radius`` (VRNetConfig's fields of these
+    names); ``default`` says what applies when a flag is not given."""
     from vrnet_ext.model.config import IRLS_KERNELS
 
     parser.add_argument("--irls-iterations", type=nonnegative_int, default=None,
@@ -44,10 +44,17 @@ def add_solve_options(parser, default: str) -> None:
                              f"(default: {default})")
     parser.add_argument("--rotation-search-below", type=unit_interval, default=None,
                         help="register a pair again from its source turned by each of the 23 other rotations of a "
-                             "cube when fewer than this share of its RCPs agree with its estimate (after the second "
-                             "pass), and keep the start whose estimate brings the source nearest the target (the "
-                             "median distance to the nearest target point): any rotation, at 46 more passes per "
-                             f"searched pair (a pass and a second look per start); 0: never (default: {default})")
+                             "cube (and 24 more about --rotation-search-centre) when fewer than this share of its "
+                             "RCPs agree with its estimate (after the second pass), and keep the start whose estimate "
+                             "brings the source nearest the target (the median distance to the nearest target "
+                             "point): any rotation, at 46 more passes per searched pair (a pass and a second look "
+                             f"per start; 94 with a centre); 0: never (default: {default})")
+    parser.add_argument("--rotation-search-centre", type=float, nargs=3, default=None, metavar=("Z", "Y", "X"),
+                        help="Euler angles (degrees, scipy's 'zyx') of the centre of the rotations the model was "
+                             "trained on: where not 0 0 0, the search also starts from the 24 cube rotations "
+                             "turned so that one leaves a motion near it (24 more starts); a model file sets it "
+                             "from its training rotations (protocol: 22.5 22.5 22.5) "
+                             f"(default: {default})")
     parser.add_argument("--consistency-radius", type=positive_float, default=None,
                         help=f"how near its estimate an RCP must lie to agree with it, in the clouds' units "
                              f"(default: {default})")
@@ -342,7 +349,7 @@ def _read_test_results(path: str) -> str:
 
 
 def run_export(args) -> int:
-    from vrnet_ext.model.checkpoints import read_checkpoint
+    from vrnet_ext.model.checkpoints import model_values, read_checkpoint
     from vrnet_ext.model.config import VRNetConfig
     from vrnet_ext.model.scene import SCENE_FORMAT
     from vrnet_ext.learning.export import export_pretrained, export_scene_model
@@ -366,7 +373,8 @@ def run_export(args) -> int:
     if args.cells:
         card["cells"] = _cells(args.cells)
     tests = [_read_eval_json(path) for path in args.test_json or []]
-    served = {**VRNetConfig().to_dict(), **state["config"]["model"], **overrides}  # older files name fewer fields
+    # older files name fewer fields
+    served = {**VRNetConfig().to_dict(), **model_values(state["config"], args.checkpoint), **overrides}
     for path, test in zip(args.test_json or [], tests):
         if test.get("partition", "test") != "test":
             raise ValueError(f"--test-json {path}: measured on the {test['partition']} pairs; a card's test table "

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vrnet_ext.geometry.transforms import cube_rotations, move
-from vrnet_ext.names import DEFAULT_ROTATION_RANGE, MIXED, ROTATION_RANGES, SETTINGS
+from vrnet_ext.names import DEFAULT_MAX_ANGLE, DEFAULT_ROTATION_RANGE, MIXED, ROTATION_RANGES, SETTINGS
 
 FAR_POINTS = ("prnet", "sphere", "mixed", "symmetric")
 # How the default ("prnet") partial views are cut, recorded with measurements so that a table never
@@ -56,7 +56,7 @@ class PairSpec:
     num_points: int = 1024
     num_subsampled: int = 768
     pvrs_presample: int | None = None  # PV+RS random pre-sample; default 896/1024 of num_points
-    max_angle_deg: float = 45.0
+    max_angle_deg: float = DEFAULT_MAX_ANGLE
     rotation_range: str = DEFAULT_ROTATION_RANGE
     max_translation: float = 0.5
     far_points: str = "prnet"  # where PV's far points lie: see the module docstring

@@ -67,6 +67,21 @@ def cube_rotations() -> np.ndarray:
     return np.stack(found)
 
 
+def search_starts(centre_zyx_degrees=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """The rotation search's starts, (S, 3, 3) float64: the 23 cube rotations other than the identity
+    (every motion M lies within 62.8 degrees of one of them, G, and M G^T is what is left to register
+    from the source turned by G); where the centre C (Euler angles z, y, x in degrees, scipy's
+    ``"zyx"``) is not the identity, also the 24 rotations C^T G (M (C^T G)^T = M G^T C lies within
+    62.8 degrees of C)."""
+    cube = cube_rotations()
+    if not np.any(centre_zyx_degrees):
+        return cube[1:]
+    from scipy.spatial.transform import Rotation  # here, not at import: `vrnet register` never needs it
+
+    centre = Rotation.from_euler("zyx", centre_zyx_degrees, degrees=True).as_matrix()
+    return np.concatenate([cube[1:], centre.T @ cube])
+
+
 def to_homogeneous(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """(3, 3) R and (3,) t -> (4, 4) float64 numpy matrix."""
     T = np.eye(4)

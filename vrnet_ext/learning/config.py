@@ -8,18 +8,29 @@ import math
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
 from vrnet_ext.model.config import VRNetConfig
-from vrnet_ext.names import (AUTO_DEVICE, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING, DEFAULT_SPLIT,
-                             ROTATION_RANGES)
+from vrnet_ext.names import (AUTO_DEVICE, DEFAULT_BACKEND, DEFAULT_MAX_ANGLE, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING,
+                             DEFAULT_SPLIT, ROTATION_RANGES)
+
+
+
+def trained_model(config: VRNetConfig) -> dict:
+    """A model configuration to train, as a dict without the rotation search's centre: that follows
+    the rotations the run draws (:func:`vrnet_ext.model.checkpoints.model_values`) unless a run sets
+    it."""
+    values = config.to_dict()
+    del values["rotation_search_centre"]
+    return values
+
 
 PRESETS = {
-    "paper": dict(model=VRNetConfig().to_dict(), batch_size=28, stage1_epochs=100, stage2_epochs=100,
+    "paper": dict(model=trained_model(VRNetConfig()), batch_size=28, stage1_epochs=100, stage2_epochs=100,
                   num_points=1024, num_subsampled=768),
-    "small": dict(model=VRNetConfig.small().to_dict(), batch_size=8, stage1_epochs=3, stage2_epochs=2,
+    "small": dict(model=trained_model(VRNetConfig.small()), batch_size=8, stage1_epochs=3, stage2_epochs=2,
                   num_points=512, num_subsampled=384, max_train_items=480, max_val_items=96),
-    "cpu": dict(model=VRNetConfig.small().to_dict(), batch_size=16, stage1_epochs=30, stage2_epochs=10,
+    "cpu": dict(model=trained_model(VRNetConfig.small()), batch_size=16, stage1_epochs=30, stage2_epochs=10,
                 num_points=1024, num_subsampled=768, lr_milestones=[20]),
-    "tiny": dict(model=VRNetConfig.small(k=8, dgcnn_channels=(16, 16), emb_dims=32, heads=2, ff_dims=64,
-                                         walk_channels=(32, 16, 3)).to_dict(),
+    "tiny": dict(model=trained_model(VRNetConfig.small(k=8, dgcnn_channels=(16, 16), emb_dims=32, heads=2,
+                                                       ff_dims=64, walk_channels=(32, 16, 3))),
                  batch_size=4, stage1_epochs=1, stage2_epochs=1, num_points=96, num_subsampled=64,
                  max_train_items=16, max_val_items=8),
 }
@@ -131,7 +142,7 @@ class DataOptions:
     max_train_items: int | None = None
     max_val_items: int | None = None
     val_fraction: float = 0.1
-    train_max_angle: float = 45.0
+    train_max_angle: float = DEFAULT_MAX_ANGLE
     rotation_range: str = DEFAULT_ROTATION_RANGE
     seed: int = 1234
 
@@ -232,7 +243,7 @@ class TrainConfig:
     :meth:`to_dict`'s flat form."""
 
     preset: str = "paper"
-    model: dict = field(default_factory=lambda: VRNetConfig().to_dict())
+    model: dict = field(default_factory=lambda: trained_model(VRNetConfig()))
     data: DataOptions = field(default_factory=DataOptions)
     schedule: ScheduleOptions = field(default_factory=ScheduleOptions)
     loss: LossOptions = field(default_factory=LossOptions)

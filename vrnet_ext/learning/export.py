@@ -8,16 +8,16 @@ from pathlib import Path
 
 from vrnet_ext.geometry.atomic import save_atomically, write_text_atomically
 from vrnet_ext.learning.lineage import Lineage, lineage_of, run_seconds
-from vrnet_ext.model.checkpoints import model_from_state, read_checkpoint, validate_model_config
+from vrnet_ext.model.checkpoints import model_from_state, model_values, read_checkpoint, validate_model_config
 from vrnet_ext.model.pretrained import (DEFAULT_MODEL, FORMAT, available, card_runs_seconds, model_card,
                                         training_seconds)
 from vrnet_ext.model.scene import SCENE_FORMAT
-from vrnet_ext.names import DEFAULT_ROTATION_RANGE
+from vrnet_ext.names import DEFAULT_MAX_ANGLE, DEFAULT_ROTATION_RANGE
 
 
 # Model-config fields an export may change: they choose how the estimate is solved, not the weights.
 INFERENCE_FIELDS = ("procrustes_points", "irls_iterations", "irls_kernel", "irls_scale", "second_pass_below",
-                    "rotation_search_below", "consistency_radius")
+                    "rotation_search_below", "rotation_search_centre", "consistency_radius")
 # How a card names the rotations of the ranges without a largest angle.
 UNIFORM_ROTATIONS = {"so3": "so3: uniform over all rotations",
                      "cube_residual": "cube_residual: uniform over all rotations, each turned back by the cube "
@@ -41,7 +41,8 @@ def training_facts(checkpoint: str | os.PathLike, name: str | None = None) -> di
     facts = {key: config.get(key) for key in ("preset", "setting", "split", "num_points", "num_subsampled",
                                               "batch_size", "stage1_epochs", "stage2_epochs", "precision",
                                               "max_train_items", "val_fraction", "seed")}
-    drawn, largest = config.get("rotation_range", DEFAULT_ROTATION_RANGE), config.get("train_max_angle", 45.0)
+    drawn = config.get("rotation_range", DEFAULT_ROTATION_RANGE)
+    largest = config.get("train_max_angle", DEFAULT_MAX_ANGLE)
     lowest = -largest if drawn == "symmetric" else 0
     facts["rotations"] = UNIFORM_ROTATIONS.get(drawn, f"{drawn}: each Euler angle in [{lowest:g}, {largest:g}] degrees")
     starting_point, runs_seconds = _starting_point(lineage_of(state, str(checkpoint)), name)
@@ -86,7 +87,8 @@ def export_pretrained(checkpoint: str | os.PathLike, out_path: str | os.PathLike
     overrides = dict(model_overrides or {})
     if set(overrides) - set(INFERENCE_FIELDS):
         raise ValueError(f"model_overrides may set {', '.join(INFERENCE_FIELDS)} only, got {sorted(overrides)}")
-    config["model"] = validate_model_config(dict(config["model"], **overrides), "model_overrides").to_dict()
+    config["model"] = validate_model_config(dict(model_values(config, str(checkpoint)), **overrides),
+                                            "model_overrides").to_dict()
     card = json.loads(json.dumps(card))
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)

@@ -45,7 +45,7 @@ from torch.utils.data import DataLoader, Dataset
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
-from vrnet_ext.model.checkpoints import read_checkpoint, validate_model_config
+from vrnet_ext.model.checkpoints import model_values, read_checkpoint, validate_model_config
 from vrnet_ext.names import AUTO_DEVICE
 from vrnet_ext.data import ModelNet40Pairs, PairSpec
 from vrnet_ext.learning.evaluate import evaluate, to_device
@@ -201,7 +201,7 @@ def _check_resumable(state: dict, model_cfg: VRNetConfig, path: str) -> None:
     if "step" not in state or "optimizer" not in state or not isinstance(state["config"].get("model"), dict):
         raise ValueError(f"resume: {path} is not a checkpoint of `vrnet train` (shipped weights and scene models "
                          f"hold no training state; start a run from one with features_from / walk_from)")
-    saved = validate_model_config(state["config"]["model"], path).to_dict()
+    saved = validate_model_config(model_values(state["config"], path), path).to_dict()
     wanted = model_cfg.to_dict()
     saved["backend"] = wanted["backend"]  # the kernels used do not change the model
     differing = sorted(k for k in wanted if saved.get(k) != wanted[k])
@@ -295,7 +295,7 @@ def train(cfg: TrainConfig, datasets: tuple[Dataset, Dataset] | None = None) -> 
         (out_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
         _tidy(out_dir, state)
     torch.manual_seed(cfg.data.seed)
-    model_cfg = VRNetConfig.from_dict(dict(cfg.model, backend=cfg.runtime.backend))
+    model_cfg = VRNetConfig.from_dict(dict(model_values(cfg.to_dict()), backend=cfg.runtime.backend))
     model = VRNet(model_cfg).to(run.device)
     train_set, val_set = datasets if datasets is not None else _datasets(cfg)
     sampler = DistributedSampler(train_set, num_replicas=run.world, rank=run.rank, shuffle=True, seed=cfg.data.seed,

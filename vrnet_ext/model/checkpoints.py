@@ -24,6 +24,8 @@ from pathlib import Path
 import torch
 
 from vrnet_ext.model import VRNet, VRNetConfig
+from vrnet_ext.model.config import training_rotations_centre
+from vrnet_ext.names import DEFAULT_MAX_ANGLE, DEFAULT_ROTATION_RANGE
 from vrnet_ext.model.scene import SCENE_FORMAT, SceneConfig, SceneVRNet
 
 # Inclusive (low, high) bounds on the model configuration a file may ask for. The paper's model
@@ -67,6 +69,24 @@ def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     return state
 
 
+def model_values(config: dict, source: str = "config") -> dict:
+    """The model configuration of a training config (a checkpoint's ``config``), with the rotation
+    search's centre (``VRNetConfig.rotation_search_centre``) set from the rotations its training
+    pairs were drawn from (``rotation_range``, ``train_max_angle``) where the model configuration
+    does not name one (files written before that field)."""
+    values = dict(config["model"])
+    if "rotation_search_centre" not in values:
+        drawn = config.get("rotation_range", DEFAULT_ROTATION_RANGE)
+        largest = config.get("train_max_angle", DEFAULT_MAX_ANGLE)
+        if not isinstance(largest, (int, float)) or isinstance(largest, bool) or not 0 < largest <= 180:
+            raise CheckpointError(f"{source}: train_max_angle = {largest!r} is outside (0, 180] degrees")
+        try:
+            values["rotation_search_centre"] = list(training_rotations_centre(drawn, largest))
+        except ValueError as exc:
+            raise CheckpointError(f"{source}: {exc}") from None
+    return values
+
+
 def validate_model_config(values: dict, source: str = "config") -> VRNetConfig:
     """A :class:`VRNetConfig` from untrusted ``values``, every size checked against the limits."""
     try:
@@ -96,7 +116,7 @@ def model_from_state(state: dict, source: str) -> VRNet | SceneVRNet:
         except (TypeError, ValueError) as exc:
             raise CheckpointError(f"{source}: invalid scene-model configuration: {exc}") from None
     else:
-        model = VRNet(validate_model_config(state["config"]["model"], source))
+        model = VRNet(validate_model_config(model_values(state["config"], source), source))
     weights = {k: v.float() if v.dtype == torch.float16 else v
                for k, v in checked_weights(state["model"], model.state_dict(), source).items()}
     try:
@@ -134,4 +154,5 @@ def checked_weights(weights: dict, expected: dict[str, torch.Tensor], source: st
     return weights
 
 
-__all__ = ["CheckpointError", "checked_weights", "MODEL_LIMITS", "model_from_state", "read_checkpoint", "validate_model_config"]
+__all__ = ["CheckpointError", "checked_weights", "MODEL_LIMITS", "model_from_state", "model_values", "read_checkpoint",
+           "validate_model_config"]

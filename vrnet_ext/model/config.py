@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from vrnet_ext.names import BACKENDS, PROCRUSTES_POINTS, TRANSFORMER_PRECISIONS
+from vrnet_ext.names import BACKENDS, PROCRUSTES_POINTS, ROTATION_RANGES, TRANSFORMER_PRECISIONS
 
 # The robust weights of the IRLS steps (vrnet_ext.ops.kabsch.ROBUST_KERNELS, named here too so that
 # this module stays free of torch: the CLI builds its parsers from it).
@@ -56,16 +56,25 @@ class VRNetConfig:
       failed (a large rotation, a symmetric shape) has almost none, and a second look from closer
       usually fixes it.
     * ``rotation_search_below``: after the second pass, a pair whose consistency is still below this
-      share is registered again from its source turned by each of the 23 other rotations of a cube
-      (:func:`vrnet_ext.geometry.transforms.cube_rotations`: every rotation lies within 63 degrees of
-      one of them), a few pairs' starts per batch, each start followed by a second look from its
-      estimate (kept where its RCPs agree more); the start whose estimate brings the source closest
-      to the target (the median distance to the nearest target point) is kept where it brings it
-      closer than the estimate so far (not in the paper; 0:
-      never; eval mode only). A model trained on the protocol's rotations (each Euler angle in
-      [0, 45] degrees) fails on most other motions; with the search it registers rotations from all
-      of SO(3), at 23 x (iterations + 1) more passes (46 with one pass) for each pair it searches and
-      none for the others.
+      share is registered again from its source turned by each start of
+      :func:`vrnet_ext.geometry.transforms.search_starts` (the 23 other rotations of a cube: every
+      rotation lies within 63 degrees of one of them; 24 more about ``rotation_search_centre``), a
+      few pairs' starts per batch, each start followed by a second look from its estimate (kept
+      where its RCPs agree more); the start whose estimate brings the source closest to the target
+      (the median distance to the nearest target point) is kept where it brings it closer than the
+      estimate so far (not in the paper; 0: never; eval mode only). A model trained on the
+      protocol's rotations (each Euler angle in [0, 45] degrees) fails on most other motions; with
+      the search it registers rotations from all of SO(3), at S x (iterations + 1) more passes for
+      each pair it searches (S = 23 starts, 47 with a centre other than the identity) and none for
+      the others.
+    * ``rotation_search_centre``: the Euler angles (z, y, x in degrees; scipy's ``"zyx"``) of the
+      centre of the rotations the model was trained on (:func:`training_rotations_centre`). Where it
+      is not the identity, the rotation search also starts from the source turned by each cube
+      rotation followed by this rotation's inverse, so that for any motion one of these starts
+      leaves a motion within 62.8 degrees of the centre, among the rotations the model learned (a
+      model trained on the protocol's octant registers few of the motions the cube's starts leave
+      about the identity). Loading a file sets it from the rotations its training pairs were drawn
+      from (:func:`vrnet_ext.model.checkpoints.model_values`).
     * ``correction_walk=False`` gives DCP-v2 (VCPs only) for the ablation.
 
     Run-time choices (no effect on the weights):
@@ -106,6 +115,7 @@ class VRNetConfig:
     iterations: int = 1
     second_pass_below: float = 0.0
     rotation_search_below: float = 0.0
+    rotation_search_centre: tuple[float, float, float] = (0.0, 0.0, 0.0)
     consistency_radius: float = 0.02
     backend: str = "ext"
     transformer_precision: str = "auto"
@@ -128,6 +138,10 @@ class VRNetConfig:
         if not 0 <= self.second_pass_below <= 1 or not 0 < self.consistency_radius < float("inf"):
             raise ValueError(f"second_pass_below must be in [0, 1] and consistency_radius a positive finite "
                              f"distance, got {self.second_pass_below} and {self.consistency_radius}")
+        self.rotation_search_centre = tuple(float(a) for a in self.rotation_search_centre)
+        if len(self.rotation_search_centre) != 3 or not all(-180 <= a <= 180 for a in self.rotation_search_centre):
+            raise ValueError(f"rotation_search_centre must be three Euler angles in [-180, 180] degrees, "
+                             f"got {self.rotation_search_centre}")
         if not 0 <= self.rotation_search_below <= 1:
             raise ValueError(f"rotation_search_below must be in [0, 1], got {self.rotation_search_below}")
         if self.irls_kernel not in IRLS_KERNELS:
@@ -159,4 +173,14 @@ class VRNetConfig:
         return cls(**values)
 
 
-__all__ = ["VRNetConfig"]
+def training_rotations_centre(rotation_range: str, max_angle: float) -> tuple[float, float, float]:
+    """The Euler angles (z, y, x, degrees) at the centre of the rotations drawn as ``rotation_range``
+    says with ``max_angle`` (:func:`vrnet_ext.data.protocol.random_motion`): half of it about every
+    axis for the protocol's (each angle in [0, max_angle]), the identity for the ranges centred on it."""
+    if rotation_range not in ROTATION_RANGES:
+        raise ValueError(f"rotation_range must be one of {ROTATION_RANGES}, got {rotation_range!r}")
+    half = max_angle / 2 if rotation_range == "protocol" else 0.0
+    return (half, half, half)
+
+
+__all__ = ["VRNetConfig", "training_rotations_centre"]

@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from vrnet_ext.geometry.metrics import correct_match_ratio
-from vrnet_ext.geometry.transforms import compose, cube_rotations, move
+from vrnet_ext.geometry.transforms import compose, move, search_starts
 from vrnet_ext.model.config import VRNetConfig
 from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
@@ -244,13 +244,14 @@ class VRNet(nn.Module):
     def _rotation_search(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
                          return_matching: bool, tgt_features: torch.Tensor | None) -> None:
         """Registers the pairs whose consistency is still below ``rotation_search_below`` again from
-        the source turned by each other rotation of the cube (:func:`cube_rotations`), a few pairs'
-        turns per batch, each start followed by a second look (kept where its RCPs agree more); the
-        start whose estimate brings the source closest to the target (:func:`nearest_median`)
+        the source turned by each start of :func:`search_starts` (about ``rotation_search_centre``),
+        a few pairs' turns per batch, each start followed by a second look (kept where its RCPs agree
+        more); the start whose estimate brings the source closest to the target (:func:`nearest_median`)
         replaces ``out``'s rows (in place) where it brings it closer than ``out``'s (between starts,
         the RCPs' agreement misjudges noisy pairs)."""
         retry = (out.consistency < self.config.rotation_search_below).nonzero().squeeze(1)
-        starts = torch.as_tensor(cube_rotations()[1:], dtype=src.dtype, device=src.device)  # (S, 3, 3)
+        starts = torch.as_tensor(search_starts(self.config.rotation_search_centre), dtype=src.dtype,
+                                 device=src.device)  # (S, 3, 3)
         count = starts.shape[0]
         for chunk in retry.split(max(1, SEARCH_POINTS // (count * src.shape[1]))) if retry.numel() else ():
             rows = chunk.repeat_interleave(count)  # pair of each (pair, start), start fastest
