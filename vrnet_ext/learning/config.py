@@ -12,7 +12,6 @@ from vrnet_ext.names import (AUTO_DEVICE, DEFAULT_BACKEND, DEFAULT_MAX_ANGLE, DE
                              DEFAULT_SPLIT, ROTATION_RANGES)
 
 
-
 def trained_model(config: VRNetConfig) -> dict:
     """A model configuration to train, as a dict without the rotation search's centre: that follows
     the rotations the run draws (:func:`vrnet_ext.model.checkpoints.model_values`) unless a run sets

@@ -73,7 +73,8 @@ def model_values(config: dict, source: str = "config") -> dict:
     """The model configuration of a training config (a checkpoint's ``config``), with the rotation
     search's centre (``VRNetConfig.rotation_search_centre``) set from the rotations its training
     pairs were drawn from (``rotation_range``, ``train_max_angle``) where the model configuration
-    does not name one (files written before that field)."""
+    does not name one (a run of ``vrnet train`` leaves it to its rotations; files written before
+    that field)."""
     values = dict(config["model"])
     if "rotation_search_centre" not in values:
         drawn = config.get("rotation_range", DEFAULT_ROTATION_RANGE)
