@@ -250,10 +250,12 @@ class VRNet(nn.Module):
         replaces ``out``'s rows (in place) where it brings it closer than ``out``'s (between starts,
         the RCPs' agreement misjudges noisy pairs)."""
         retry = (out.consistency < self.config.rotation_search_below).nonzero().squeeze(1)
+        if not retry.numel():
+            return
         starts = torch.as_tensor(search_starts(self.config.rotation_search_centre), dtype=src.dtype,
                                  device=src.device)  # (S, 3, 3)
         count = starts.shape[0]
-        for chunk in retry.split(max(1, SEARCH_POINTS // (count * src.shape[1]))) if retry.numel() else ():
+        for chunk in retry.split(max(1, SEARCH_POINTS // (count * src.shape[1]))):
             rows = chunk.repeat_interleave(count)  # pair of each (pair, start), start fastest
             turns = starts.repeat(chunk.numel(), 1, 1)
             features = _rows(tgt_features, rows)
