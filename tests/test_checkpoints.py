@@ -164,6 +164,12 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     retuned = read_checkpoint(tmp_path / "weights" / "tiny-gm.pt")
     assert retuned["card"]["summary"] == "A smoke-test model." and retuned["card"]["training"]["sessions"] == 1
     assert retuned["card"]["notes"] == ["Robust solve retuned."]
+    assert main(["export", str(tmp_path / "weights" / "tiny-gm.pt"), "tiny-gm2", "--out-dir", str(tmp_path / "weights"),
+                 "--note", "Kept.", "--note", "Rotations: old."]) == 0
+    assert main(["export", str(tmp_path / "weights" / "tiny-gm2.pt"), "tiny-gm3", "--out-dir", str(tmp_path / "weights"),
+                 "--drop-notes", "Rotations:", "--note", "Rotations: new."]) == 0
+    assert read_checkpoint(tmp_path / "weights" / "tiny-gm3.pt")["card"]["notes"] == [
+        "Robust solve retuned.", "Kept.", "Rotations: new."]
     assert retuned["card"]["test"]["irls_scale"] == 0.5 and retuned["card"]["test"]["irls_iterations"] == 7
     model_config = retuned["config"]["model"]
     assert (model_config["irls_iterations"], model_config["irls_kernel"], model_config["irls_scale"],

@@ -316,6 +316,9 @@ def add_export(sub) -> None:
     p.add_argument("--machine", default=None, help="where it was trained (for the card)")
     p.add_argument("--sessions", type=positive_int, default=None, help="how many sessions the training took")
     p.add_argument("--note", action="append", default=[], help="a note for the card (repeatable)")
+    p.add_argument("--drop-notes", action="append", default=[], metavar="PREFIX",
+                   help="shipped weights: remove the card's notes that begin with PREFIX, e.g. 'Rotations:', "
+                        "before adding the --note ones (repeatable)")
     p.add_argument("--procrustes-points", choices=PROCRUSTES_POINTS, default=None,
                    help="set the exported model's final Procrustes points (an inference-time choice; default: as trained)")
     add_solve_options(p, "as trained")
@@ -406,7 +409,8 @@ def run_export(args) -> int:
 
 def _base_card(args, state: dict, overrides: dict) -> dict:
     """The card before test results: from a training run, its facts and the flags; from shipped
-    weights (a file with a card), that card, the flags given changing or adding to it. Shipped
+    weights (a file with a card), that card, the flags given changing or adding to it (``--drop-notes``
+    removing notes first). Shipped
     weights given other inference options need test results measured with them (``--test-json``)."""
     from vrnet_ext.learning.export import training_facts
 
@@ -419,7 +423,8 @@ def _base_card(args, state: dict, overrides: dict) -> dict:
                              "measured with them (`vrnet eval --json` with the same --irls-* flags)")
         card = {k: v for k, v in state["card"].items() if not (args.test_json and k.startswith("test"))}
         card["summary"] = args.summary or card.get("summary", "")
-        card["notes"] = list(card.get("notes", [])) + list(args.note)
+        kept = [note for note in card.get("notes", []) if not note.startswith(tuple(args.drop_notes))]
+        card["notes"] = kept + list(args.note)
         training = card.setdefault("training", {})
     if args.machine:
         training["machine"] = args.machine
