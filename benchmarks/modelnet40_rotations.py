@@ -1,8 +1,9 @@
 """The ModelNet40 cells on other rotations than the paper's protocol, with and without the rotation search.
 
-    python benchmarks/modelnet40_rotations.py --tables DIR [--json rotations.json] [--markdown rotations.md]
+    python benchmarks/modelnet40_rotations.py --tables DIR [DIR ...] [--json rotations.json] [--markdown rotations.md]
 
-Reads every JSON that ``modelnet40_tables.py`` wrote into DIR, each run with its own
+Reads every JSON that ``modelnet40_tables.py`` wrote into each DIR (in order: a later folder's
+estimate of a cell replaces an earlier one's, e.g. a re-run with another search), each run with its own
 ``--rotation-range`` (``symmetric``: each Euler angle in [-45, 45] degrees; ``so3``: uniform over
 all rotations), ``--swap`` (every pair registered the other way round: the protocol's motions
 inverted) and ``--rotation-search-below`` (0: the model alone; else the search of
@@ -34,23 +35,43 @@ def pair_kind(cell: dict) -> str:
     return f"{rotations}, swapped" if cell.get("swapped") else rotations
 
 
-def collect(tables: Path) -> list[dict]:
-    """One row per (cell, kind of pair) with each estimate's recall, RMSE(R) and time."""
-    rows: dict[tuple[str, str, str], dict] = {}
-    for path in sorted(tables.glob("*.json")):
-        for cell in json.loads(path.read_text())["results"]:
-            estimate = "search" if cell["solve"].get("rotation_search_below", 0) > 0 else "alone"
-            key = (cell["setting"], cell["split"], pair_kind(cell))
-            row = rows.setdefault(key, {"setting": cell["setting"], "split": cell["split"], "pairs_of": key[2],
-                                        "model": cell["model"], "pairs": cell["pairs"]})
-            if row["model"] != cell["model"] or row["pairs"] != cell["pairs"]:
-                raise ValueError(f"{path}: {key} measured with another model or pair count than before")
-            vrnet = cell["methods"]["vrnet"]
-            row[estimate] = {"recall": vrnet[RECALL], "RMSE(R)": vrnet["RMSE(R)"],
-                             "seconds_per_pair": vrnet["seconds_per_pair"],
-                             "search_below": cell["solve"].get("rotation_search_below", 0), "source": path.name}
+def collect(folders: list[Path]) -> list[dict]:
+    """One row per (cell, kind of pair) with each estimate's recall, RMSE(R) and time. The folders are
+    read in order: an estimate measured again in a later folder (the same cell, kind of pair, alone or
+    with the search) replaces the earlier one; the estimates side by side in a row must come from the
+    same model, pair count and shapes."""
+    estimates: dict[tuple[str, str, str], dict] = {}
+    for folder in folders:
+        measured_here: dict[tuple, str] = {}
+        for path in sorted(folder.glob("*.json")):
+            for cell in json.loads(path.read_text())["results"]:
+                estimate = "search" if cell["solve"].get("rotation_search_below", 0) > 0 else "alone"
+                key = (cell["setting"], cell["split"], pair_kind(cell))
+                if (key, estimate) in measured_here:
+                    raise ValueError(f"{path}: {key} {estimate} measured twice in {folder} (also in "
+                                     f"{measured_here[key, estimate]})")
+                measured_here[key, estimate] = path.name
+                vrnet = cell["methods"]["vrnet"]
+                estimates.setdefault(key, {})[estimate] = {
+                    "model": cell["model"], "pairs": cell["pairs"], "shapes": cell.get("shapes"),
+                    "recall": vrnet[RECALL], "RMSE(R)": vrnet["RMSE(R)"], "seconds_per_pair": vrnet["seconds_per_pair"],
+                    "search_below": cell["solve"].get("rotation_search_below", 0),
+                    "source": str(path.relative_to(folder.parent))}
+    rows = []
+    for (setting, split, pairs_of), measured in estimates.items():
+        first = next(iter(measured.values()))
+        for estimate, value in measured.items():
+            if any(value[field] != first[field] for field in ("model", "pairs", "shapes")):
+                raise ValueError(f"{value['source']}: {setting} / {split}, {pairs_of} measured with another model, "
+                                 f"pair count or shapes than {first['source']}")
+        row = {"setting": setting, "split": split, "pairs_of": pairs_of, "model": first["model"],
+               "pairs": first["pairs"]}
+        for estimate, value in measured.items():
+            row[estimate] = {field: value[field] for field in
+                             ("recall", "RMSE(R)", "seconds_per_pair", "search_below", "source")}
+        rows.append(row)
     order = {(s, p): i for i, (s, p) in enumerate((s, p) for p in SPLITS for s in SETTINGS)}
-    return sorted(rows.values(), key=lambda r: (r["pairs_of"], order[(r["setting"], r["split"])]))
+    return sorted(rows, key=lambda r: (r["pairs_of"], order[(r["setting"], r["split"])]))
 
 
 def markdown(rows: list[dict], note: str) -> str:
@@ -70,7 +91,9 @@ def markdown(rows: list[dict], note: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
-    parser.add_argument("--tables", type=Path, required=True, help="folder of modelnet40_tables.py JSON files")
+    parser.add_argument("--tables", type=Path, nargs="+", required=True,
+                        help="folders of modelnet40_tables.py JSON files, read in order (a later folder's estimate "
+                             "of a cell replaces an earlier one's)")
     parser.add_argument("--json", type=Path, default=Path("rotations.json"), help="where the JSON goes")
     parser.add_argument("--markdown", type=Path, default=Path("rotations.md"), help="where the Markdown goes")
     parser.add_argument("--note", default="", help="a line above the table: machine, date, what else ran")
@@ -81,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"modelnet40_rotations: {exc}", file=sys.stderr)
         return 2
     if not rows:
-        print(f"modelnet40_rotations: no modelnet40_tables.py JSON in {args.tables}", file=sys.stderr)
+        print(f"modelnet40_rotations: no modelnet40_tables.py JSON in {', '.join(map(str, args.tables))}",
+              file=sys.stderr)
         return 2
     args.json.write_text(json.dumps({"note": args.note, "rows": rows}, indent=1))
     args.markdown.write_text(markdown(rows, args.note))

@@ -326,7 +326,8 @@ def test_rotation_search_criteria_scores_every_start_on_validation_pairs(tmp_pat
 
 def test_modelnet40_rotations_puts_each_cells_estimates_side_by_side(tmp_path):
     """Runs alone and with the search, on two kinds of pairs: one row per cell and kind, both
-    estimates in it; a cell measured by two models is refused."""
+    estimates in it; a later folder's estimate replaces an earlier one's; a row of two models, or an
+    estimate measured twice in one folder, is refused."""
     tables = tmp_path / "tables"
     tables.mkdir()
 
@@ -345,10 +346,25 @@ def test_modelnet40_rotations_puts_each_cells_estimates_side_by_side(tmp_path):
     assert set(rows) == {"so3", "protocol, swapped"}
     assert rows["so3"]["alone"]["recall"] == 0.2 and rows["so3"]["search"]["recall"] == 1.0
     assert "| so3 | PV / UPC | `m` | 100 | 20.0% | 100.0% |" in (tmp_path / "r.md").read_text()
+    later = tmp_path / "later"  # a re-run of one estimate, in a folder read after the first
+    later.mkdir()
+    (later / "a.json").write_text(json.dumps({"results": [cell("m", "so3", False, 0.2, 0.9)]}))
+    run([str(ROOT / "benchmarks" / "modelnet40_rotations.py"), "--tables", str(tables), str(later), "--json", "r2.json",
+         "--markdown", "r2.md"], tmp_path)
+    rows = {row["pairs_of"]: row for row in json.loads((tmp_path / "r2.json").read_text())["rows"]}
+    assert rows["so3"]["search"]["recall"] == 0.9 and rows["so3"]["search"]["source"] == "later/a.json"
+    assert rows["so3"]["alone"]["recall"] == 0.2 and rows["protocol, swapped"]["search"]["recall"] == 0.99
+
+    def refused(*folders):
+        result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "modelnet40_rotations.py"), "--tables",
+                                 *map(str, folders)], cwd=tmp_path, capture_output=True, text=True)
+        assert result.returncode == 2 and "Traceback" not in result.stderr
+        return result.stderr
+
+    (later / "b.json").write_text(json.dumps({"results": [cell("other", "protocol", True, 0.0, 1.0)]}))
+    assert "another model" in refused(tables, later)  # beside the first folder's search row of model m
     (tables / "c.json").write_text(json.dumps({"results": [cell("other", "so3", False, 0.1, 1.0)]}))
-    result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "modelnet40_rotations.py"), "--tables",
-                             str(tables)], cwd=tmp_path, capture_output=True, text=True)
-    assert result.returncode != 0 and "another model" in result.stderr
+    assert "measured twice" in refused(tables)
 
 
 @requires_modelnet
