@@ -410,8 +410,8 @@ def run_export(args) -> int:
 def _base_card(args, state: dict, overrides: dict) -> dict:
     """The card before test results: from a training run, its facts and the flags; from shipped
     weights (a file with a card), that card, the flags given changing or adding to it (``--drop-notes``
-    removing notes first). Shipped
-    weights given other inference options need test results measured with them (``--test-json``)."""
+    removing notes first). Shipped weights given other inference options need test results measured
+    with them (``--test-json``)."""
     from vrnet_ext.learning.export import training_facts
 
     if "card" not in state:
