@@ -40,9 +40,10 @@ from vrnet_ext.names import DEFAULT_ROTATION_RANGE
 COLUMNS = ("RMSE(R)", "MAE(R)", "RMSE(t)", "MAE(t)")
 PARTIAL_VIEWS = ("PV", "PV+RS")  # the settings whose pairs depend on how views are cut
 # A measurement that names no solve was taken when the reweighting's kernel and scale were fixed;
-# one that names no second pass, before there was one.
+# one that names no second pass (no search, no polish), before there was one.
 UNRECORDED_SOLVE = {"irls_kernel": "cauchy", "irls_scale": 3.0}
-UNRECORDED_SECOND_PASS = {"second_pass_below": 0.0, "rotation_search_below": 0.0, "consistency_radius": 0.02}
+UNRECORDED_LATER_STEPS = {"second_pass_below": 0.0, "rotation_search_below": 0.0, "polish_iterations": 0,
+                          "consistency_radius": 0.02}
 # A measurement that names no rotations was taken on the protocol's.
 
 
@@ -58,8 +59,8 @@ def target(setting: str, split: str) -> tuple[tuple[float, ...], str]:
 def measurements(results: Path, method: str = "vrnet", one_pass: bool = False) -> dict[tuple[str, str, str], dict]:
     """(model, setting, split) -> the row of ``method`` ("vrnet": the model's estimate; "vrnet2": two
     passes) of its newest measurement on the protocol's rotations, with the file it came from. A
-    measurement must name the solve the model's file holds, with neither a second pass nor a
-    rotation search where ``one_pass``; the two-pass rows never take a further pass or a search,
+    measurement must name the solve the model's file holds, with no second pass, rotation search or
+    polish where ``one_pass``; the two-pass rows never take a further pass, a search or a polish,
     whatever the file says."""
     found: dict[tuple[str, str, str], dict] = {}
     current: dict[str, tuple[str | None, dict | None]] = {}
@@ -71,12 +72,13 @@ def measurements(results: Path, method: str = "vrnet", one_pass: bool = False) -
                 except (OSError, ValueError):  # a model that is no longer shipped
                     current[cell["model"]] = (None, None)
             weights, solve = current[cell["model"]]
-            recorded = {**UNRECORDED_SECOND_PASS, **cell.get("solve", UNRECORDED_SOLVE)}
+            recorded = {**UNRECORDED_LATER_STEPS, **cell.get("solve", UNRECORDED_SOLVE)}
             if solve is not None and one_pass:
-                solve = dict(solve, second_pass_below=0.0, rotation_search_below=0.0)
+                solve = dict(solve, second_pass_below=0.0, rotation_search_below=0.0, polish_iterations=0)
             if method != "vrnet":  # the two-pass row never takes a further pass
-                recorded = {k: v for k, v in recorded.items() if k not in UNRECORDED_SECOND_PASS}
-            elif solve is not None and solve["second_pass_below"] == solve["rotation_search_below"] == 0:
+                recorded = {k: v for k, v in recorded.items() if k not in UNRECORDED_LATER_STEPS}
+            elif solve is not None and solve["second_pass_below"] == solve["rotation_search_below"] == 0 \
+                    and not solve["polish_iterations"]:
                 recorded.pop("consistency_radius")  # no second pass and no search: the radius is moot
             stale = (("weights" in cell and cell["weights"] != weights)
                      or (solve is not None and any(recorded[k] != solve[k] for k in recorded))

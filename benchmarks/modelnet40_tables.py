@@ -118,42 +118,52 @@ class Swapped(Dataset):
                 "translation": -(inverse @ item["translation"])}
 
 
+LATER_STEPS = ("second_pass_below", "rotation_search_below", "polish_iterations")  # eval-mode steps after the passes
+
+
 def network_estimates(model, data, batch_size: int, methods) -> dict:
-    """{method: (R (S, 3, 3), t (S, 3), seconds, share of pairs whose estimate came from a second
-    pass, share whose estimate came from a turned start of the rotation search)} for the network's
-    methods: "vrnet" as the model is configured; "vcp" from one pass without a second or a search
-    (sharing the forward of "vrnet" when that has neither); "vrnet2" runs the network twice per pair
-    (the paper's iteration mode, no further pass or search)."""
+    """{method: (R (S, 3, 3), t (S, 3), seconds, {share of pairs whose estimate came from a second
+    pass, from a turned start of the rotation search, moved by the polish})} for the network's
+    methods: "vrnet" as the model is configured; "vcp" from one pass without a second, a search or
+    a polish (sharing the forward of "vrnet" when that has none of them); "vrnet2" runs the network
+    twice per pair (the paper's iteration mode, none of the later steps)."""
     loader = DataLoader(data, batch_size=batch_size, shuffle=False)
     estimates = {}
     config = model.config
-    configured = (config.iterations, config.second_pass_below, config.rotation_search_below)
-    one_pass = configured[1:] == (0.0, 0.0)
+    configured = (config.iterations, *(getattr(config, key) for key in LATER_STEPS))
+    none_later = (0.0, 0.0, 0)
+    one_pass = configured[1:] == none_later
     groups = [(configured, ("vrnet", "vcp") if one_pass else ("vrnet",)),
-              ((configured[0], 0.0, 0.0), () if one_pass else ("vcp",)), ((2, 0.0, 0.0), ("vrnet2",))]
-    for (passes, below, search_below), names in groups:
+              ((configured[0], *none_later), () if one_pass else ("vcp",)), ((2, *none_later), ("vrnet2",))]
+    for (passes, *later), names in groups:
         names = [m for m in names if m in methods]
         if not names:
             continue
         rotations, translations = {m: [] for m in names}, {m: [] for m in names}
-        seconds, second_passes, turned = 0.0, 0, 0
-        config.iterations, config.second_pass_below, config.rotation_search_below = passes, below, search_below
+        seconds, counts = 0.0, dict.fromkeys(("second_pass_share", "turned_share", "polished_share"), 0)
+        config.iterations = passes
+        for key, value in zip(LATER_STEPS, later):
+            setattr(config, key, value)
         try:
             with torch.no_grad():
                 for batch in tqdm(loader, desc=f"network ({passes} pass{'es' if passes > 1 else ''})", leave=False):
                     started = time.perf_counter()
                     out = model(batch["src"], batch["tgt"])
                     seconds += time.perf_counter() - started
-                    second_passes += int(out.second_pass.sum())
-                    turned += int((out.start_rotation != torch.eye(3)).any(dim=(1, 2)).sum())
+                    counts["second_pass_share"] += int(out.second_pass.sum())
+                    counts["turned_share"] += int((out.start_rotation != torch.eye(3)).any(dim=(1, 2)).sum())
+                    counts["polished_share"] += int(out.polished.sum())
                     for name in names:
                         R, t = kabsch(batch["src"], out.vcp) if name == "vcp" else (out.rotation, out.translation)
                         rotations[name].append(R.double().numpy())
                         translations[name].append(t.double().numpy())
         finally:
-            config.iterations, config.second_pass_below, config.rotation_search_below = configured
-        estimates.update({m: (np.concatenate(rotations[m]), np.concatenate(translations[m]), seconds,
-                              second_passes / len(data), turned / len(data)) for m in names})
+            config.iterations = configured[0]
+            for key, value in zip(LATER_STEPS, configured[1:]):
+                setattr(config, key, value)
+        shares = {key: count / len(data) for key, count in counts.items()}
+        estimates.update({m: (np.concatenate(rotations[m]), np.concatenate(translations[m]), seconds, shares)
+                          for m in names})
     return estimates
 
 
@@ -237,13 +247,13 @@ def evaluate_cell(name: str, model, config: dict, setting: str, split: str, args
     for method in args.methods:
         failures = 0
         if method in estimates:
-            R, t, seconds, second_pass_share, turned_share = estimates[method]
+            R, t, seconds, shares = estimates[method]
         else:
             R, t, seconds, failures = classical_estimates(data, method, args.icp_max_distance, args.fpfh_voxel)
         row = summarize(R, gt_R, t, gt_t)
         row.update(seconds_per_pair=seconds / len(data), failures=failures)
         if method == "vrnet":
-            row.update(second_pass_share=second_pass_share, turned_share=turned_share)
+            row.update(shares)
         rows[method] = row
         print(f"{name} {setting}/{split} {method}: RMSE(R) {row['RMSE(R)']:.3f}, MAE(R) {row['MAE(R)']:.3f}, "
               f"RMSE(t) {row['RMSE(t)']:.4f}, {row['seconds_per_pair'] * 1e3:.1f} ms/pair", flush=True)

@@ -397,6 +397,12 @@ def test_modelnet40_tables_take_solve_flags_and_keep_the_vcp_row_to_one_pass(tmp
     assert rows["0"]["methods"]["vrnet"]["second_pass_share"] == 0
     assert 0 < rows["1"]["methods"]["vrnet"]["second_pass_share"] <= 1
     assert rows["0"]["methods"]["vrnet"]["RMSE(R)"] != rows["1"]["methods"]["vrnet"]["RMSE(R)"]
+    run(common + ["--polish-iterations", "5", "--json", "p.json", "--markdown", "p.md"], tmp_path)
+    (polished,) = json.loads((tmp_path / "p.json").read_text())["results"]
+    assert polished["solve"]["polish_iterations"] == 5 and rows["0"]["solve"]["polish_iterations"] == 0
+    assert polished["methods"]["vcp"]["RMSE(R)"] == rows["0"]["methods"]["vcp"]["RMSE(R)"]
+    assert rows["0"]["methods"]["vrnet"]["polished_share"] == 0 < polished["methods"]["vrnet"]["polished_share"]
+    assert polished["methods"]["vrnet"]["RMSE(R)"] != rows["0"]["methods"]["vrnet"]["RMSE(R)"]
     # the row goes into a model card: only for weights that solve the way it was measured
     from vrnet_ext.cli import main
     from vrnet_ext.model.checkpoints import read_checkpoint

@@ -64,7 +64,8 @@ def test_files_that_are_not_checkpoints_raise_a_clear_error(tmp_path, capsys):
                                           ("dgcnn_channels", [8] * 100), ("walk_channels", [10**6, 3]),
                                           ("encoder_layers", 500), ("k", "many"), ("negative_slope", float("nan")),
                                           ("irls_iterations", 10**9), ("irls_scale", float("nan")),
-                                          ("irls_kernel", "tukey")])
+                                          ("irls_kernel", "tukey"), ("polish_iterations", 10**9),
+                                          ("polish_iterations", "many")])
 def test_config_outside_the_limits_is_refused_before_anything_is_built(tmp_path, field, value):
     config = VRNetConfig.small(**TINY).to_dict()
     config[field] = value
@@ -152,7 +153,7 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     # shipped weights re-exported with another robust solve: the card kept, the test measured with it
     shipped_path = str(tmp_path / "weights" / "tiny-model.pt")
     solve_flags = ["--irls-iterations", "7", "--irls-kernel", "geman_mcclure", "--irls-scale", "0.5",
-            "--second-pass-below", "0.4", "--consistency-radius", "0.05"]
+            "--second-pass-below", "0.4", "--polish-iterations", "2", "--consistency-radius", "0.05"]
     assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *solve_flags]) == 2
     assert main(["export", shipped_path, "tiny-gm", "--out-dir", str(tmp_path / "weights"), *solve_flags,
                  "--test-json", str(test_json)]) == 2  # measured with the model's own solve
@@ -173,9 +174,9 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert retuned["card"]["test"]["irls_scale"] == 0.5 and retuned["card"]["test"]["irls_iterations"] == 7
     model_config = retuned["config"]["model"]
     assert (model_config["irls_iterations"], model_config["irls_kernel"], model_config["irls_scale"],
-            model_config["second_pass_below"], model_config["consistency_radius"]) == (
-        7, "geman_mcclure", 0.5, 0.4, 0.05)
-    assert retuned["card"]["test"]["second_pass_below"] == 0.4
+            model_config["second_pass_below"], model_config["polish_iterations"], model_config["consistency_radius"]) == (
+        7, "geman_mcclure", 0.5, 0.4, 2, 0.05)
+    assert retuned["card"]["test"]["second_pass_below"] == 0.4 and retuned["card"]["test"]["polish_iterations"] == 2
     assert "irls_kernel: `geman_mcclure`" in (tmp_path / "weights" / "tiny-gm.md").read_text()
     torch.testing.assert_close(retuned["model"], shipped["model"], rtol=0, atol=0)
     # a model trained on every setting: eval asks for the setting; the card holds one test per cell

@@ -34,11 +34,10 @@ def test_refuses_what_it_cannot_capture():
 
 
 @requires_cuda
-@pytest.mark.parametrize("second_pass_below", [0.0, None])
-def test_graph_replays_give_the_eager_results(second_pass_below):
+@pytest.mark.parametrize("solve", [{"second_pass_below": 0.0}, {}, {"polish_iterations": 5}])
+def test_graph_replays_give_the_eager_results(solve):
     model = load_pretrained().cuda()
-    if second_pass_below is not None:
-        model.config = replace(model.config, second_pass_below=second_pass_below)
+    model.config = replace(model.config, **solve)
     graphed = CudaGraphForward(model)
     for B, seed in ((1, 0), (1, 1), (4, 2), (1, 3)):  # two shapes, replays with new data
         src, tgt = clouds(B, 768, seed)
@@ -47,7 +46,7 @@ def test_graph_replays_give_the_eager_results(second_pass_below):
         out = graphed(src, tgt)
         torch.testing.assert_close(out.rotation, expected.rotation, rtol=1e-4, atol=1e-4)
         torch.testing.assert_close(out.translation, expected.translation, rtol=1e-4, atol=1e-4)
-        assert torch.equal(out.second_pass, expected.second_pass)
+        assert torch.equal(out.second_pass, expected.second_pass) and torch.equal(out.polished, expected.polished)
     assert len(graphed._graphs) == 2
 
 

@@ -546,11 +546,60 @@ def test_the_shipped_model_registers_any_rotation_with_the_search():
     assert (searched < 1).all(), searched  # ... all registered with the search
 
 
+def test_the_polish_keeps_its_icp_estimate_where_it_brings_the_source_nearer():
+    from vrnet_ext.geometry.alignment import robust_icp
+
+    src, tgt = turned_pairs()
+    plain = small_model(consistency_radius=0.3).eval()
+    with torch.no_grad():
+        first = plain(src, tgt)
+        R, t = robust_icp(src, tgt, first.rotation, first.translation, 4)
+    nearer = _nearest_median(src, tgt, R, t) < _nearest_median(src, tgt, first.rotation, first.translation)
+    assert nearer.any()
+    model = small_model(consistency_radius=0.3, polish_iterations=4).eval()
+    with torch.no_grad():
+        out = model(src, tgt)
+    assert torch.equal(out.polished, nearer) and not first.polished.any()
+    torch.testing.assert_close(out.rotation, torch.where(nearer[:, None, None], R, first.rotation))
+    torch.testing.assert_close(out.translation, torch.where(nearer[:, None], t, first.translation))
+    torch.testing.assert_close(out.rcp, first.rcp)  # the network's points stay; the consistency follows the estimate
+    moved = src.double() @ out.rotation.double().mT + out.translation.double()[:, None]
+    expected = ((moved - out.rcp.double()).norm(dim=-1) < 0.3).double().mean(dim=-1)
+    torch.testing.assert_close(out.consistency.double(), expected)
+    model.train()  # training sees the passes only
+    trained = model(src, tgt)
+    assert not trained.polished.any()
+    torch.testing.assert_close(trained.rotation, plain.train()(src, tgt).rotation)
+
+
+def test_the_polish_sharpens_the_shipped_model_on_noisy_pairs():
+    from scipy.spatial.transform import Rotation
+
+    from vrnet_ext.data.procedural import chair
+    from vrnet_ext.geometry.transforms import move
+    from vrnet_ext import load_pretrained
+
+    rng = np.random.default_rng(3)
+    src = torch.from_numpy(chair(rng)[:768].astype(np.float32)).expand(6, -1, -1).contiguous()
+    rotations = torch.as_tensor(Rotation.from_euler("zyx", rng.uniform(0, 45, (6, 3)), degrees=True).as_matrix(),
+                                dtype=torch.float32)
+    noise = torch.from_numpy(rng.normal(scale=0.01, size=(6, 768, 3)).astype(np.float32))
+    tgt = move(src, rotations, torch.zeros(6, 3)) + noise
+    model = load_pretrained()
+    with torch.no_grad():
+        plain = rotation_error_deg(model(src, tgt).rotation, rotations)
+        model.config.polish_iterations = 10
+        polished = rotation_error_deg(model(src, tgt).rotation, rotations)
+    assert plain.median() > 0.2 and polished.median() < 0.5 * plain.median(), (plain, polished)
+
+
 @pytest.mark.parametrize("field, value", [("second_pass_below", 1.5), ("second_pass_below", -0.1),
                                           ("second_pass_below", float("nan")), ("consistency_radius", 0.0),
                                           ("rotation_search_below", 2.0), ("rotation_search_below", float("nan")),
                                           ("rotation_search_centre", (0.0, 0.0)), ("rotation_search_centre", (0, 0, 200)),
-                                          ("consistency_radius", float("inf"))])
+                                          ("consistency_radius", float("inf")), ("polish_iterations", -1),
+                                          ("polish_iterations", 1001), ("polish_iterations", 2.5),
+                                          ("polish_iterations", True)])
 def test_second_pass_options_are_checked(field, value):
     with pytest.raises(ValueError, match=field):
         VRNetConfig(**{field: value})

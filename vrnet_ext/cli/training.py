@@ -1,6 +1,7 @@
 """``vrnet train``, ``vrnet eval``, ``vrnet plot``, ``vrnet export`` and ``vrnet train-scene``."""
 from __future__ import annotations
 
+import argparse
 import json
 import typing
 from dataclasses import fields
@@ -23,13 +24,23 @@ ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0,
 # The estimate's inference-time options: the robust solve, the second pass and the rotation search.
 EVAL_PARTITIONS = ("test", "val")  # vrnet eval --partition (ModelNet40Pairs partitions a model is measured on)
 SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "rotation_search_below",
-              "rotation_search_centre", "consistency_radius")
+              "rotation_search_centre", "polish_iterations", "consistency_radius")
+
+
+def polish_steps(text: str) -> int:
+    """An argparse type: ``--polish-iterations``, an integer in [0, MAX_POLISH_ITERATIONS]."""
+    from vrnet_ext.model.config import MAX_POLISH_ITERATIONS
+
+    value = nonnegative_int(text)
+    if value > MAX_POLISH_ITERATIONS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_POLISH_ITERATIONS} steps, got {value}")
+    return value
 
 
 def add_solve_options(parser, default: str) -> None:
     """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale``, ``--second-pass-below``,
-    ``--rotation-search-below``, ``--rotation-search-centre``, ``--consistency-radius`` (VRNetConfig's fields of these
-    names); ``default`` says what applies when a flag is not given."""
+    ``--rotation-search-below``, ``--rotation-search-centre``, ``--polish-iterations``, ``--consistency-radius``
+    (VRNetConfig's fields of these names); ``default`` says what applies when a flag is not given."""
     from vrnet_ext.model.config import IRLS_KERNELS
 
     parser.add_argument("--irls-iterations", type=nonnegative_int, default=None,
@@ -55,6 +66,11 @@ def add_solve_options(parser, default: str) -> None:
                              "turned so that one leaves a motion near it (24 more starts); a model file sets it "
                              "from its training rotations (protocol: 22.5 22.5 22.5) "
                              f"(default: {default})")
+    parser.add_argument("--polish-iterations", type=polish_steps, default=None,
+                        help="last, this many steps of a robust point-to-point ICP from each pair's estimate (each "
+                             "source point paired with its nearest target point), kept where they bring the source "
+                             "nearer the target: sharpens an estimate a few degrees off, never rescues one far "
+                             f"off; 0: never (default: {default})")
     parser.add_argument("--consistency-radius", type=positive_float, default=None,
                         help=f"how near its estimate an RCP must lie to agree with it, in the clouds' units "
                              f"(default: {default})")

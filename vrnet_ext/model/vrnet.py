@@ -8,13 +8,14 @@ from dataclasses import dataclass, fields
 import torch
 from torch import nn
 
+from vrnet_ext.geometry.alignment import nearest_median, robust_icp
 from vrnet_ext.geometry.metrics import correct_match_ratio
 from vrnet_ext.geometry.transforms import compose, move, search_starts
 from vrnet_ext.model.config import VRNetConfig
 from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
-from vrnet_ext.ops import knn, robust_kabsch, soft_match
+from vrnet_ext.ops import robust_kabsch, soft_match
 from vrnet_ext.ops._checks import check_all_finite, check_float, check_same, check_shape, trusted_values
 from vrnet_ext.runtime import cpu_has_native_bf16
 
@@ -38,6 +39,7 @@ class VRNetOutput:
     consistency: torch.Tensor | None = None  # (B,) share of RCPs within consistency_radius of R src + t
     second_pass: torch.Tensor | None = None  # (B,) bool: the estimate comes from the second pass
     start_rotation: torch.Tensor | None = None  # (B, 3, 3) the turn of src the estimate's passes began from
+    polished: torch.Tensor | None = None  # (B,) bool: the geometric polish moved the estimate
 
     @property
     def weights(self) -> torch.Tensor | None:
@@ -110,17 +112,6 @@ def _replace_rows(out: VRNetOutput, rows: torch.Tensor, candidate: VRNetOutput,
             setattr(out, field.name, value.index_copy(0, rows, chosen))
 
 
-def nearest_median(src: torch.Tensor, tgt: torch.Tensor, rotation: torch.Tensor,
-                   translation: torch.Tensor) -> torch.Tensor:
-    """(B,) the median distance from each point of R src + t to its nearest target point: how close
-    an estimate brings the clouds, whatever the RCPs say (robust to up to half the source without
-    a counterpart)."""
-    with torch.autocast(src.device.type, enabled=False):
-        moved = move(src, rotation, translation).contiguous()
-    dist2, _ = knn(moved, tgt.to(moved.dtype).contiguous(), 1)
-    return dist2[..., 0].median(dim=1).values
-
-
 def procrustes_weights(confidence_logits: torch.Tensor) -> torch.Tensor:
     """(B, N) logits -> positive weights (floored so that no pair's weights all vanish)."""
     return torch.sigmoid(confidence_logits).clamp_min(1e-6)
@@ -174,11 +165,12 @@ class VRNet(nn.Module):
             return self._estimate(src, tgt, backend, return_matching)
 
     def _estimate(self, src: torch.Tensor, tgt: torch.Tensor, backend: str, return_matching: bool) -> VRNetOutput:
-        """The forward on checked clouds: the passes, then in eval mode the second look and the
-        rotation search where configured."""
+        """The forward on checked clouds: the passes, then in eval mode the second look, the
+        rotation search and the polish where configured."""
         out, tgt_features = self._passes(src, tgt, backend, return_matching)
         out.start_rotation = torch.eye(3, dtype=src.dtype, device=src.device).expand(src.shape[0], 3, 3)
         out.second_pass = torch.zeros(src.shape[0], dtype=torch.bool, device=src.device)
+        out.polished = torch.zeros_like(out.second_pass)
         if self.training:
             return out
         if self.config.second_pass_below > 0:
@@ -186,6 +178,8 @@ class VRNet(nn.Module):
             self._second_looks(src, tgt, out, backend, return_matching, tgt_features, every=capturing)
         if self.config.rotation_search_below > 0:
             self._rotation_search(src, tgt, out, backend, return_matching, tgt_features)
+        if self.config.polish_iterations > 0:
+            self._polish(src, tgt, out)
         return out
 
     def _passes(self, src: torch.Tensor, tgt: torch.Tensor, backend: str, return_matching: bool,
@@ -239,6 +233,7 @@ class VRNet(nn.Module):
         again.consistency = self._consistency(src, again.rotation, again.translation, again.rcp)
         again.start_rotation = out.start_rotation
         again.second_pass = torch.ones(src.shape[0], dtype=torch.bool, device=src.device)
+        again.polished = torch.zeros_like(again.second_pass)
         return again
 
     def _rotation_search(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
@@ -265,7 +260,7 @@ class VRNet(nn.Module):
             with torch.autocast(src.device.type, enabled=False):  # R' (g src) + t = (R' g) src + t
                 found.rotation = found.rotation @ turns
             found.start_rotation = turns
-            found.second_pass = torch.zeros_like(rows, dtype=torch.bool)
+            found.second_pass = found.polished = torch.zeros_like(rows, dtype=torch.bool)
             every = torch.arange(rows.numel(), device=src.device)
             _replace_rows(found, every, self._second_look(src[rows], tgt[rows], found, backend, return_matching,
                                                           features))
@@ -274,6 +269,19 @@ class VRNet(nn.Module):
             chosen = torch.arange(chunk.numel(), device=src.device) * count + best
             so_far = nearest_median(src[chunk], tgt[chunk], out.rotation[chunk], out.translation[chunk])
             _replace_rows(out, chunk, _rows_of(found, chosen), better=distance[chosen] < so_far)
+
+    def _polish(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput) -> None:
+        """``polish_iterations`` steps of :func:`robust_icp` from each pair's estimate, kept where they
+        bring the source nearer the target (:func:`nearest_median`; in place, chosen on the device);
+        ``out.consistency`` then measures the kept estimate against the same RCPs."""
+        with torch.autocast(src.device.type, enabled=False):
+            rotation, translation = robust_icp(src, tgt, out.rotation, out.translation, self.config.polish_iterations)
+            closer = nearest_median(src, tgt, rotation, translation) < nearest_median(src, tgt, out.rotation,
+                                                                                       out.translation)
+        out.rotation = torch.where(closer[:, None, None], rotation, out.rotation)
+        out.translation = torch.where(closer[:, None], translation, out.translation)
+        out.polished = closer
+        out.consistency = self._consistency(src, out.rotation, out.translation, out.rcp)
 
     def _features(self, src: torch.Tensor, tgt: torch.Tensor, backend: str,
                   tgt_features: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,0 +1,79 @@
+"""geometry.alignment: the nearest-point distance of an estimate, and the robust ICP that polishes it,
+against float64 brute force."""
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from vrnet_ext.geometry.alignment import nearest_median, robust_icp
+from vrnet_ext.geometry.metrics import rotation_error_deg
+from vrnet_ext.geometry.transforms import move
+
+
+def brute_nearest_median(src, tgt, rotation, translation):
+    """float64: the median (the lower one, as torch's) distance from R src + t to the nearest target point."""
+    moved = src.double() @ rotation.double().mT + translation.double()[:, None]
+    return torch.cdist(moved, tgt.double()).min(dim=-1).values.median(dim=-1).values
+
+
+def partial_pairs(B=4, N=301, dtype=torch.float32, seed=0, angle=8.0):
+    """src (B, N, 3), an anisotropic blob; tgt, the blob moved by a known motion (truth, shift), a
+    fifth of it cut away and a little noise added; an estimate ``angle`` degrees (about a random
+    axis) and 0.035 off the truth."""
+    rng = np.random.default_rng(seed)
+    src = torch.from_numpy(rng.normal(size=(B, N, 3)) * [1.0, 0.6, 0.3]).to(dtype)
+    truth = torch.from_numpy(Rotation.random(B, random_state=seed).as_matrix()).to(dtype)
+    shift = torch.from_numpy(rng.normal(size=(B, 3)) * 0.2).to(dtype)
+    tgt = move(src, truth, shift)
+    keep = tgt[..., 0] - tgt[..., 0].mean(dim=1, keepdim=True) < tgt[..., 0].quantile(0.8, dim=1, keepdim=True)
+    tgt = torch.stack([t[k][: int(keep.sum(dim=1).min())] for t, k in zip(tgt, keep)])
+    tgt = tgt + 0.002 * torch.from_numpy(rng.normal(size=tgt.shape)).to(dtype)
+    axes = rng.normal(size=(B, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    wrong = torch.from_numpy(Rotation.from_rotvec(axes * np.deg2rad(angle)).as_matrix()).to(dtype)
+    return src, tgt, truth, shift, wrong @ truth, shift + 0.02
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("offset", [0.0, 1000.0])
+def test_nearest_median_is_the_brute_force_distance(dtype, offset):
+    src, tgt, _, _, rotation, translation = partial_pairs(B=3, N=97, dtype=dtype)
+    src, tgt = src + offset, tgt + offset  # both far from the origin: R (src - o) + t + o ~ tgt
+    translation = translation + offset - (rotation @ torch.full((3, 3, 1), offset, dtype=dtype))[..., 0]
+    got = nearest_median(src, tgt, rotation, translation)
+    tolerance = (1e-9 if dtype == torch.float64 else 1e-6) * (1 + offset)  # the moved coordinates round
+    torch.testing.assert_close(got.double(), brute_nearest_median(src, tgt, rotation, translation),
+                               rtol=0, atol=tolerance)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_robust_icp_polishes_an_estimate_a_few_degrees_off(dtype):
+    src, tgt, truth, shift, rotation, translation = partial_pairs(dtype=dtype)
+    before = rotation_error_deg(rotation, truth)
+    polished_R, polished_t = robust_icp(src, tgt, rotation, translation, 30)
+    after = rotation_error_deg(polished_R, truth)
+    assert polished_R.dtype == dtype and polished_t.shape == (4, 3)
+    assert (before > 7).all() and (after < 1).all(), (before, after)
+    assert (polished_t - shift).norm(dim=-1).max() < 0.05
+    assert (brute_nearest_median(src, tgt, polished_R, polished_t)
+            < brute_nearest_median(src, tgt, rotation, translation)).all()
+    torch.testing.assert_close(torch.linalg.det(polished_R.double()), torch.ones(4, dtype=torch.float64))
+
+
+def test_robust_icp_is_per_pair_and_zero_steps_keep_the_estimate():
+    src, tgt, _, _, rotation, translation = partial_pairs()
+    batched = robust_icp(src, tgt, rotation, translation, 5)
+    alone = [robust_icp(src[i:i + 1], tgt[i:i + 1], rotation[i:i + 1], translation[i:i + 1], 5) for i in range(4)]
+    torch.testing.assert_close(batched[0], torch.cat([a[0] for a in alone]), rtol=1e-5, atol=1e-5)
+    kept = robust_icp(src, tgt, rotation, translation, 0)
+    assert kept[0] is rotation and kept[1] is translation
+    with pytest.raises(ValueError, match="steps"):
+        robust_icp(src, tgt, rotation, translation, -1)
+
+
+def test_robust_icp_leaves_an_exact_estimate_exact():
+    src, _, truth, shift, _, _ = partial_pairs(B=2, dtype=torch.float64)
+    tgt = move(src, truth, shift)[:, torch.randperm(src.shape[1])]
+    R, t = robust_icp(src, tgt, truth, shift, 3)
+    torch.testing.assert_close(R, truth, rtol=0, atol=1e-10)
+    torch.testing.assert_close(t, shift, rtol=0, atol=1e-10)
