@@ -551,3 +551,23 @@ def test_finetune_validation_compares_two_models_on_validation_pairs_with_one_so
         assert before["pairs"] == after["pairs"] == 3 and before["model"] != after["model"]
         assert before["rmse_r"] == after["rmse_r"] and before["recall"] == after["recall"]
     assert "| so3 |" in (tmp_path / "val.md").read_text()
+
+
+@requires_modelnet
+def test_polish_validation_polishes_one_forward_per_set_on_validation_pairs(tmp_path):
+    from vrnet_ext.model.pretrained import weights_path
+
+    run([str(ROOT / "benchmarks" / "polish_validation.py"), "--models", "vrnet-rs-upc-rcp",
+         str(weights_path("vrnet-rs-upc-rcp")), "--steps", "0", "4", "--rotations", "protocol", "so3",
+         "--search-below", "0.5", "--max-items", "3", "--batch-size", "2", "--data-dir", str(MODELNET_DIR),
+         "--json", "polish.json", "--markdown", "polish.md"], tmp_path)
+    record = json.loads((tmp_path / "polish.json").read_text())
+    assert record["partition"] == "val" and record["steps"] == [0, 4]
+    rows = record["rows"]
+    assert [(r["rotations"], r["rotation_search_below"], r["polish_iterations"]) for r in rows[:4]] == [
+        ("protocol", 0.0, 0), ("protocol", 0.0, 4), ("so3", 0.5, 0), ("so3", 0.5, 4)]
+    assert all(r["cell"] == "RS / UPC" and r["pairs"] == 3 for r in rows)
+    for shipped, file in zip(rows[:4], rows[4:]):  # the same weights by name and by path: the same errors
+        assert shipped["rmse_r"] == file["rmse_r"] and shipped["model"] != file["model"]
+    assert rows[0]["polished_share"] == 0 < rows[1]["polished_share"] and rows[0]["rmse_r"] != rows[1]["rmse_r"]
+    assert "| RS / UPC | so3 | 0.5 | 4 | 3 |" in (tmp_path / "polish.md").read_text()

@@ -566,6 +566,10 @@ def test_the_polish_keeps_its_icp_estimate_where_it_brings_the_source_nearer():
     moved = src.double() @ out.rotation.double().mT + out.translation.double()[:, None]
     expected = ((moved - out.rcp.double()).norm(dim=-1) < 0.3).double().mean(dim=-1)
     torch.testing.assert_close(out.consistency.double(), expected)
+    with torch.no_grad():  # the forward's last step, on an output at hand: a new output, the given one untouched
+        again = plain.eval().polished(src, tgt, first, 4)
+    torch.testing.assert_close(again.rotation, out.rotation, rtol=0, atol=0)
+    assert torch.equal(again.polished, nearer) and not first.polished.any()
     model.train()  # training sees the passes only
     trained = model(src, tgt)
     assert not trained.polished.any()

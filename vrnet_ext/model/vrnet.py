@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import torch
 from torch import nn
@@ -179,7 +179,7 @@ class VRNet(nn.Module):
         if self.config.rotation_search_below > 0:
             self._rotation_search(src, tgt, out, backend, return_matching, tgt_features)
         if self.config.polish_iterations > 0:
-            self._polish(src, tgt, out)
+            out = self.polished(src, tgt, out, self.config.polish_iterations)
         return out
 
     def _passes(self, src: torch.Tensor, tgt: torch.Tensor, backend: str, return_matching: bool,
@@ -270,18 +270,20 @@ class VRNet(nn.Module):
             so_far = nearest_median(src[chunk], tgt[chunk], out.rotation[chunk], out.translation[chunk])
             _replace_rows(out, chunk, _rows_of(found, chosen), better=distance[chosen] < so_far)
 
-    def _polish(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput) -> None:
-        """``polish_iterations`` steps of :func:`robust_icp` from each pair's estimate, kept where they
-        bring the source nearer the target (:func:`nearest_median`; in place, chosen on the device);
-        ``out.consistency`` then measures the kept estimate against the same RCPs."""
+    def polished(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, steps: int) -> VRNetOutput:
+        """``out`` (this model's output for src (B, N, 3), tgt (B, M, 3)) after ``steps`` steps of
+        :func:`robust_icp` from each pair's estimate, kept where they bring the source nearer the target
+        (:func:`nearest_median`; chosen on the device): the eval forward's last step where
+        ``polish_iterations`` > 0. ``polished`` marks the pairs it moved; ``consistency`` then measures
+        the kept estimate against the same RCPs. ``out`` itself is left as it is."""
         with torch.autocast(src.device.type, enabled=False):
-            rotation, translation = robust_icp(src, tgt, out.rotation, out.translation, self.config.polish_iterations)
-            closer = nearest_median(src, tgt, rotation, translation) < nearest_median(src, tgt, out.rotation,
-                                                                                       out.translation)
-        out.rotation = torch.where(closer[:, None, None], rotation, out.rotation)
-        out.translation = torch.where(closer[:, None], translation, out.translation)
-        out.polished = closer
-        out.consistency = self._consistency(src, out.rotation, out.translation, out.rcp)
+            rotation, translation = robust_icp(src, tgt, out.rotation, out.translation, steps)
+            nearer = nearest_median(src, tgt, rotation, translation) < nearest_median(src, tgt, out.rotation,
+                                                                                      out.translation)
+        rotation = torch.where(nearer[:, None, None], rotation, out.rotation)
+        translation = torch.where(nearer[:, None], translation, out.translation)
+        return replace(out, rotation=rotation, translation=translation, polished=nearer,
+                       consistency=self._consistency(src, rotation, translation, out.rcp))
 
     def _features(self, src: torch.Tensor, tgt: torch.Tensor, backend: str,
                   tgt_features: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
