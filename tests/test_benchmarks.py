@@ -348,11 +348,15 @@ def test_modelnet40_rotations_puts_each_cells_estimates_side_by_side(tmp_path):
     assert "| so3 | PV / UPC | `m` | 100 | 20.0% | 100.0% |" in (tmp_path / "r.md").read_text()
     later = tmp_path / "later"  # a re-run of one estimate, in a folder read after the first
     later.mkdir()
-    (later / "a.json").write_text(json.dumps({"results": [cell("m", "so3", False, 0.2, 0.9)]}))
+    polished = cell("m", "so3", False, 0.2, 0.9)
+    polished["solve"]["polish_iterations"] = 10
+    (later / "a.json").write_text(json.dumps({"results": [polished]}))
     run([str(ROOT / "benchmarks" / "modelnet40_rotations.py"), "--tables", str(tables), str(later), "--json", "r2.json",
          "--markdown", "r2.md"], tmp_path)
     rows = {row["pairs_of"]: row for row in json.loads((tmp_path / "r2.json").read_text())["rows"]}
     assert rows["so3"]["search"]["recall"] == 0.9 and rows["so3"]["search"]["source"] == "later/a.json"
+    assert rows["so3"]["search"]["polish_iterations"] == 10 and rows["so3"]["alone"]["polish_iterations"] == 0
+    assert "| 0 / 10 |" in (tmp_path / "r2.md").read_text()
     assert rows["so3"]["alone"]["recall"] == 0.2 and rows["protocol, swapped"]["search"]["recall"] == 0.99
 
     def refused(*folders):
