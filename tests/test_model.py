@@ -570,6 +570,10 @@ def test_the_polish_keeps_its_icp_estimate_where_it_brings_the_source_nearer():
         again = plain.eval().polished(src, tgt, first, 4)
     torch.testing.assert_close(again.rotation, out.rotation, rtol=0, atol=0)
     assert torch.equal(again.polished, nearer) and not first.polished.any()
+    with pytest.raises(ValueError, match="not the clouds of out"):
+        plain.polished(src[:2], tgt[:2], first, 4)
+    with pytest.raises(ValueError, match="steps"):
+        plain.polished(src, tgt, first, -1)
     model.train()  # training sees the passes only
     trained = model(src, tgt)
     assert not trained.polished.any()

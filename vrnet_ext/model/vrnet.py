@@ -276,6 +276,12 @@ class VRNet(nn.Module):
         (:func:`nearest_median`; chosen on the device): the eval forward's last step where
         ``polish_iterations`` > 0. ``polished`` marks the pairs it moved; ``consistency`` then measures
         the kept estimate against the same RCPs. ``out`` itself is left as it is."""
+        for name, cloud in (("src", src), ("tgt", tgt)):
+            check_float(cloud, name)
+            check_shape(cloud, name, 3, "(B, N, 3)", last=3)
+        if not src.shape[0] == tgt.shape[0] == out.rotation.shape[0] or src.shape[1] != out.rcp.shape[1]:
+            raise ValueError(f"src {tuple(src.shape)} and tgt {tuple(tgt.shape)} are not the clouds of out "
+                             f"(rcp {tuple(out.rcp.shape)}, rotation {tuple(out.rotation.shape)})")
         with torch.autocast(src.device.type, enabled=False):
             rotation, translation = robust_icp(src, tgt, out.rotation, out.translation, steps)
             nearer = nearest_median(src, tgt, rotation, translation) < nearest_median(src, tgt, out.rotation,
