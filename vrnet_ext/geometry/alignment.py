@@ -16,19 +16,19 @@ ICP_SCALE = 1.0        # robust_icp: its scale, in medians of the pair's nearest
 ICP_REWEIGHTING = 3    # robust_icp: reweighting steps of each Procrustes solve
 
 
-def nearest_median(src: torch.Tensor, tgt: torch.Tensor, rotation: torch.Tensor,
-                   translation: torch.Tensor) -> torch.Tensor:
+def nearest_median(src: torch.Tensor, tgt: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor,
+                   backend: str = "ext") -> torch.Tensor:
     """(B,) the median distance from each point of R src + t to its nearest target point: how close
     an estimate brings the clouds, whatever correspondences say (robust to up to half the source
-    without a counterpart)."""
+    without a counterpart). ``backend``: that of :func:`vrnet_ext.ops.knn`."""
     with torch.autocast(src.device.type, enabled=False):
         moved = move(src, rotation, translation).contiguous()
-    dist2, _ = knn(moved, tgt.to(moved.dtype).contiguous(), 1)
+    dist2, _ = knn(moved, tgt.to(moved.dtype).contiguous(), 1, backend=backend)
     return dist2[..., 0].median(dim=1).values.sqrt()
 
 
 def robust_icp(src: torch.Tensor, tgt: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor,
-               steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+               steps: int, backend: str = "ext") -> tuple[torch.Tensor, torch.Tensor]:
     """``steps`` steps of robust point-to-point ICP from (R, t), every pair at once: each step pairs
     every moved source point with its nearest target point and solves a Procrustes on those pairs
     followed by :data:`ICP_REWEIGHTING` reweighting steps (:func:`vrnet_ext.ops.robust_kabsch`:
@@ -37,6 +37,7 @@ def robust_icp(src: torch.Tensor, tgt: torch.Tensor, rotation: torch.Tensor, tra
 
     ICP converges to the nearest local minimum: it polishes an estimate that is nearly right (a few
     degrees off), and does not rescue one that is far off. Returns R (B, 3, 3), t (B, 3) in src's dtype.
+    ``backend``: that of the ops (:func:`vrnet_ext.ops.knn`, :func:`vrnet_ext.ops.robust_kabsch`).
     """
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
@@ -44,8 +45,8 @@ def robust_icp(src: torch.Tensor, tgt: torch.Tensor, rotation: torch.Tensor, tra
         src, tgt = src.contiguous(), tgt.to(src.dtype).contiguous()
         for _ in range(steps):
             moved = move(src, rotation, translation).contiguous()
-            _, nearest = knn(moved, tgt, 1)
+            _, nearest = knn(moved, tgt, 1, backend=backend)
             matched = tgt.gather(1, nearest.expand(-1, -1, 3))
             rotation, translation = robust_kabsch(src, matched, None, iterations=ICP_REWEIGHTING, kernel=ICP_KERNEL,
-                                                  scale=ICP_SCALE)
+                                                  scale=ICP_SCALE, backend=backend)
     return rotation, translation

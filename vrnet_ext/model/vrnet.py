@@ -179,7 +179,7 @@ class VRNet(nn.Module):
         if self.config.rotation_search_below > 0:
             self._rotation_search(src, tgt, out, backend, return_matching, tgt_features)
         if self.config.polish_iterations > 0:
-            out = self.polished(src, tgt, out, self.config.polish_iterations)
+            out = self.polished(src, tgt, out, self.config.polish_iterations, backend)
         return out
 
     def _passes(self, src: torch.Tensor, tgt: torch.Tensor, backend: str, return_matching: bool,
@@ -264,28 +264,31 @@ class VRNet(nn.Module):
             every = torch.arange(rows.numel(), device=src.device)
             _replace_rows(found, every, self._second_look(src[rows], tgt[rows], found, backend, return_matching,
                                                           features))
-            distance = nearest_median(src[rows], tgt[rows], found.rotation, found.translation)
+            distance = nearest_median(src[rows], tgt[rows], found.rotation, found.translation, backend)
             best = distance.view(chunk.numel(), count).argmin(dim=1)
             chosen = torch.arange(chunk.numel(), device=src.device) * count + best
-            so_far = nearest_median(src[chunk], tgt[chunk], out.rotation[chunk], out.translation[chunk])
+            so_far = nearest_median(src[chunk], tgt[chunk], out.rotation[chunk], out.translation[chunk], backend)
             _replace_rows(out, chunk, _rows_of(found, chosen), better=distance[chosen] < so_far)
 
-    def polished(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, steps: int) -> VRNetOutput:
+    def polished(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, steps: int,
+                 backend: str | None = None) -> VRNetOutput:
         """``out`` (this model's output for src (B, N, 3), tgt (B, M, 3)) after ``steps`` steps of
         :func:`robust_icp` from each pair's estimate, kept where they bring the source nearer the target
         (:func:`nearest_median`; chosen on the device): the eval forward's last step where
         ``polish_iterations`` > 0. ``polished`` marks the pairs it moved; ``consistency`` then measures
-        the kept estimate against the same RCPs. ``out`` itself is left as it is."""
+        the kept estimate against the same RCPs. ``out`` itself is left as it is. ``backend``: the
+        ops' (default: ``config.backend``)."""
         for name, cloud in (("src", src), ("tgt", tgt)):
             check_float(cloud, name)
             check_shape(cloud, name, 3, "(B, N, 3)", last=3)
         if not src.shape[0] == tgt.shape[0] == out.rotation.shape[0] or src.shape[1] != out.rcp.shape[1]:
             raise ValueError(f"src {tuple(src.shape)} and tgt {tuple(tgt.shape)} are not the clouds of out "
                              f"(rcp {tuple(out.rcp.shape)}, rotation {tuple(out.rotation.shape)})")
+        backend = backend or self.config.backend
         with torch.autocast(src.device.type, enabled=False):
-            rotation, translation = robust_icp(src, tgt, out.rotation, out.translation, steps)
-            nearer = nearest_median(src, tgt, rotation, translation) < nearest_median(src, tgt, out.rotation,
-                                                                                      out.translation)
+            rotation, translation = robust_icp(src, tgt, out.rotation, out.translation, steps, backend)
+            nearer = (nearest_median(src, tgt, rotation, translation, backend)
+                      < nearest_median(src, tgt, out.rotation, out.translation, backend))
         rotation = torch.where(nearer[:, None, None], rotation, out.rotation)
         translation = torch.where(nearer[:, None], translation, out.translation)
         return replace(out, rotation=rotation, translation=translation, polished=nearer,
