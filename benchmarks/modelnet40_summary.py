@@ -178,10 +178,12 @@ def markdown(rows: list[dict]) -> str:
                  "at or below it). Whole test split of each cell; each model was chosen on validation, then evaluated on it "
                  "once, as it is served: one pass, and a second from the moved source for a pair whose RCPs disagree "
                  "with its estimate, keeping the pass whose RCPs agree more (`second_pass_below`; "
-                 "\"second pass kept\": the share of pairs whose estimate came from it). The rows below were "
+                 "\"second pass kept\": the share of pairs whose estimate came from it), then, where its file says so "
+                 "(`polish_iterations`), the geometric polish: ICP steps from the estimate, kept where they bring the "
+                 "source nearer the target. The rows below were "
                  "measured for information and chose nothing. Training in all: wall time of the serving model's runs and of every model it was "
                  "fine-tuned from, on this project's 2-core CPU (`vrnet_ext.model.pretrained.training_seconds`).")
-    one_pass = "The same models with one pass only (the paper's protocol: no second pass for any pair)."
+    one_pass = "The same models with one pass only (the paper's protocol: no second pass or polish for any pair)."
     two_passes = ("The same models with two passes (the paper's \"VRNet with iteration\": the second pass registers "
                   "the source moved by the first estimate, for every pair; twice the network time).")
     for key, reached_key, title in (("one_pass", "one_pass_reached", one_pass),
