@@ -17,12 +17,9 @@ the median rotation error and the time of one pair (batch 1). Writes Markdown an
 from __future__ import annotations
 
 import argparse
-import datetime
 import sys
 
-import torch
-
-from outputs import cpu_description, write_outputs  # benchmarks/, the script's folder
+from outputs import machine_and_date, write_outputs  # benchmarks/, the script's folder
 from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter
 from vrnet_ext.cli.training import add_solve_options, solve_overrides
 from vrnet_ext.names import SETTINGS, SPLITS
@@ -112,8 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     solve.update(solve_overrides(args))
     rows = (measure(f"{args.before} (before)", args.before, solve, cell, args)
             + measure(args.after_label, args.after, solve, cell, args))
-    machine = f"{cpu_description()}, torch {torch.__version__}, {torch.get_num_threads()} threads"
-    date = datetime.date.today().isoformat()
+    machine, date = machine_and_date()
     caption = (f"{cell[0]} / {cell[1]}, {args.max_items} validation shapes spread over the partition (seed 1234; never the test split), "
                f"before and after the fine-tune, both solved as {args.before}'s file says"
                f"{' with ' + str(solve_overrides(args)) if solve_overrides(args) else ''}. Recall: rotation error below "

@@ -32,3 +32,14 @@ def cpu_description() -> str:
         pass
     bf16 = "native bf16" if cpu_has_native_bf16() else "no native bf16"
     return ", ".join(part for part in (platform.machine(), name, f"{os.cpu_count()} cpus", bf16) if part)
+
+
+def machine_and_date() -> tuple[str, str]:
+    """What a run was measured on (:func:`cpu_description`, torch's version and threads) and the
+    day, ISO: the stamp of a table's caption and record."""
+    import datetime
+
+    import torch
+
+    return (f"{cpu_description()}, torch {torch.__version__}, {torch.get_num_threads()} threads",
+            datetime.date.today().isoformat())

@@ -18,13 +18,12 @@ off, the share the polish moved and the seconds per pair (the batch's forward pl
 from __future__ import annotations
 
 import argparse
-import datetime
 import sys
 import time
 
 import torch
 
-from outputs import cpu_description, write_outputs  # benchmarks/, the script's folder
+from outputs import machine_and_date, write_outputs  # benchmarks/, the script's folder
 from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter, nonnegative_int, positive_int, unit_interval
 from vrnet_ext.names import ROTATION_RANGES
 
@@ -115,8 +114,7 @@ def markdown(rows: list[dict], caption: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     rows = [row for name in args.models for rotations in args.rotations for row in measure(name, rotations, args)]
-    machine = f"{cpu_description()}, torch {torch.__version__}, {torch.get_num_threads()} threads"
-    date = datetime.date.today().isoformat()
+    machine, date = machine_and_date()
     caption = (f"The geometric polish on {args.max_items} validation shapes of each model's cell, spread over the "
                f"partition (seed 1234; never the test split); each model solved as its file says, the pairs beyond "
                f"the protocol's rotations with the rotation search (rotation_search_below {args.search_below:g}); "
