@@ -71,6 +71,11 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "rotations_whole_nearest": "ModelNet40 with each angle in [-45, 45] degrees on whole test splits, four cells with the rotation search keeping the start that brings the source closest to the target (`modelnet40_rotations.py` over `modelnet40_tables.py --methods vrnet --rotation-range symmetric --rotation-search-below 0.1`)",
     "rotation_search_criteria": "How the rotation search should choose among its starts, on validation pairs (`rotation_search_criteria.py`)",
     "rotations_whole_splits": "ModelNet40 with each angle in [-45, 45] degrees on whole test splits, four cells alone and with the rotation search (`modelnet40_rotations.py` over `modelnet40_tables.py --methods vrnet --rotation-range symmetric --rotation-search-below 0|0.1`)",
+    "polish_validation_nd": "The geometric polish on validation pairs of the four ND cells, protocol and symmetric rotations with the search (`polish_validation.py --models <the ND models>`)",
+    "polish_validation_protocol": "The geometric polish on validation pairs of the eight noise-free cells, the protocol's rotations (`polish_validation.py --rotations protocol`)",
+    **{f"modelnet40_tables_{cell}_polish": f"ModelNet40 tables, {label} / ND with the shipped geometric polish (`modelnet40_tables.py --models vrnet-{cell.split('_')[0]}-nd-rcp --methods vrnet --polish-iterations 10`)"
+       for cell, label in (("co_nd", "CO"), ("pv_nd", "PV"), ("rs_nd", "RS"), ("pvrs_nd", "PV+RS"))},
+    "rotations_whole": "ModelNet40 whole test splits with symmetric angles, each cell's model with its rotation search, RS / UPC added and PV / ND with its polish (`modelnet40_rotations.py --tables rotations_whole_centred rotations_whole`)",
     "memory_plan": "Memory planner: predicted vs measured peaks (`bench_memory_plan.py`)",
     "memory_plan_refit": "Memory planner refitted as upper bounds, with a 3,000,000-point pair (`bench_memory_plan.py`)",
     "memory_plan_scene": "Memory planner, scene model (`bench_memory_plan.py --methods vrnet vrnet-large`)",
