@@ -30,7 +30,7 @@ import json
 import math
 from pathlib import Path
 
-from modelnet40_tables import PAPER, SPLITS, solve_options, weights_digest  # benchmarks/, the script's folder
+from modelnet40_tables import LATER_STEPS_OFF, PAPER, SPLITS, solve_options, weights_digest  # benchmarks/, the script's folder
 from outputs import write_outputs
 from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data.protocol import SETTINGS, VIEW_PROTOCOL
@@ -42,8 +42,7 @@ PARTIAL_VIEWS = ("PV", "PV+RS")  # the settings whose pairs depend on how views 
 # A measurement that names no solve was taken when the reweighting's kernel and scale were fixed;
 # one that names no second pass (no search, no polish), before there was one.
 UNRECORDED_SOLVE = {"irls_kernel": "cauchy", "irls_scale": 3.0}
-UNRECORDED_LATER_STEPS = {"second_pass_below": 0.0, "rotation_search_below": 0.0, "polish_iterations": 0,
-                          "consistency_radius": 0.02}
+UNRECORDED_LATER_STEPS = {**LATER_STEPS_OFF, "consistency_radius": 0.02}
 # A measurement that names no rotations was taken on the protocol's.
 
 
@@ -74,7 +73,7 @@ def measurements(results: Path, method: str = "vrnet", one_pass: bool = False) -
             weights, solve = current[cell["model"]]
             recorded = {**UNRECORDED_LATER_STEPS, **cell.get("solve", UNRECORDED_SOLVE)}
             if solve is not None and one_pass:
-                solve = dict(solve, second_pass_below=0.0, rotation_search_below=0.0, polish_iterations=0)
+                solve = dict(solve, **LATER_STEPS_OFF)
             if method != "vrnet":  # the two-pass row never takes a further pass
                 recorded = {k: v for k, v in recorded.items() if k not in UNRECORDED_LATER_STEPS}
             elif solve is not None and solve["second_pass_below"] == solve["rotation_search_below"] == 0 \

@@ -118,7 +118,8 @@ class Swapped(Dataset):
                 "translation": -(inverse @ item["translation"])}
 
 
-LATER_STEPS = ("second_pass_below", "rotation_search_below", "polish_iterations")  # eval-mode steps after the passes
+# The eval-mode steps after the passes, each switched off: the second look, the rotation search, the polish.
+LATER_STEPS_OFF = {"second_pass_below": 0.0, "rotation_search_below": 0.0, "polish_iterations": 0}
 
 
 def network_estimates(model, data, batch_size: int, methods) -> dict:
@@ -130,19 +131,19 @@ def network_estimates(model, data, batch_size: int, methods) -> dict:
     loader = DataLoader(data, batch_size=batch_size, shuffle=False)
     estimates = {}
     config = model.config
-    configured = (config.iterations, *(getattr(config, key) for key in LATER_STEPS))
-    none_later = (0.0, 0.0, 0)
-    one_pass = configured[1:] == none_later
+    configured = {"iterations": config.iterations, **{key: getattr(config, key) for key in LATER_STEPS_OFF}}
+    one_pass = configured == {**configured, **LATER_STEPS_OFF}
     groups = [(configured, ("vrnet", "vcp") if one_pass else ("vrnet",)),
-              ((configured[0], *none_later), () if one_pass else ("vcp",)), ((2, *none_later), ("vrnet2",))]
-    for (passes, *later), names in groups:
+              ({**configured, **LATER_STEPS_OFF}, () if one_pass else ("vcp",)),
+              ({"iterations": 2, **LATER_STEPS_OFF}, ("vrnet2",))]
+    for settings, names in groups:
         names = [m for m in names if m in methods]
         if not names:
             continue
         rotations, translations = {m: [] for m in names}, {m: [] for m in names}
         seconds, counts = 0.0, dict.fromkeys(("second_pass_share", "turned_share", "polished_share"), 0)
-        config.iterations = passes
-        for key, value in zip(LATER_STEPS, later):
+        passes = settings["iterations"]
+        for key, value in settings.items():
             setattr(config, key, value)
         try:
             with torch.no_grad():
@@ -158,8 +159,7 @@ def network_estimates(model, data, batch_size: int, methods) -> dict:
                         rotations[name].append(R.double().numpy())
                         translations[name].append(t.double().numpy())
         finally:
-            config.iterations = configured[0]
-            for key, value in zip(LATER_STEPS, configured[1:]):
+            for key, value in configured.items():
                 setattr(config, key, value)
         shares = {key: count / len(data) for key, count in counts.items()}
         estimates.update({m: (np.concatenate(rotations[m]), np.concatenate(translations[m]), seconds, shares)

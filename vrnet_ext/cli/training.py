@@ -21,8 +21,8 @@ ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0,
                        "symmetric = in [-45, 45]; so3 = uniform over all rotations; cube_residual = a uniform "
                        "rotation turned back by the cube rotation nearest it (what the rotation search's "
                        "nearest start leaves)")
-# The estimate's inference-time options: the robust solve, the second pass and the rotation search.
 EVAL_PARTITIONS = ("test", "val")  # vrnet eval --partition (ModelNet40Pairs partitions a model is measured on)
+# The estimate's inference-time options: the robust solve, the second pass, the rotation search and the polish.
 SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "rotation_search_below",
               "rotation_search_centre", "polish_iterations", "consistency_radius")
 
