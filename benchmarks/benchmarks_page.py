@@ -76,6 +76,8 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     **{f"modelnet40_tables_{cell}_polish": f"ModelNet40 tables, {label} / ND with the shipped geometric polish (`modelnet40_tables.py --models vrnet-{cell.split('_')[0]}-nd-rcp --methods vrnet --polish-iterations 10`)"
        for cell, label in (("co_nd", "CO"), ("pv_nd", "PV"), ("rs_nd", "RS"), ("pvrs_nd", "PV+RS"))},
     "rotations_whole": "ModelNet40 whole test splits with symmetric angles, each cell's model with its rotation search, RS / UPC added and PV / ND with its polish (`modelnet40_rotations.py --tables rotations_whole_centred rotations_whole`)",
+    **{f"search_polish_{cells}": f"The rotation search polishing its starts on validation pairs with symmetric angles, {label} (`polish_validation.py --rotations symmetric --search-polish 0 30`)"
+       for cells, label in (("rs_upc", "RS / UPC"), ("uc", "PV+RS / UC and RS / UC"))},
     "memory_plan": "Memory planner: predicted vs measured peaks (`bench_memory_plan.py`)",
     "memory_plan_refit": "Memory planner refitted as upper bounds, with a 3,000,000-point pair (`bench_memory_plan.py`)",
     "memory_plan_scene": "Memory planner, scene model (`bench_memory_plan.py --methods vrnet vrnet-large`)",

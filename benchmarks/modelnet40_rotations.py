@@ -10,8 +10,8 @@ inverted) and ``--rotation-search-below`` (0: the model alone; else the search o
 ``VRNetConfig.rotation_search_below``). One row per cell and kind of pair: the shipped model that
 serves the cell, the pairs, and per estimate (alone, with the search) the share of pairs registered
 (recall: rotation error below 5 degrees and translation error below 0.1), RMSE(R) in degrees and the
-seconds per pair, and the geometric polish's steps of each (``VRNetConfig.polish_iterations``; alone /
-with the search). The paper's VRNet RMSE(R) (its protocol) stands beside them.
+seconds per pair, the geometric polish's steps of each (``VRNetConfig.polish_iterations``; alone /
+with the search) and the steps the search polishes each start with (``rotation_search_polish``). The paper's VRNet RMSE(R) (its protocol) stands beside them.
 """
 from __future__ import annotations
 
@@ -58,6 +58,7 @@ def collect(folders: list[Path]) -> list[dict]:
                     "recall": vrnet[RECALL], "RMSE(R)": vrnet["RMSE(R)"], "seconds_per_pair": vrnet["seconds_per_pair"],
                     "search_below": cell["solve"].get("rotation_search_below", 0),
                     "polish_iterations": cell["solve"].get("polish_iterations", 0),
+                    "search_polish": cell["solve"].get("rotation_search_polish", 0),
                     "source": str(path.relative_to(folder.parent))}
     rows = []
     for (setting, split, pairs_of), measured in estimates.items():
@@ -70,7 +71,8 @@ def collect(folders: list[Path]) -> list[dict]:
                "pairs": first["pairs"]}
         for estimate, value in measured.items():
             row[estimate] = {field: value[field] for field in
-                             ("recall", "RMSE(R)", "seconds_per_pair", "search_below", "polish_iterations", "source")}
+                             ("recall", "RMSE(R)", "seconds_per_pair", "search_below", "polish_iterations",
+                              "search_polish", "source")}
         rows.append(row)
     order = {(s, p): i for i, (s, p) in enumerate((s, p) for p in SPLITS for s in SETTINGS)}
     return sorted(rows, key=lambda r: (r["pairs_of"], order[(r["setting"], r["split"])]))
@@ -79,7 +81,7 @@ def collect(folders: list[Path]) -> list[dict]:
 def markdown(rows: list[dict], note: str) -> str:
     lines = [note, "", "| pairs | cell | model | pairs measured | recall alone | recall with search | "
              "RMSE(R) alone | RMSE(R) with search | paper RMSE(R) (protocol) | s / pair alone | s / pair with search | "
-             "polish steps |", "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "polish steps | search polish steps |", "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
         paper = PAPER.get((row["setting"], row["split"]), {}).get("VRNet", ("–",))[0]
         cells = []
@@ -88,7 +90,8 @@ def markdown(rows: list[dict], note: str) -> str:
             cells.append([form.format(row[e][field]) if e in row else "–" for e in ESTIMATES])
         lines.append(f"| {row['pairs_of']} | {row['setting']} / {row['split']} | `{row['model']}` | {row['pairs']} | "
                      f"{cells[0][0]} | {cells[0][1]} | {cells[1][0]} | {cells[1][1]} | {paper} | "
-                     f"{cells[2][0]} | {cells[2][1]} | {' / '.join(cells[3])} |")
+                     f"{cells[2][0]} | {cells[2][1]} | {' / '.join(cells[3])} | "
+                     f"{row['search']['search_polish'] if 'search' in row else '–'} |")
     return "\n".join(lines) + "\n"
 
 

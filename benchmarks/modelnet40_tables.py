@@ -118,8 +118,10 @@ class Swapped(Dataset):
                 "translation": -(inverse @ item["translation"])}
 
 
-# The eval-mode steps after the passes, each switched off: the second look, the rotation search, the polish.
-LATER_STEPS_OFF = {"second_pass_below": 0.0, "rotation_search_below": 0.0, "polish_iterations": 0}
+# The eval-mode steps after the passes, each switched off: the second look, the rotation search (and its
+# polish of the starts), the polish.
+LATER_STEPS_OFF = {"second_pass_below": 0.0, "rotation_search_below": 0.0, "rotation_search_polish": 0,
+                   "polish_iterations": 0}
 
 
 def network_estimates(model, data, batch_size: int, methods) -> dict:

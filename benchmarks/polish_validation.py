@@ -1,17 +1,18 @@
-"""The geometric polish (``VRNetConfig.polish_iterations``) on validation pairs: what a shipped
-model's polish is chosen on.
+"""The geometric polish (``VRNetConfig.polish_iterations``, and ``rotation_search_polish`` in the
+rotation search) on validation pairs: what a shipped model's polish is chosen on.
 
     python benchmarks/polish_validation.py --models vrnet-pv-nd-rcp [...] [--steps 0 3 10 30]
-        [--rotations protocol symmetric] [--search-below 0.1] [--max-items 300]
+        [--rotations protocol symmetric] [--search-below 0.1] [--search-polish 0 30] [--max-items 300]
         [--json polish.json] [--markdown polish.md]
 
 Pairs: ``--max-items`` shapes spread evenly over the ``val`` partition (held out of TRAIN by every
 run, never the test split) of each model's cell, seed 1234, for each set of ``--rotations``. Each
 model solves as its file says; the pairs whose rotations go beyond the protocol's (``symmetric``,
-``so3``) also take the rotation search (``rotation_search_below`` = ``--search-below``). Each batch
-goes through the model once; every step count of ``--steps`` then polishes that output
-(:meth:`vrnet_ext.VRNet.polished`, the forward's last step), so the rows of a set differ by the
-polish alone. Per row: recall (rotation error below 5 degrees and translation error below 0.1),
+``so3``) also take the rotation search (``rotation_search_below`` = ``--search-below``), once for
+each ``--search-polish`` (its ``rotation_search_polish``: a forward each). Each batch goes through
+the model once per search polish; every step count of ``--steps`` then polishes that output
+(:meth:`vrnet_ext.VRNet.polished`, the forward's last step), so the rows of one forward differ by
+the polish alone. Per row: recall (rotation error below 5 degrees and translation error below 0.1),
 RMSE(R) (the paper's, on Euler angles), the median rotation error, the pairs more than 5 degrees
 off, the share the polish moved and the seconds per pair (the batch's forward plus its polish).
 """
@@ -41,6 +42,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="the sets of pairs' rotations")
     parser.add_argument("--search-below", type=unit_interval, default=0.1,
                         help=f"rotation_search_below of the pairs beyond the protocol's ({', '.join(SEARCHED)})")
+    parser.add_argument("--search-polish", type=nonnegative_int, nargs="+", default=[0],
+                        help="rotation_search_polish steps of the searched pairs, a forward each")
     parser.add_argument("--max-items", type=positive_int, default=300, help="validation shapes (pairs) per set")
     parser.add_argument("--batch-size", type=positive_int, default=16, help="pairs per forward")
     parser.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
@@ -50,9 +53,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def measure(name: str, rotations: str, args) -> list[dict]:
-    """One model's rows on one set of pairs (of the first cell it serves): its estimate, then each
-    polish of ``--steps``."""
+def measure(name: str, rotations: str, search_polish: int, args) -> list[dict]:
+    """One model's rows on one set of pairs (of the first cell it serves), its rotation search (where
+    the set takes one) polishing its starts ``search_polish`` steps: its estimate, then each polish
+    of ``--steps``."""
     from torch.utils.data import DataLoader
 
     from modelnet40_tables import cells_of  # benchmarks/, the script's folder
@@ -64,7 +68,7 @@ def measure(name: str, rotations: str, args) -> list[dict]:
     config = state["config"]
     setting, split = cells_of(name, config)[0]
     model.eval().config.rotation_search_below = args.search_below if rotations in SEARCHED else 0.0
-    model.config.polish_iterations = 0
+    model.config.polish_iterations, model.config.rotation_search_polish = 0, search_polish
     spec = PairSpec(setting=setting, num_points=config.get("num_points", 1024),
                     num_subsampled=config.get("num_subsampled", 768), rotation_range=rotations)
     data = ModelNet40Pairs(args.data_dir, partition="val", setting=setting, split=split, max_items=args.max_items,
@@ -91,21 +95,23 @@ def measure(name: str, rotations: str, args) -> list[dict]:
         wrong = int((rotation_error_deg(R, gt_R) > 5).sum())
         moved = torch.cat([out.polished for out in polished])
         rows.append({"model": name, "cell": f"{setting} / {split}", "rotations": rotations,
-                     "rotation_search_below": model.config.rotation_search_below, "polish_iterations": steps,
+                     "rotation_search_below": model.config.rotation_search_below,
+                     "rotation_search_polish": search_polish, "polish_iterations": steps,
                      "pairs": len(data), **{key: errors[column] for key, column in COLUMNS.items()},
                      "wrong": wrong, "polished_share": float(moved.float().mean()),
                      "seconds_per_pair": seconds[steps] / len(data)})
-        print(f"{name} {rotations} polish {steps}: recall {100 * rows[-1]['recall']:.1f} %, "
+        print(f"{name} {rotations} search polish {search_polish}, polish {steps}: recall {100 * rows[-1]['recall']:.1f} %, "
               f"RMSE(R) {rows[-1]['rmse_r']:.3g}, RE median {rows[-1]['re_median']:.3g}", file=sys.stderr)
     return rows
 
 
 def markdown(rows: list[dict], caption: str) -> str:
-    lines = [caption, "", "| model | cell | pairs' rotations | search | polish steps | pairs | recall | RMSE(R) | "
-             "RE median | > 5° | polished | s / pair |", "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [caption, "", "| model | cell | pairs' rotations | search | search polish | polish steps | pairs | recall | "
+             "RMSE(R) | RE median | > 5° | polished | s / pair |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
         lines.append(f"| `{row['model']}` | {row['cell']} | {row['rotations']} | {row['rotation_search_below']:g} | "
-                     f"{row['polish_iterations']} | {row['pairs']} | {100 * row['recall']:.1f} % | {row['rmse_r']:.3g} | "
+                     f"{row['rotation_search_polish']} | {row['polish_iterations']} | {row['pairs']} | {100 * row['recall']:.1f} % | {row['rmse_r']:.3g} | "
                      f"{row['re_median']:.3g} | {row['wrong']} | {100 * row['polished_share']:.0f} % | "
                      f"{row['seconds_per_pair']:.3f} |")
     return "\n".join(lines)
@@ -113,16 +119,21 @@ def markdown(rows: list[dict], caption: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    rows = [row for name in args.models for rotations in args.rotations for row in measure(name, rotations, args)]
+    rows = [row for name in args.models for rotations in args.rotations
+            for search_polish in (args.search_polish if rotations in SEARCHED else [0])
+            for row in measure(name, rotations, search_polish, args)]
     machine, date = machine_and_date()
     caption = (f"The geometric polish on {args.max_items} validation shapes of each model's cell, spread over the "
                f"partition (seed 1234; never the test split); each model solved as its file says, the pairs beyond "
                f"the protocol's rotations with the rotation search (rotation_search_below {args.search_below:g}); "
-               f"each row the same estimates polished with that many steps (0: none). Recall: rotation error below "
+               f"the search polishing each start's estimate (and the pair's own) that many steps before they are "
+               f"compared where 'search polish' says so; each row of one forward the same estimates polished with "
+               f"'polish steps' (0: none). Recall: rotation error below "
                f"5 degrees and translation error below 0.1; RMSE(R): the paper's (Euler angles); > 5°: pairs more "
                f"than 5 degrees off; polished: the share of pairs the polish moved. {machine}, {date}."
                f"{' ' + args.note if args.note else ''}")
     record = {"partition": "val", "max_items": args.max_items, "steps": args.steps, "search_below": args.search_below,
+              "search_polish": args.search_polish,
               "machine": machine, "date": date, "note": args.note, "rows": rows}
     write_outputs(markdown(rows, caption), record, args.markdown, args.json)
     return 0

@@ -349,14 +349,15 @@ def test_modelnet40_rotations_puts_each_cells_estimates_side_by_side(tmp_path):
     later = tmp_path / "later"  # a re-run of one estimate, in a folder read after the first
     later.mkdir()
     polished = cell("m", "so3", False, 0.2, 0.9)
-    polished["solve"]["polish_iterations"] = 10
+    polished["solve"].update(polish_iterations=10, rotation_search_polish=30)
     (later / "a.json").write_text(json.dumps({"results": [polished]}))
     run([str(ROOT / "benchmarks" / "modelnet40_rotations.py"), "--tables", str(tables), str(later), "--json", "r2.json",
          "--markdown", "r2.md"], tmp_path)
     rows = {row["pairs_of"]: row for row in json.loads((tmp_path / "r2.json").read_text())["rows"]}
     assert rows["so3"]["search"]["recall"] == 0.9 and rows["so3"]["search"]["source"] == "later/a.json"
     assert rows["so3"]["search"]["polish_iterations"] == 10 and rows["so3"]["alone"]["polish_iterations"] == 0
-    assert "| 0 / 10 |" in (tmp_path / "r2.md").read_text()
+    assert rows["so3"]["search"]["search_polish"] == 30 and rows["so3"]["alone"]["search_polish"] == 0
+    assert "| 0 / 10 | 30 |" in (tmp_path / "r2.md").read_text()
     assert rows["so3"]["alone"]["recall"] == 0.2 and rows["protocol, swapped"]["search"]["recall"] == 0.99
 
     def refused(*folders):
@@ -563,15 +564,17 @@ def test_polish_validation_polishes_one_forward_per_set_on_validation_pairs(tmp_
 
     run([str(ROOT / "benchmarks" / "polish_validation.py"), "--models", "vrnet-rs-upc-rcp",
          str(weights_path("vrnet-rs-upc-rcp")), "--steps", "0", "4", "--rotations", "protocol", "so3",
-         "--search-below", "0.5", "--max-items", "3", "--batch-size", "2", "--data-dir", str(MODELNET_DIR),
-         "--json", "polish.json", "--markdown", "polish.md"], tmp_path)
+         "--search-below", "0.5", "--search-polish", "0", "3", "--max-items", "3", "--batch-size", "2",
+         "--data-dir", str(MODELNET_DIR), "--json", "polish.json", "--markdown", "polish.md"], tmp_path)
     record = json.loads((tmp_path / "polish.json").read_text())
-    assert record["partition"] == "val" and record["steps"] == [0, 4]
+    assert record["partition"] == "val" and record["steps"] == [0, 4] and record["search_polish"] == [0, 3]
     rows = record["rows"]
-    assert [(r["rotations"], r["rotation_search_below"], r["polish_iterations"]) for r in rows[:4]] == [
-        ("protocol", 0.0, 0), ("protocol", 0.0, 4), ("so3", 0.5, 0), ("so3", 0.5, 4)]
+    assert [(r["rotations"], r["rotation_search_below"], r["rotation_search_polish"], r["polish_iterations"])
+            for r in rows[:6]] == [("protocol", 0.0, 0, 0), ("protocol", 0.0, 0, 4), ("so3", 0.5, 0, 0),
+                                   ("so3", 0.5, 0, 4), ("so3", 0.5, 3, 0), ("so3", 0.5, 3, 4)]
     assert all(r["cell"] == "RS / UPC" and r["pairs"] == 3 for r in rows)
-    for shipped, file in zip(rows[:4], rows[4:]):  # the same weights by name and by path: the same errors
+    for shipped, file in zip(rows[:6], rows[6:]):  # the same weights by name and by path: the same errors
         assert shipped["rmse_r"] == file["rmse_r"] and shipped["model"] != file["model"]
     assert rows[0]["polished_share"] == 0 < rows[1]["polished_share"] and rows[0]["rmse_r"] != rows[1]["rmse_r"]
-    assert "| RS / UPC | so3 | 0.5 | 4 | 3 |" in (tmp_path / "polish.md").read_text()
+    assert rows[2]["polished_share"] == 0 < rows[4]["polished_share"]  # the searched pairs' polish marks them
+    assert "| RS / UPC | so3 | 0.5 | 3 | 4 | 3 |" in (tmp_path / "polish.md").read_text()

@@ -65,7 +65,7 @@ def test_files_that_are_not_checkpoints_raise_a_clear_error(tmp_path, capsys):
                                           ("encoder_layers", 500), ("k", "many"), ("negative_slope", float("nan")),
                                           ("irls_iterations", 10**9), ("irls_scale", float("nan")),
                                           ("irls_kernel", "tukey"), ("polish_iterations", 10**9),
-                                          ("polish_iterations", "many")])
+                                          ("polish_iterations", "many"), ("rotation_search_polish", -1)])
 def test_config_outside_the_limits_is_refused_before_anything_is_built(tmp_path, field, value):
     config = VRNetConfig.small(**TINY).to_dict()
     config[field] = value
@@ -179,6 +179,14 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert retuned["card"]["test"]["second_pass_below"] == 0.4 and retuned["card"]["test"]["polish_iterations"] == 2
     assert "irls_kernel: `geman_mcclure`" in (tmp_path / "weights" / "tiny-gm.md").read_text()
     torch.testing.assert_close(retuned["model"], shipped["model"], rtol=0, atol=0)
+    # the search's own options, where the file does not search: its estimates and its test table stand
+    assert main(["export", shipped_path, "tiny-sp", "--out-dir", str(tmp_path / "weights"),
+                 "--rotation-search-polish", "3", "--rotation-search-centre", "10", "0", "0"]) == 0
+    searching = read_checkpoint(tmp_path / "weights" / "tiny-sp.pt")
+    assert searching["config"]["model"]["rotation_search_polish"] == 3
+    assert searching["card"]["test"] == shipped["card"]["test"]
+    assert main(["export", shipped_path, "tiny-sp2", "--out-dir", str(tmp_path / "weights"),
+                 "--rotation-search-polish", "3", "--rotation-search-below", "0.1"]) == 2  # it searches: test it
     # a model trained on every setting: eval asks for the setting; the card holds one test per cell
     mixed = torch.load(run / "best.pt", weights_only=False)
     mixed["config"]["setting"] = "mixed"

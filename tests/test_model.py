@@ -506,6 +506,43 @@ def test_the_rotation_search_keeps_the_start_that_brings_each_doubtful_pair_clos
     assert torch.equal(model(src, tgt).start_rotation, torch.eye(3).expand(len(src), 3, 3))
 
 
+def test_the_search_polish_compares_every_start_after_its_icp():
+    from vrnet_ext.geometry.alignment import robust_icp
+    from vrnet_ext.geometry.transforms import search_starts
+
+    src, tgt = turned_pairs(B=4, N=80)
+    steps = 6
+    starts = torch.as_tensor(search_starts((0.0, 0.0, 0.0)), dtype=src.dtype)
+    plain = small_model(consistency_radius=1.0).eval()
+
+    def polished(R, t):  # the polish as a reference: ICP from (R, t), kept where nearer (float64 brute force)
+        R2, t2 = robust_icp(src, tgt, R, t, steps, backend="torch")
+        nearer = _nearest_median(src, tgt, R2, t2) < _nearest_median(src, tgt, R, t)
+        return torch.where(nearer[:, None, None], R2, R), torch.where(nearer[:, None], t2, t), nearer
+
+    with torch.no_grad():
+        first = plain(src, tgt)
+        own = polished(first.rotation, first.translation)
+        runs = [polished(*_looked_twice(plain, src, tgt, g)[:2]) for g in starts]
+    distance = torch.stack([_nearest_median(src, tgt, run[0], run[1]) for run in runs], dim=1)  # (B, S)
+    best = distance.argmin(dim=1)
+    turned = distance.min(dim=1).values < _nearest_median(src, tgt, own[0], own[1])
+    model = small_model(consistency_radius=1.0, rotation_search_below=1.0, rotation_search_polish=steps).eval()
+    with torch.no_grad():
+        out = model(src, tgt)
+    found_R = torch.stack([runs[int(b)][0][i] for i, b in enumerate(best)])
+    pick = turned[:, None, None]
+    torch.testing.assert_close(out.rotation, torch.where(pick, found_R, own[0]), rtol=1e-3, atol=1e-3)
+    assert torch.equal(out.start_rotation, torch.where(pick, starts[best], torch.eye(3).expand(len(src), 3, 3)))
+    expected_polished = torch.where(turned, torch.stack([runs[int(b)][2][i] for i, b in enumerate(best)]), own[2])
+    assert torch.equal(out.polished, expected_polished) and out.polished.any()
+    searched_only = small_model(consistency_radius=1.0, rotation_search_below=1.0).eval()
+    with torch.no_grad():  # the polished candidates bring the source at least as near as the unpolished ones
+        unpolished = searched_only(src, tgt)
+    assert (_nearest_median(src, tgt, out.rotation, out.translation)
+            <= _nearest_median(src, tgt, unpolished.rotation, unpolished.translation) + 1e-6).all()
+
+
 def test_the_rotation_search_takes_only_the_pairs_the_second_pass_left_doubtful():
     src, tgt = turned_pairs()
     looked = small_model(consistency_radius=1.0, second_pass_below=1.0).eval()
@@ -607,7 +644,8 @@ def test_the_polish_sharpens_the_shipped_model_on_noisy_pairs():
                                           ("rotation_search_centre", (0.0, 0.0)), ("rotation_search_centre", (0, 0, 200)),
                                           ("consistency_radius", float("inf")), ("polish_iterations", -1),
                                           ("polish_iterations", 1001), ("polish_iterations", 2.5),
-                                          ("polish_iterations", True)])
+                                          ("polish_iterations", True), ("rotation_search_polish", -2),
+                                          ("rotation_search_polish", 1001), ("rotation_search_polish", False)])
 def test_second_pass_options_are_checked(field, value):
     with pytest.raises(ValueError, match=field):
         VRNetConfig(**{field: value})

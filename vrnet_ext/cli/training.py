@@ -24,11 +24,12 @@ ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0,
 EVAL_PARTITIONS = ("test", "val")  # vrnet eval --partition (ModelNet40Pairs partitions a model is measured on)
 # The estimate's inference-time options: the robust solve, the second pass, the rotation search and the polish.
 SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "rotation_search_below",
-              "rotation_search_centre", "polish_iterations", "consistency_radius")
+              "rotation_search_centre", "rotation_search_polish", "polish_iterations", "consistency_radius")
 
 
 def polish_steps(text: str) -> int:
-    """An argparse type: ``--polish-iterations``, an integer in [0, MAX_POLISH_ITERATIONS]."""
+    """An argparse type: ``--polish-iterations`` and ``--rotation-search-polish``, an integer in
+    [0, MAX_POLISH_ITERATIONS]."""
     from vrnet_ext.model.config import MAX_POLISH_ITERATIONS
 
     value = nonnegative_int(text)
@@ -39,7 +40,8 @@ def polish_steps(text: str) -> int:
 
 def add_solve_options(parser, default: str) -> None:
     """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale``, ``--second-pass-below``,
-    ``--rotation-search-below``, ``--rotation-search-centre``, ``--polish-iterations``, ``--consistency-radius``
+    ``--rotation-search-below``, ``--rotation-search-centre``, ``--rotation-search-polish``, ``--polish-iterations``,
+    ``--consistency-radius``
     (VRNetConfig's fields of these names); ``default`` says what applies when a flag is not given."""
     from vrnet_ext.model.config import IRLS_KERNELS
 
@@ -66,6 +68,12 @@ def add_solve_options(parser, default: str) -> None:
                              "turned so that one leaves a motion near it (24 more starts); a model file sets it "
                              "from its training rotations (protocol: 22.5 22.5 22.5) "
                              f"(default: {default})")
+    parser.add_argument("--rotation-search-polish", type=polish_steps, default=None,
+                        help="in the rotation search, this many steps of the polish (below) from every start's "
+                             "estimate and from the pair's own before the nearest is kept: finds the motion the "
+                             "network leaves 10-15 degrees off from its best start where the clouds' points have "
+                             "exact counterparts (noise-free pairs); under noise a polished flip of a round shape "
+                             f"can win; 0: none (default: {default})")
     parser.add_argument("--polish-iterations", type=polish_steps, default=None,
                         help="last, this many steps of a robust point-to-point ICP from each pair's estimate (each "
                              "source point paired with its nearest target point), kept where they bring the source "
@@ -371,7 +379,7 @@ def run_export(args) -> int:
     from vrnet_ext.model.checkpoints import model_values, read_checkpoint
     from vrnet_ext.model.config import VRNetConfig
     from vrnet_ext.model.scene import SCENE_FORMAT
-    from vrnet_ext.learning.export import export_pretrained, export_scene_model
+    from vrnet_ext.learning.export import estimate_changing, export_pretrained, export_scene_model
     from vrnet_ext.model.pretrained import WEIGHTS_DIR
 
     out = Path(args.out_dir) if args.out_dir else WEIGHTS_DIR
@@ -388,12 +396,12 @@ def run_export(args) -> int:
     overrides = solve_overrides(args)
     if args.procrustes_points is not None:
         overrides["procrustes_points"] = args.procrustes_points
-    card = _base_card(args, state, overrides)
+    # older files name fewer fields
+    served = {**VRNetConfig().to_dict(), **model_values(state["config"], args.checkpoint), **overrides}
+    card = _base_card(args, state, estimate_changing(overrides, served))
     if args.cells:
         card["cells"] = _cells(args.cells)
     tests = [_read_eval_json(path) for path in args.test_json or []]
-    # older files name fewer fields
-    served = {**VRNetConfig().to_dict(), **model_values(state["config"], args.checkpoint), **overrides}
     for path, test in zip(args.test_json or [], tests):
         if test.get("partition", "test") != "test":
             raise ValueError(f"--test-json {path}: measured on the {test['partition']} pairs; a card's test table "
@@ -423,18 +431,18 @@ def run_export(args) -> int:
     return 0
 
 
-def _base_card(args, state: dict, overrides: dict) -> dict:
+def _base_card(args, state: dict, changing: dict) -> dict:
     """The card before test results: from a training run, its facts and the flags; from shipped
     weights (a file with a card), that card, the flags given changing or adding to it (``--drop-notes``
-    removing notes first). Shipped weights given other inference options need test results measured
-    with them (``--test-json``)."""
+    removing notes first). Shipped weights given inference options that change their estimates
+    (``changing``: :func:`estimate_changing`) need test results measured with them (``--test-json``)."""
     from vrnet_ext.learning.export import training_facts
 
     if "card" not in state:
         training = training_facts(args.checkpoint, args.name)
         card = {"summary": args.summary, "training": training, "notes": list(args.note)}
     else:
-        if overrides and not args.test_json:
+        if changing and not args.test_json:
             raise ValueError("--test-json: shipped weights exported with other inference options need test results "
                              "measured with them (`vrnet eval --json` with the same --irls-* flags)")
         card = {k: v for k, v in state["card"].items() if not (args.test_json and k.startswith("test"))}

@@ -17,11 +17,24 @@ from vrnet_ext.names import DEFAULT_MAX_ANGLE, DEFAULT_ROTATION_RANGE
 
 # Model-config fields an export may change: they choose how the estimate is solved, not the weights.
 INFERENCE_FIELDS = ("procrustes_points", "irls_iterations", "irls_kernel", "irls_scale", "second_pass_below",
-                    "rotation_search_below", "rotation_search_centre", "polish_iterations", "consistency_radius")
+                    "rotation_search_below", "rotation_search_centre", "rotation_search_polish", "polish_iterations",
+                    "consistency_radius")
+# Inference-time fields that act only inside the rotation search: moot where a file does not search.
+SEARCH_ONLY_FIELDS = ("rotation_search_centre", "rotation_search_polish")
 # How a card names the rotations of the ranges without a largest angle.
 UNIFORM_ROTATIONS = {"so3": "so3: uniform over all rotations",
                      "cube_residual": "cube_residual: uniform over all rotations, each turned back by the cube "
                                       "rotation nearest it (at most 62.8 degrees)"}
+
+
+def estimate_changing(overrides: dict, served: dict) -> dict:
+    """The inference-time ``overrides`` that change the estimates of a model solving as ``served`` (its
+    config with them applied): all of them, but the rotation search's own fields
+    (:data:`SEARCH_ONLY_FIELDS`) where it does not search (``rotation_search_below`` 0), so that its
+    card's test table still holds."""
+    if served.get("rotation_search_below", 0) == 0:
+        return {key: value for key, value in overrides.items() if key not in SEARCH_ONLY_FIELDS}
+    return dict(overrides)
 
 
 def training_facts(checkpoint: str | os.PathLike, name: str | None = None) -> dict:

@@ -8,7 +8,7 @@ from vrnet_ext.names import BACKENDS, PROCRUSTES_POINTS, ROTATION_RANGES, TRANSF
 # The robust weights of the IRLS steps (vrnet_ext.ops.kabsch.ROBUST_KERNELS, named here too so that
 # this module stays free of torch: the CLI builds its parsers from it).
 IRLS_KERNELS = ("cauchy", "geman_mcclure", "welsch")
-MAX_POLISH_ITERATIONS = 1000  # the most ICP steps of VRNetConfig.polish_iterations (each a kNN search per pair)
+MAX_POLISH_ITERATIONS = 1000  # the most ICP steps of VRNetConfig.polish_iterations and rotation_search_polish
 
 
 @dataclass
@@ -76,6 +76,14 @@ class VRNetConfig:
       model trained on the protocol's octant registers few of the motions the cube's starts leave
       about the identity). Loading a file sets it from the rotations its training pairs were drawn
       from (:func:`vrnet_ext.model.checkpoints.model_values`).
+    * ``rotation_search_polish``: in the rotation search, this many steps of the polish below from
+      every start's estimate and from the pair's own before the nearest is kept (0: none; eval mode
+      only). The network may leave a searched pair 10-15 degrees off from its best start, too far for
+      the nearest-distance choice to see (a flip of a round shape lies nearer), yet near enough for
+      ICP; where the pairs' points have exact counterparts (noise-free pairs) the polished truth lies
+      far nearer than any polished flip. Under noise a polished flip of a round shape can lie as near
+      as the polished truth: choose it on validation. Each step costs a nearest-neighbour search per
+      start of each searched pair.
     * ``polish_iterations``: last, this many steps of a robust point-to-point ICP from each pair's
       estimate (:func:`vrnet_ext.geometry.alignment.robust_icp`: the nearest target point of each
       moved source point, Cauchy-reweighted Procrustes), kept where they bring the source nearer the
@@ -125,6 +133,7 @@ class VRNetConfig:
     second_pass_below: float = 0.0
     rotation_search_below: float = 0.0
     rotation_search_centre: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotation_search_polish: int = 0
     polish_iterations: int = 0
     consistency_radius: float = 0.02
     backend: str = "ext"
@@ -152,10 +161,10 @@ class VRNetConfig:
         if len(self.rotation_search_centre) != 3 or not all(-180 <= a <= 180 for a in self.rotation_search_centre):
             raise ValueError(f"rotation_search_centre must be three Euler angles in [-180, 180] degrees, "
                              f"got {self.rotation_search_centre}")
-        if isinstance(self.polish_iterations, bool) or not isinstance(self.polish_iterations, int) \
-                or not 0 <= self.polish_iterations <= MAX_POLISH_ITERATIONS:
-            raise ValueError(f"polish_iterations must be an integer in [0, {MAX_POLISH_ITERATIONS}], "
-                             f"got {self.polish_iterations!r}")
+        for name in ("rotation_search_polish", "polish_iterations"):
+            steps = getattr(self, name)
+            if isinstance(steps, bool) or not isinstance(steps, int) or not 0 <= steps <= MAX_POLISH_ITERATIONS:
+                raise ValueError(f"{name} must be an integer in [0, {MAX_POLISH_ITERATIONS}], got {steps!r}")
         if not 0 <= self.rotation_search_below <= 1:
             raise ValueError(f"rotation_search_below must be in [0, 1], got {self.rotation_search_below}")
         if self.irls_kernel not in IRLS_KERNELS:

@@ -243,7 +243,8 @@ class VRNet(nn.Module):
         a few pairs' turns per batch, each start followed by a second look (kept where its RCPs agree
         more); the start whose estimate brings the source closest to the target (:func:`nearest_median`)
         replaces ``out``'s rows (in place) where it brings it closer than ``out``'s (between starts,
-        the RCPs' agreement misjudges noisy pairs)."""
+        the RCPs' agreement misjudges noisy pairs). With ``rotation_search_polish`` steps, every
+        start's estimate and the pair's own are polished (:meth:`polished`) before they are compared."""
         retry = (out.consistency < self.config.rotation_search_below).nonzero().squeeze(1)
         if not retry.numel():
             return
@@ -264,10 +265,15 @@ class VRNet(nn.Module):
             every = torch.arange(rows.numel(), device=src.device)
             _replace_rows(found, every, self._second_look(src[rows], tgt[rows], found, backend, return_matching,
                                                           features))
+            own = _rows_of(out, chunk)
+            if self.config.rotation_search_polish:  # each candidate polished before they are compared
+                found = self.polished(src[rows], tgt[rows], found, self.config.rotation_search_polish, backend)
+                own = self.polished(src[chunk], tgt[chunk], own, self.config.rotation_search_polish, backend)
+                _replace_rows(out, chunk, own, better=own.polished)
             distance = nearest_median(src[rows], tgt[rows], found.rotation, found.translation, backend)
             best = distance.view(chunk.numel(), count).argmin(dim=1)
             chosen = torch.arange(chunk.numel(), device=src.device) * count + best
-            so_far = nearest_median(src[chunk], tgt[chunk], out.rotation[chunk], out.translation[chunk], backend)
+            so_far = nearest_median(src[chunk], tgt[chunk], own.rotation, own.translation, backend)
             _replace_rows(out, chunk, _rows_of(found, chosen), better=distance[chosen] < so_far)
 
     def polished(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, steps: int,
