@@ -34,6 +34,7 @@ from modelnet40_tables import LATER_STEPS_OFF, PAPER, SPLITS, solve_options, wei
 from outputs import write_outputs
 from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data.protocol import SETTINGS, VIEW_PROTOCOL
+from vrnet_ext.learning.export import SEARCH_ONLY_FIELDS
 from vrnet_ext.model.pretrained import model_for, training_seconds
 from vrnet_ext.names import DEFAULT_ROTATION_RANGE
 
@@ -74,6 +75,8 @@ def measurements(results: Path, method: str = "vrnet", one_pass: bool = False) -
             recorded = {**UNRECORDED_LATER_STEPS, **cell.get("solve", UNRECORDED_SOLVE)}
             if solve is not None and one_pass:
                 solve = dict(solve, **LATER_STEPS_OFF)
+            if solve is not None and not solve["rotation_search_below"]:  # no search: its own options are moot
+                recorded = {k: v for k, v in recorded.items() if k not in SEARCH_ONLY_FIELDS}
             if method != "vrnet":  # the two-pass row never takes a further pass
                 recorded = {k: v for k, v in recorded.items() if k not in UNRECORDED_LATER_STEPS}
             elif solve is not None and solve["second_pass_below"] == solve["rotation_search_below"] == 0 \
