@@ -11,7 +11,8 @@ inverted) and ``--rotation-search-below`` (0: the model alone; else the search o
 serves the cell, the pairs, and per estimate (alone, with the search) the share of pairs registered
 (recall: rotation error below 5 degrees and translation error below 0.1), RMSE(R) in degrees and the
 seconds per pair, the geometric polish's steps of each (``VRNetConfig.polish_iterations``; alone /
-with the search) and the steps the search polishes each start with (``rotation_search_polish``). The paper's VRNet RMSE(R) (its protocol) stands beside them.
+with the search) and the steps the search polishes each start with (``rotation_search_polish``). The
+paper's VRNet RMSE(R) (its protocol) stands beside them.
 """
 from __future__ import annotations
 

@@ -30,11 +30,12 @@ import json
 import math
 from pathlib import Path
 
-from modelnet40_tables import LATER_STEPS_OFF, PAPER, SPLITS, solve_options, weights_digest  # benchmarks/, the script's folder
+from modelnet40_tables import (LATER_STEPS_OFF, PAPER, SPLITS, solve_options,  # benchmarks/, the script's folder
+                               weights_digest)
 from outputs import write_outputs
 from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data.protocol import SETTINGS, VIEW_PROTOCOL
-from vrnet_ext.learning.export import SEARCH_ONLY_FIELDS
+from vrnet_ext.learning.export import affecting
 from vrnet_ext.model.pretrained import model_for, training_seconds
 from vrnet_ext.names import DEFAULT_ROTATION_RANGE
 
@@ -75,8 +76,8 @@ def measurements(results: Path, method: str = "vrnet", one_pass: bool = False) -
             recorded = {**UNRECORDED_LATER_STEPS, **cell.get("solve", UNRECORDED_SOLVE)}
             if solve is not None and one_pass:
                 solve = dict(solve, **LATER_STEPS_OFF)
-            if solve is not None and not solve["rotation_search_below"]:  # no search: its own options are moot
-                recorded = {k: v for k, v in recorded.items() if k not in SEARCH_ONLY_FIELDS}
+            if solve is not None:  # the search's own options are moot where the model does not search
+                recorded = affecting(recorded, solve)
             if method != "vrnet":  # the two-pass row never takes a further pass
                 recorded = {k: v for k, v in recorded.items() if k not in UNRECORDED_LATER_STEPS}
             elif solve is not None and solve["second_pass_below"] == solve["rotation_search_below"] == 0 \

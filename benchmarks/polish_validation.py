@@ -100,18 +100,19 @@ def measure(name: str, rotations: str, search_polish: int, args) -> list[dict]:
                      "pairs": len(data), **{key: errors[column] for key, column in COLUMNS.items()},
                      "wrong": wrong, "polished_share": float(moved.float().mean()),
                      "seconds_per_pair": seconds[steps] / len(data)})
-        print(f"{name} {rotations} search polish {search_polish}, polish {steps}: recall {100 * rows[-1]['recall']:.1f} %, "
-              f"RMSE(R) {rows[-1]['rmse_r']:.3g}, RE median {rows[-1]['re_median']:.3g}", file=sys.stderr)
+        print(f"{name} {rotations} search polish {search_polish}, polish {steps}: "
+              f"recall {100 * rows[-1]['recall']:.1f} %, RMSE(R) {rows[-1]['rmse_r']:.3g}, RE median {rows[-1]['re_median']:.3g}", file=sys.stderr)
     return rows
 
 
 def markdown(rows: list[dict], caption: str) -> str:
-    lines = [caption, "", "| model | cell | pairs' rotations | search | search polish | polish steps | pairs | recall | "
-             "RMSE(R) | RE median | > 5° | polished | s / pair |",
+    lines = [caption, "", "| model | cell | pairs' rotations | search | search polish | polish steps | pairs | "
+             "recall | RMSE(R) | RE median | > 5° | polished | s / pair |",
              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
         lines.append(f"| `{row['model']}` | {row['cell']} | {row['rotations']} | {row['rotation_search_below']:g} | "
-                     f"{row['rotation_search_polish']} | {row['polish_iterations']} | {row['pairs']} | {100 * row['recall']:.1f} % | {row['rmse_r']:.3g} | "
+                     f"{row['rotation_search_polish']} | {row['polish_iterations']} | {row['pairs']} | "
+                     f"{100 * row['recall']:.1f} % | {row['rmse_r']:.3g} | "
                      f"{row['re_median']:.3g} | {row['wrong']} | {100 * row['polished_share']:.0f} % | "
                      f"{row['seconds_per_pair']:.3f} |")
     return "\n".join(lines)

@@ -379,7 +379,7 @@ def run_export(args) -> int:
     from vrnet_ext.model.checkpoints import model_values, read_checkpoint
     from vrnet_ext.model.config import VRNetConfig
     from vrnet_ext.model.scene import SCENE_FORMAT
-    from vrnet_ext.learning.export import estimate_changing, export_pretrained, export_scene_model
+    from vrnet_ext.learning.export import affecting, export_pretrained, export_scene_model
     from vrnet_ext.model.pretrained import WEIGHTS_DIR
 
     out = Path(args.out_dir) if args.out_dir else WEIGHTS_DIR
@@ -398,7 +398,7 @@ def run_export(args) -> int:
         overrides["procrustes_points"] = args.procrustes_points
     # older files name fewer fields
     served = {**VRNetConfig().to_dict(), **model_values(state["config"], args.checkpoint), **overrides}
-    card = _base_card(args, state, estimate_changing(overrides, served))
+    card = _base_card(args, state, affecting(overrides, served))
     if args.cells:
         card["cells"] = _cells(args.cells)
     tests = [_read_eval_json(path) for path in args.test_json or []]
@@ -435,7 +435,7 @@ def _base_card(args, state: dict, changing: dict) -> dict:
     """The card before test results: from a training run, its facts and the flags; from shipped
     weights (a file with a card), that card, the flags given changing or adding to it (``--drop-notes``
     removing notes first). Shipped weights given inference options that change their estimates
-    (``changing``: :func:`estimate_changing`) need test results measured with them (``--test-json``)."""
+    (``changing``: :func:`vrnet_ext.learning.export.affecting`) need test results measured with them (``--test-json``)."""
     from vrnet_ext.learning.export import training_facts
 
     if "card" not in state:

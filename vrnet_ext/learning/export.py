@@ -27,14 +27,14 @@ UNIFORM_ROTATIONS = {"so3": "so3: uniform over all rotations",
                                       "rotation nearest it (at most 62.8 degrees)"}
 
 
-def estimate_changing(overrides: dict, served: dict) -> dict:
-    """The inference-time ``overrides`` that change the estimates of a model solving as ``served`` (its
-    config with them applied): all of them, but the rotation search's own fields
-    (:data:`SEARCH_ONLY_FIELDS`) where it does not search (``rotation_search_below`` 0), so that its
-    card's test table still holds."""
+def affecting(values: dict, served: dict) -> dict:
+    """Those of ``values`` (inference-time fields: an export's overrides, a measurement's recorded
+    solve) that affect the estimates of a model solving as ``served``: all of them, but the rotation
+    search's own fields (:data:`SEARCH_ONLY_FIELDS`) where it does not search (``rotation_search_below``
+    0), so that a card's test table or a measurement taken without the search still holds."""
     if served.get("rotation_search_below", 0) == 0:
-        return {key: value for key, value in overrides.items() if key not in SEARCH_ONLY_FIELDS}
-    return dict(overrides)
+        return {key: value for key, value in values.items() if key not in SEARCH_ONLY_FIELDS}
+    return dict(values)
 
 
 def training_facts(checkpoint: str | os.PathLike, name: str | None = None) -> dict:
