@@ -267,13 +267,15 @@ class VRNet(nn.Module):
                                                           features))
             own = _rows_of(out, chunk)
             if self.config.rotation_search_polish:  # each candidate polished before they are compared
-                found = self.polished(src[rows], tgt[rows], found, self.config.rotation_search_polish, backend)
-                own = self.polished(src[chunk], tgt[chunk], own, self.config.rotation_search_polish, backend)
+                found, distance = self._polish(src[rows], tgt[rows], found, self.config.rotation_search_polish,
+                                               backend)
+                own, so_far = self._polish(src[chunk], tgt[chunk], own, self.config.rotation_search_polish, backend)
                 _replace_rows(out, chunk, own, better=own.polished)
-            distance = nearest_median(src[rows], tgt[rows], found.rotation, found.translation, backend)
+            else:
+                distance = nearest_median(src[rows], tgt[rows], found.rotation, found.translation, backend)
+                so_far = nearest_median(src[chunk], tgt[chunk], own.rotation, own.translation, backend)
             best = distance.view(chunk.numel(), count).argmin(dim=1)
             chosen = torch.arange(chunk.numel(), device=src.device) * count + best
-            so_far = nearest_median(src[chunk], tgt[chunk], own.rotation, own.translation, backend)
             _replace_rows(out, chunk, _rows_of(found, chosen), better=distance[chosen] < so_far)
 
     def polished(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, steps: int,
@@ -290,15 +292,21 @@ class VRNet(nn.Module):
         if not src.shape[0] == tgt.shape[0] == out.rotation.shape[0] or src.shape[1] != out.rcp.shape[1]:
             raise ValueError(f"src {tuple(src.shape)} and tgt {tuple(tgt.shape)} are not the clouds of out "
                              f"(rcp {tuple(out.rcp.shape)}, rotation {tuple(out.rotation.shape)})")
-        backend = backend or self.config.backend
+        return self._polish(src, tgt, out, steps, backend or self.config.backend)[0]
+
+    def _polish(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, steps: int,
+                backend: str) -> tuple[VRNetOutput, torch.Tensor]:
+        """:meth:`polished` on checked clouds, with the kept estimates' :func:`nearest_median` (B,)."""
         with torch.autocast(src.device.type, enabled=False):
             rotation, translation = robust_icp(src, tgt, out.rotation, out.translation, steps, backend)
-            nearer = (nearest_median(src, tgt, rotation, translation, backend)
-                      < nearest_median(src, tgt, out.rotation, out.translation, backend))
+            distance = nearest_median(src, tgt, rotation, translation, backend)
+            before = nearest_median(src, tgt, out.rotation, out.translation, backend)
+        nearer = distance < before
         rotation = torch.where(nearer[:, None, None], rotation, out.rotation)
         translation = torch.where(nearer[:, None], translation, out.translation)
-        return replace(out, rotation=rotation, translation=translation, polished=nearer,
-                       consistency=self._consistency(src, rotation, translation, out.rcp))
+        return (replace(out, rotation=rotation, translation=translation, polished=nearer,
+                        consistency=self._consistency(src, rotation, translation, out.rcp)),
+                torch.where(nearer, distance, before))
 
     def _features(self, src: torch.Tensor, tgt: torch.Tensor, backend: str,
                   tgt_features: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
