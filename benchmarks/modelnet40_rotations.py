@@ -11,8 +11,9 @@ inverted) and ``--rotation-search-below`` (0: the model alone; else the search o
 serves the cell, the pairs, and per estimate (alone, with the search) the share of pairs registered
 (recall: rotation error below 5 degrees and translation error below 0.1), RMSE(R) in degrees and the
 seconds per pair, the geometric polish's steps of each (``VRNetConfig.polish_iterations``; alone /
-with the search) and the steps the search polishes each start with (``rotation_search_polish``). The
-paper's VRNet RMSE(R) (its protocol) stands beside them.
+with the search), the steps the search polishes each start with (``rotation_search_polish``) and
+the starts of its multi-start ICP (``rotation_search_icp_starts``). The paper's VRNet RMSE(R) (its
+protocol) stands beside them.
 """
 from __future__ import annotations
 
@@ -60,6 +61,7 @@ def collect(folders: list[Path]) -> list[dict]:
                     "search_below": cell["solve"].get("rotation_search_below", 0),
                     "polish_iterations": cell["solve"].get("polish_iterations", 0),
                     "search_polish": cell["solve"].get("rotation_search_polish", 0),
+                    "icp_starts": cell["solve"].get("rotation_search_icp_starts", 0),
                     "source": str(path.relative_to(folder.parent))}
     rows = []
     for (setting, split, pairs_of), measured in estimates.items():
@@ -73,7 +75,7 @@ def collect(folders: list[Path]) -> list[dict]:
         for estimate, value in measured.items():
             row[estimate] = {field: value[field] for field in
                              ("recall", "RMSE(R)", "seconds_per_pair", "search_below", "polish_iterations",
-                              "search_polish", "source")}
+                              "search_polish", "icp_starts", "source")}
         rows.append(row)
     order = {(s, p): i for i, (s, p) in enumerate((s, p) for p in SPLITS for s in SETTINGS)}
     return sorted(rows, key=lambda r: (r["pairs_of"], order[(r["setting"], r["split"])]))
@@ -82,7 +84,8 @@ def collect(folders: list[Path]) -> list[dict]:
 def markdown(rows: list[dict], note: str) -> str:
     lines = [note, "", "| pairs | cell | model | pairs measured | recall alone | recall with search | "
              "RMSE(R) alone | RMSE(R) with search | paper RMSE(R) (protocol) | s / pair alone | s / pair with search | "
-             "polish steps | search polish steps |", "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "polish steps | search polish steps | search ICP starts |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
         paper = PAPER.get((row["setting"], row["split"]), {}).get("VRNet", ("–",))[0]
         cells = []
@@ -92,7 +95,8 @@ def markdown(rows: list[dict], note: str) -> str:
         lines.append(f"| {row['pairs_of']} | {row['setting']} / {row['split']} | `{row['model']}` | {row['pairs']} | "
                      f"{cells[0][0]} | {cells[0][1]} | {cells[1][0]} | {cells[1][1]} | {paper} | "
                      f"{cells[2][0]} | {cells[2][1]} | {' / '.join(cells[3])} | "
-                     f"{row['search']['search_polish'] if 'search' in row else '–'} |")
+                     f"{row['search']['search_polish'] if 'search' in row else '–'} | "
+                     f"{row['search']['icp_starts'] if 'search' in row else '–'} |")
     return "\n".join(lines) + "\n"
 
 

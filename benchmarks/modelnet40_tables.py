@@ -121,7 +121,7 @@ class Swapped(Dataset):
 # The eval-mode steps after the passes, each switched off: the second look, the rotation search (and its
 # polish of the starts), the polish.
 LATER_STEPS_OFF = {"second_pass_below": 0.0, "rotation_search_below": 0.0, "rotation_search_polish": 0,
-                   "polish_iterations": 0}
+                   "rotation_search_icp_starts": 0, "polish_iterations": 0}
 
 
 def network_estimates(model, data, batch_size: int, methods) -> dict:
@@ -143,7 +143,8 @@ def network_estimates(model, data, batch_size: int, methods) -> dict:
         if not names:
             continue
         rotations, translations = {m: [] for m in names}, {m: [] for m in names}
-        seconds, counts = 0.0, dict.fromkeys(("second_pass_share", "turned_share", "polished_share"), 0)
+        seconds, counts = 0.0, dict.fromkeys(("second_pass_share", "turned_share", "polished_share",
+                                              "icp_search_share"), 0)
         passes = settings["iterations"]
         for key, value in settings.items():
             setattr(config, key, value)
@@ -156,6 +157,7 @@ def network_estimates(model, data, batch_size: int, methods) -> dict:
                     counts["second_pass_share"] += int(out.second_pass.sum())
                     counts["turned_share"] += int((out.start_rotation != torch.eye(3)).any(dim=(1, 2)).sum())
                     counts["polished_share"] += int(out.polished.sum())
+                    counts["icp_search_share"] += int(out.icp_search.sum())
                     for name in names:
                         R, t = kabsch(batch["src"], out.vcp) if name == "vcp" else (out.rotation, out.translation)
                         rotations[name].append(R.double().numpy())

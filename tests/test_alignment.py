@@ -5,7 +5,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from vrnet_ext.geometry.alignment import nearest_median, robust_icp
+from vrnet_ext.geometry import alignment
+from vrnet_ext.geometry.alignment import multistart_icp, nearest_median, robust_icp
 from vrnet_ext.geometry.metrics import rotation_error_deg
 from vrnet_ext.geometry.transforms import move
 
@@ -87,3 +88,26 @@ def test_both_backends_agree():
     # torch.cdist's products round small distances (cancellation): a few 1e-5 at distances of 0.004
     torch.testing.assert_close(nearest_median(src, tgt, *ext, backend="torch"), nearest_median(src, tgt, *ext),
                                rtol=0, atol=5e-5)
+
+
+def test_multistart_icp_registers_any_motion_and_is_per_pair(monkeypatch):
+    """Pairs moved by up to a half turn, a fifth of the target cut away: ICP from the identity stays
+    in a wrong minimum, from 128 spread starts it finds each motion; a pair gets the same alone as in
+    a batch (and in batches of one pair), and the distance it returns is its result's."""
+    from vrnet_ext.geometry.transforms import spread_rotations
+
+    src, tgt, truth, shift, _, _ = partial_pairs(B=3, N=160, seed=4)
+    starts = torch.as_tensor(spread_rotations(128), dtype=src.dtype)
+    near_identity = robust_icp(src, tgt, torch.eye(3).expand(3, 3, 3), tgt.mean(1) - src.mean(1), 50)[0]
+    assert (rotation_error_deg(near_identity, truth) > 20).any()
+    rotation, translation, distance = multistart_icp(src, tgt, starts)
+    assert (rotation_error_deg(rotation, truth) < 1).all(), rotation_error_deg(rotation, truth)
+    assert (translation - shift).norm(dim=-1).max() < 0.05
+    torch.testing.assert_close(distance.double(), brute_nearest_median(src, tgt, rotation, translation),
+                               rtol=0, atol=1e-6)
+    monkeypatch.setattr(alignment, "MULTISTART_BATCH", 1)  # one pair per batch of starts
+    alone = multistart_icp(src, tgt, starts)
+    for got, want in zip(alone, (rotation, translation, distance)):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    few = multistart_icp(src[:1], tgt[:1], starts[:5])  # fewer starts than it keeps: all of them go on
+    assert few[0].shape == (1, 3, 3) and few[2].shape == (1,)

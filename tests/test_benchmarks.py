@@ -357,7 +357,7 @@ def test_modelnet40_rotations_puts_each_cells_estimates_side_by_side(tmp_path):
     assert rows["so3"]["search"]["recall"] == 0.9 and rows["so3"]["search"]["source"] == "later/a.json"
     assert rows["so3"]["search"]["polish_iterations"] == 10 and rows["so3"]["alone"]["polish_iterations"] == 0
     assert rows["so3"]["search"]["search_polish"] == 30 and rows["so3"]["alone"]["search_polish"] == 0
-    assert "| 0 / 10 | 30 |" in (tmp_path / "r2.md").read_text()
+    assert "| 0 / 10 | 30 | 0 |" in (tmp_path / "r2.md").read_text()
     assert rows["so3"]["alone"]["recall"] == 0.2 and rows["protocol, swapped"]["search"]["recall"] == 0.99
 
     def refused(*folders):

@@ -543,6 +543,35 @@ def test_the_search_polish_compares_every_start_after_its_icp():
             <= _nearest_median(src, tgt, unpolished.rotation, unpolished.translation) + 1e-6).all()
 
 
+def test_the_icp_search_replaces_a_searched_pair_where_it_brings_the_source_nearer():
+    """After the search and the polish, the searched pairs (all but the two most consistent) get
+    multistart_icp's estimate where it is nearer, marked icp_search; the pair not searched and
+    the training forward never."""
+    from vrnet_ext.geometry.alignment import multistart_icp
+    from vrnet_ext.geometry.transforms import spread_rotations
+
+    src, tgt = turned_pairs(B=4, N=64)
+    plain = small_model(consistency_radius=1.0).eval()
+    with torch.no_grad():
+        below = float(plain(src, tgt).consistency.sort().values[-2])
+    options = dict(consistency_radius=1.0, rotation_search_below=below, polish_iterations=2)
+    searched_only = small_model(**options).eval()
+    model = small_model(**options, rotation_search_icp_starts=48).eval()
+    with torch.no_grad():
+        before = searched_only(src, tgt)
+        out = model(src, tgt)
+        R, t, distance = multistart_icp(src, tgt, torch.as_tensor(spread_rotations(48)))
+        searched = plain(src, tgt).consistency < below
+    nearer = searched & (distance.double() < _nearest_median(src, tgt, before.rotation, before.translation))
+    assert nearer.any() and searched.sum() == 2
+    assert torch.equal(out.icp_search, nearer) and not before.icp_search.any()
+    torch.testing.assert_close(out.rotation, torch.where(nearer[:, None, None], R, before.rotation), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out.translation, torch.where(nearer[:, None], t, before.translation), rtol=1e-4, atol=1e-5)
+    assert not out.polished[nearer].any()
+    model.train()
+    assert not model(src, tgt).icp_search.any()
+
+
 def test_the_rotation_search_takes_only_the_pairs_the_second_pass_left_doubtful():
     src, tgt = turned_pairs()
     looked = small_model(consistency_radius=1.0, second_pass_below=1.0).eval()
@@ -645,7 +674,9 @@ def test_the_polish_sharpens_the_shipped_model_on_noisy_pairs():
                                           ("consistency_radius", float("inf")), ("polish_iterations", -1),
                                           ("polish_iterations", 1001), ("polish_iterations", 2.5),
                                           ("polish_iterations", True), ("rotation_search_polish", -2),
-                                          ("rotation_search_polish", 1001), ("rotation_search_polish", False)])
+                                          ("rotation_search_polish", 1001), ("rotation_search_polish", False),
+                                          ("rotation_search_icp_starts", -1), ("rotation_search_icp_starts", 4097),
+                                          ("rotation_search_icp_starts", 8.0), ("rotation_search_icp_starts", True)])
 def test_second_pass_options_are_checked(field, value):
     with pytest.raises(ValueError, match=field):
         VRNetConfig(**{field: value})

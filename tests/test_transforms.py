@@ -92,3 +92,20 @@ def test_the_search_starts_leave_every_motion_near_the_identity_and_near_the_cen
     assert from_identity.max() <= 62.81
     with pytest.raises(ValueError):
         search_starts((1.0, 2.0))
+
+
+@pytest.mark.parametrize("count, reach", [(128, 46.0), (512, 28.0)])
+def test_spread_rotations_leave_every_motion_near_one_of_them(count, reach):
+    from vrnet_ext.geometry.transforms import spread_rotations
+
+    spread = spread_rotations(count)
+    assert spread.shape == (count, 3, 3) and spread.dtype == np.float64
+    np.testing.assert_allclose(spread @ spread.transpose(0, 2, 1), np.broadcast_to(np.eye(3), spread.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(spread), 1.0, atol=1e-12)
+    np.testing.assert_array_equal(spread_rotations(count), spread)  # the same set for the same count
+    motions = Rotation.random(5000, random_state=3).as_matrix()
+    nearest = _angles_deg(motions[:, None] @ spread[None].transpose(0, 1, 3, 2)).min(axis=1)
+    assert nearest.max() <= reach and nearest.max() > 0.6 * reach  # evenly: no motion far, the bound not loose
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="count"):
+            spread_rotations(bad)

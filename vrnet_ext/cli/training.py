@@ -24,7 +24,8 @@ ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0,
 EVAL_PARTITIONS = ("test", "val")  # vrnet eval --partition (ModelNet40Pairs partitions a model is measured on)
 # The estimate's inference-time options: the robust solve, the second pass, the rotation search and the polish.
 SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "rotation_search_below",
-              "rotation_search_centre", "rotation_search_polish", "polish_iterations", "consistency_radius")
+              "rotation_search_centre", "rotation_search_polish", "rotation_search_icp_starts", "polish_iterations",
+              "consistency_radius")
 
 
 def polish_steps(text: str) -> int:
@@ -38,10 +39,20 @@ def polish_steps(text: str) -> int:
     return value
 
 
+def icp_starts(text: str) -> int:
+    """An argparse type: ``--rotation-search-icp-starts``, an integer in [0, MAX_ICP_STARTS]."""
+    from vrnet_ext.model.config import MAX_ICP_STARTS
+
+    value = nonnegative_int(text)
+    if value > MAX_ICP_STARTS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_ICP_STARTS} starts, got {value}")
+    return value
+
+
 def add_solve_options(parser, default: str) -> None:
     """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale``, ``--second-pass-below``,
-    ``--rotation-search-below``, ``--rotation-search-centre``, ``--rotation-search-polish``, ``--polish-iterations``,
-    ``--consistency-radius``
+    ``--rotation-search-below``, ``--rotation-search-centre``, ``--rotation-search-polish``,
+    ``--rotation-search-icp-starts``, ``--polish-iterations``, ``--consistency-radius``
     (VRNetConfig's fields of these names); ``default`` says what applies when a flag is not given."""
     from vrnet_ext.model.config import IRLS_KERNELS
 
@@ -74,6 +85,12 @@ def add_solve_options(parser, default: str) -> None:
                              "network leaves 10-15 degrees off from its best start where the clouds' points have "
                              "exact counterparts (noise-free pairs); under noise a polished flip of a round shape "
                              f"can win; 0: none (default: {default})")
+    parser.add_argument("--rotation-search-icp-starts", type=icp_starts, default=None,
+                        help="after the rotation search and the polish, register each pair the search took on by "
+                             "robust ICP alone from this many rotations spread over all rotations, and keep its "
+                             "result where it brings the source nearer the target: for nearly round shapes no "
+                             f"start of the network registers (512: about 0.3-0.5 s per searched pair on one core); "
+                             f"0: never (default: {default})")
     parser.add_argument("--polish-iterations", type=polish_steps, default=None,
                         help="last, this many steps of a robust point-to-point ICP from each pair's estimate (each "
                              "source point paired with its nearest target point), kept where they bring the source "

@@ -8,9 +8,9 @@ from dataclasses import dataclass, fields, replace
 import torch
 from torch import nn
 
-from vrnet_ext.geometry.alignment import nearest_median, robust_icp
+from vrnet_ext.geometry.alignment import multistart_icp, nearest_median, robust_icp
 from vrnet_ext.geometry.metrics import correct_match_ratio
-from vrnet_ext.geometry.transforms import compose, move, search_starts
+from vrnet_ext.geometry.transforms import compose, move, search_starts, spread_rotations
 from vrnet_ext.model.config import VRNetConfig
 from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
@@ -40,6 +40,7 @@ class VRNetOutput:
     second_pass: torch.Tensor | None = None  # (B,) bool: the estimate comes from the second pass
     start_rotation: torch.Tensor | None = None  # (B, 3, 3) the turn of src the estimate's passes began from
     polished: torch.Tensor | None = None  # (B,) bool: the geometric polish moved the estimate
+    icp_search: torch.Tensor | None = None  # (B,) bool: the estimate comes from the multi-start ICP
 
     @property
     def weights(self) -> torch.Tensor | None:
@@ -170,16 +171,19 @@ class VRNet(nn.Module):
         out, tgt_features = self._passes(src, tgt, backend, return_matching)
         out.start_rotation = torch.eye(3, dtype=src.dtype, device=src.device).expand(src.shape[0], 3, 3)
         out.second_pass = torch.zeros(src.shape[0], dtype=torch.bool, device=src.device)
-        out.polished = torch.zeros_like(out.second_pass)
+        out.polished = out.icp_search = torch.zeros_like(out.second_pass)
         if self.training:
             return out
         if self.config.second_pass_below > 0:
             capturing = src.is_cuda and torch.cuda.is_current_stream_capturing()  # a CUDA graph: no branch on data
             self._second_looks(src, tgt, out, backend, return_matching, tgt_features, every=capturing)
+        searched = None
         if self.config.rotation_search_below > 0:
-            self._rotation_search(src, tgt, out, backend, return_matching, tgt_features)
+            searched = self._rotation_search(src, tgt, out, backend, return_matching, tgt_features)
         if self.config.polish_iterations > 0:
             out = self.polished(src, tgt, out, self.config.polish_iterations, backend)
+        if self.config.rotation_search_icp_starts > 0 and searched is not None and searched.numel():
+            self._icp_search(src, tgt, out, searched, backend)
         return out
 
     def _passes(self, src: torch.Tensor, tgt: torch.Tensor, backend: str, return_matching: bool,
@@ -233,21 +237,22 @@ class VRNet(nn.Module):
         again.consistency = self._consistency(src, again.rotation, again.translation, again.rcp)
         again.start_rotation = out.start_rotation
         again.second_pass = torch.ones(src.shape[0], dtype=torch.bool, device=src.device)
-        again.polished = torch.zeros_like(again.second_pass)
+        again.polished = again.icp_search = torch.zeros_like(again.second_pass)
         return again
 
     def _rotation_search(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
-                         return_matching: bool, tgt_features: torch.Tensor | None) -> None:
+                         return_matching: bool, tgt_features: torch.Tensor | None) -> torch.Tensor:
         """Registers the pairs whose consistency is still below ``rotation_search_below`` again from
         the source turned by each start of :func:`search_starts` (about ``rotation_search_centre``),
         a few pairs' turns per batch, each start followed by a second look (kept where its RCPs agree
         more); the start whose estimate brings the source closest to the target (:func:`nearest_median`)
         replaces ``out``'s rows (in place) where it brings it closer than ``out``'s (between starts,
         the RCPs' agreement misjudges noisy pairs). With ``rotation_search_polish`` steps, every
-        start's estimate and the pair's own are polished (:meth:`polished`) before they are compared."""
+        start's estimate and the pair's own are polished (:meth:`polished`) before they are compared.
+        Returns the rows it searched (R,)."""
         retry = (out.consistency < self.config.rotation_search_below).nonzero().squeeze(1)
         if not retry.numel():
-            return
+            return retry
         starts = torch.as_tensor(search_starts(self.config.rotation_search_centre), dtype=src.dtype,
                                  device=src.device)  # (S, 3, 3)
         count = starts.shape[0]
@@ -261,7 +266,7 @@ class VRNet(nn.Module):
             with torch.autocast(src.device.type, enabled=False):  # R' (g src) + t = (R' g) src + t
                 found.rotation = found.rotation @ turns
             found.start_rotation = turns
-            found.second_pass = found.polished = torch.zeros_like(rows, dtype=torch.bool)
+            found.second_pass = found.polished = found.icp_search = torch.zeros_like(rows, dtype=torch.bool)
             every = torch.arange(rows.numel(), device=src.device)
             _replace_rows(found, every, self._second_look(src[rows], tgt[rows], found, backend, return_matching,
                                                           features))
@@ -277,6 +282,23 @@ class VRNet(nn.Module):
             best = distance.view(chunk.numel(), count).argmin(dim=1)
             chosen = torch.arange(chunk.numel(), device=src.device) * count + best
             _replace_rows(out, chunk, _rows_of(found, chosen), better=distance[chosen] < so_far)
+        return retry
+
+    def _icp_search(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, rows: torch.Tensor,
+                    backend: str) -> None:
+        """The rows ``rows`` (the pairs the rotation search took on) registered by :func:`multistart_icp`
+        from ``rotation_search_icp_starts`` rotations spread over SO(3); its result replaces ``out``'s
+        rows (in place) where it brings the source nearer the target, marked ``icp_search``."""
+        starts = torch.as_tensor(spread_rotations(self.config.rotation_search_icp_starts), dtype=src.dtype,
+                                 device=src.device)
+        own = _rows_of(out, rows)
+        with torch.autocast(src.device.type, enabled=False):
+            rotation, translation, distance = multistart_icp(src[rows], tgt[rows], starts, backend)
+            so_far = nearest_median(src[rows], tgt[rows], own.rotation, own.translation, backend)
+        found = replace(own, rotation=rotation, translation=translation,
+                        consistency=self._consistency(src[rows], rotation, translation, own.rcp), second_pass=torch.zeros_like(own.second_pass), polished=torch.zeros_like(own.polished),
+                        icp_search=torch.ones_like(own.icp_search))
+        _replace_rows(out, rows, found, better=distance < so_far)
 
     def polished(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, steps: int,
                  backend: str | None = None) -> VRNetOutput:
