@@ -543,12 +543,14 @@ def test_the_search_polish_compares_every_start_after_its_icp():
             <= _nearest_median(src, tgt, unpolished.rotation, unpolished.translation) + 1e-6).all()
 
 
-def test_the_icp_search_replaces_a_searched_pair_where_it_brings_the_source_nearer():
+def test_the_icp_search_replaces_a_searched_pair_where_it_brings_the_source_nearer(monkeypatch):
     """After the search and the polish, the searched pairs (all but the two most consistent) get
-    multistart_icp's estimate where it is nearer, marked icp_search; the pair not searched and
+    multistart_icp's estimate where it is clearly nearer (ICP_SEARCH_NEARER), marked icp_search; the pair not searched and
     the training forward never."""
     from vrnet_ext.geometry.alignment import multistart_icp
     from vrnet_ext.geometry.transforms import spread_rotations
+    from vrnet_ext.model import vrnet as vrnet_module
+    from vrnet_ext.model.vrnet import ICP_SEARCH_NEARER
 
     src, tgt = turned_pairs(B=4, N=64)
     plain = small_model(consistency_radius=1.0).eval()
@@ -562,7 +564,8 @@ def test_the_icp_search_replaces_a_searched_pair_where_it_brings_the_source_near
         out = model(src, tgt)
         R, t, distance = multistart_icp(src, tgt, torch.as_tensor(spread_rotations(48)))
         searched = plain(src, tgt).consistency < below
-    nearer = searched & (distance.double() < _nearest_median(src, tgt, before.rotation, before.translation))
+    so_far = _nearest_median(src, tgt, before.rotation, before.translation)
+    nearer = searched & (distance.double() < ICP_SEARCH_NEARER * so_far)
     assert nearer.any() and searched.sum() == 2
     assert torch.equal(out.icp_search, nearer) and not before.icp_search.any()
     torch.testing.assert_close(out.rotation, torch.where(nearer[:, None, None], R, before.rotation), rtol=1e-4, atol=1e-5)
@@ -570,6 +573,10 @@ def test_the_icp_search_replaces_a_searched_pair_where_it_brings_the_source_near
     assert not out.polished[nearer].any()
     model.train()
     assert not model(src, tgt).icp_search.any()
+    model.eval()  # a share below every searched pair's: none is clearly nearer
+    monkeypatch.setattr(vrnet_module, "ICP_SEARCH_NEARER", 0.99 * float((distance.double() / so_far)[searched].min()))
+    with torch.no_grad():
+        assert not model(src, tgt).icp_search.any()
 
 
 def test_the_rotation_search_takes_only_the_pairs_the_second_pass_left_doubtful():
