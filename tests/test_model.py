@@ -567,6 +567,7 @@ def test_the_icp_search_replaces_a_searched_pair_where_it_brings_the_source_near
     so_far = _nearest_median(src, tgt, before.rotation, before.translation)
     nearer = searched & (distance.double() < ICP_SEARCH_NEARER * so_far)
     assert nearer.any() and searched.sum() == 2
+    assert torch.equal(out.searched, searched) and torch.equal(before.searched, searched)
     assert torch.equal(out.icp_search, nearer) and not before.icp_search.any()
     torch.testing.assert_close(out.rotation, torch.where(nearer[:, None, None], R, before.rotation), rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(out.translation, torch.where(nearer[:, None], t, before.translation), rtol=1e-4, atol=1e-5)

@@ -43,6 +43,7 @@ class VRNetOutput:
     second_pass: torch.Tensor | None = None  # (B,) bool: the estimate comes from the second pass
     start_rotation: torch.Tensor | None = None  # (B, 3, 3) the turn of src the estimate's passes began from
     polished: torch.Tensor | None = None  # (B,) bool: the geometric polish moved the estimate
+    searched: torch.Tensor | None = None  # (B,) bool: the rotation search took the pair on
     icp_search: torch.Tensor | None = None  # (B,) bool: the estimate comes from the multi-start ICP
 
     @property
@@ -174,19 +175,18 @@ class VRNet(nn.Module):
         out, tgt_features = self._passes(src, tgt, backend, return_matching)
         out.start_rotation = torch.eye(3, dtype=src.dtype, device=src.device).expand(src.shape[0], 3, 3)
         out.second_pass = torch.zeros(src.shape[0], dtype=torch.bool, device=src.device)
-        out.polished = out.icp_search = torch.zeros_like(out.second_pass)
+        out.polished = out.searched = out.icp_search = torch.zeros_like(out.second_pass)
         if self.training:
             return out
         if self.config.second_pass_below > 0:
             capturing = src.is_cuda and torch.cuda.is_current_stream_capturing()  # a CUDA graph: no branch on data
             self._second_looks(src, tgt, out, backend, return_matching, tgt_features, every=capturing)
-        searched = None
         if self.config.rotation_search_below > 0:
-            searched = self._rotation_search(src, tgt, out, backend, return_matching, tgt_features)
+            self._rotation_search(src, tgt, out, backend, return_matching, tgt_features)
         if self.config.polish_iterations > 0:
             out = self.polished(src, tgt, out, self.config.polish_iterations, backend)
-        if self.config.rotation_search_icp_starts > 0 and searched is not None and searched.numel():
-            self._icp_search(src, tgt, out, searched, backend)
+        if self.config.rotation_search_icp_starts > 0 and out.searched.any():
+            self._icp_search(src, tgt, out, out.searched.nonzero().squeeze(1), backend)
         return out
 
     def _passes(self, src: torch.Tensor, tgt: torch.Tensor, backend: str, return_matching: bool,
@@ -238,13 +238,13 @@ class VRNet(nn.Module):
             again.rotation, again.translation = compose(again.rotation, again.translation, out.rotation,
                                                         out.translation)
         again.consistency = self._consistency(src, again.rotation, again.translation, again.rcp)
-        again.start_rotation = out.start_rotation
+        again.start_rotation, again.searched = out.start_rotation, out.searched
         again.second_pass = torch.ones(src.shape[0], dtype=torch.bool, device=src.device)
         again.polished = again.icp_search = torch.zeros_like(again.second_pass)
         return again
 
     def _rotation_search(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, backend: str,
-                         return_matching: bool, tgt_features: torch.Tensor | None) -> torch.Tensor:
+                         return_matching: bool, tgt_features: torch.Tensor | None) -> None:
         """Registers the pairs whose consistency is still below ``rotation_search_below`` again from
         the source turned by each start of :func:`search_starts` (about ``rotation_search_centre``),
         a few pairs' turns per batch, each start followed by a second look (kept where its RCPs agree
@@ -252,10 +252,11 @@ class VRNet(nn.Module):
         replaces ``out``'s rows (in place) where it brings it closer than ``out``'s (between starts,
         the RCPs' agreement misjudges noisy pairs). With ``rotation_search_polish`` steps, every
         start's estimate and the pair's own are polished (:meth:`polished`) before they are compared.
-        Returns the rows it searched (R,)."""
-        retry = (out.consistency < self.config.rotation_search_below).nonzero().squeeze(1)
+        ``searched`` marks the pairs it takes on."""
+        out.searched = out.consistency < self.config.rotation_search_below
+        retry = out.searched.nonzero().squeeze(1)
         if not retry.numel():
-            return retry
+            return
         starts = torch.as_tensor(search_starts(self.config.rotation_search_centre), dtype=src.dtype,
                                  device=src.device)  # (S, 3, 3)
         count = starts.shape[0]
@@ -270,6 +271,7 @@ class VRNet(nn.Module):
                 found.rotation = found.rotation @ turns
             found.start_rotation = turns
             found.second_pass = found.polished = found.icp_search = torch.zeros_like(rows, dtype=torch.bool)
+            found.searched = torch.ones_like(found.second_pass)
             every = torch.arange(rows.numel(), device=src.device)
             _replace_rows(found, every, self._second_look(src[rows], tgt[rows], found, backend, return_matching,
                                                           features))
@@ -285,7 +287,6 @@ class VRNet(nn.Module):
             best = distance.view(chunk.numel(), count).argmin(dim=1)
             chosen = torch.arange(chunk.numel(), device=src.device) * count + best
             _replace_rows(out, chunk, _rows_of(found, chosen), better=distance[chosen] < so_far)
-        return retry
 
     def _icp_search(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, rows: torch.Tensor,
                     backend: str) -> None:
