@@ -111,3 +111,8 @@ def test_multistart_icp_registers_any_motion_and_is_per_pair(monkeypatch):
         torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
     few = multistart_icp(src[:1], tgt[:1], starts[:5])  # fewer starts than it keeps: all of them go on
     assert few[0].shape == (1, 3, 3) and few[2].shape == (1,)
+    none = multistart_icp(src[:0], tgt[:0], starts)
+    assert none[0].shape == (0, 3, 3) and none[1].shape == (0, 3) and none[2].shape == (0,)
+    for bad in (starts[:0], starts[:, :2], starts[0]):
+        with pytest.raises(ValueError, match="starts"):
+            multistart_icp(src, tgt, bad)

@@ -71,6 +71,10 @@ def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor,
     MULTISTART_FIRST small and MULTISTART_KEEP x MULTISTART_LAST full nearest-neighbour searches
     per pair. Returns R (B, 3, 3), t (B, 3) and their :func:`nearest_median` (B,), in src's dtype.
     """
+    if starts.dim() != 3 or starts.shape[1:] != (3, 3) or not starts.shape[0]:
+        raise ValueError(f"starts must be (S, 3, 3) rotations with S >= 1, got {tuple(starts.shape)}")
+    if not src.shape[0]:
+        return src.new_zeros(0, 3, 3), src.new_zeros(0, 3), src.new_zeros(0)
     count, points = starts.shape[0], src.shape[1]
     stride = max(1, points // MULTISTART_POINTS)
     keep = min(MULTISTART_KEEP, count)
