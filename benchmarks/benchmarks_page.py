@@ -81,6 +81,9 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
     "rotations_whole_polish": "ModelNet40 whole test splits with symmetric angles, each cell's model with its rotation search, PV+RS / UC again with the search polishing its starts (`modelnet40_rotations.py --tables rotations_whole_centred rotations_whole rotations_whole_polish`)",
     "rotations_whole_all": "ModelNet40 whole test splits with symmetric angles, all twelve cells, each cell's model with its rotation search: PV+RS / UPC, RS / ND and PV+RS / ND added, CO / UPC and PV / UPC again with their 47 starts (`modelnet40_rotations.py --tables rotations_whole_centred rotations_whole rotations_whole_polish rotations_whole_rest rotations_whole_upc`)",
     "rotations_whole_all_icp": "ModelNet40 whole test splits with symmetric angles, all twelve cells, each cell's model with its rotation search: RS / ND and PV+RS / ND again with the multi-start ICP their models now ship (`modelnet40_rotations.py --tables rotations_whole_centred rotations_whole rotations_whole_polish rotations_whole_rest rotations_whole_upc rotations_whole_icp`)",
+    **{f"icp_search_validation_{cells}": f"The rotation search's multi-start ICP on validation pairs with symmetric angles, {label}, each share of the estimate's distance its result must come below (`icp_search_validation.py --models {models}`)"
+       for cells, label, models in (("rs_nd", "RS / ND", "vrnet-rs-nd-rcp"),
+                                    ("pv_nd", "PV+RS / ND and PV / ND", "vrnet-pvrs-nd-rcp vrnet-pv-nd-rcp"))},
     "memory_plan": "Memory planner: predicted vs measured peaks (`bench_memory_plan.py`)",
     "memory_plan_refit": "Memory planner refitted as upper bounds, with a 3,000,000-point pair (`bench_memory_plan.py`)",
     "memory_plan_scene": "Memory planner, scene model (`bench_memory_plan.py --methods vrnet vrnet-large`)",

@@ -580,3 +580,19 @@ def test_polish_validation_polishes_one_forward_per_set_on_validation_pairs(tmp_
     assert rows[0]["polished_share"] == 0 < rows[1]["polished_share"] and rows[0]["rmse_r"] != rows[1]["rmse_r"]
     assert rows[2]["polished_share"] == 0 < rows[4]["polished_share"]  # the searched pairs' polish marks them
     assert "| RS / UPC | so3 | 0.5 | 3 | 4 | 3 |" in (tmp_path / "polish.md").read_text()
+
+
+@requires_modelnet
+def test_icp_search_validation_puts_each_share_beside_one_forward(tmp_path):
+    run([str(ROOT / "benchmarks" / "icp_search_validation.py"), "--models", "vrnet-pvrs-nd-rcp", "--starts", "24",
+         "--nearer", "1", "0.5", "--rotations", "so3", "--search-below", "1", "--max-items", "3", "--batch-size", "2",
+         "--data-dir", str(MODELNET_DIR), "--json", "icp.json", "--markdown", "icp.md"], tmp_path)
+    record = json.loads((tmp_path / "icp.json").read_text())
+    assert record["partition"] == "val" and record["starts"] == 24
+    rows = record["rows"]
+    assert [r["nearer"] for r in rows] == [1.0, 0.5] and all(r["cell"] == "PV+RS / ND" for r in rows)
+    assert all(r["searched"] == 3 and r["pairs"] == 3 for r in rows)  # below 1: every pair searched
+    assert rows[1]["replaced"] <= rows[0]["replaced"] <= 3  # a lower share replaces no more pairs
+    for change in record["changes"]:
+        assert change["ratio"] < 1 and abs(change["error_before"] - change["error_after"]) > 5
+    assert "| `vrnet-pvrs-nd-rcp` | PV+RS / ND | 24 | 0.5 | 3 |" in (tmp_path / "icp.md").read_text()

@@ -89,7 +89,7 @@ def add_solve_options(parser, default: str) -> None:
                         help="after the rotation search and the polish, register each pair the search took on by "
                              "robust ICP alone from this many rotations spread over all rotations, and keep its "
                              "result where it brings the source nearer the target: for nearly round shapes no "
-                             f"start of the network registers (512: about 0.3-0.5 s per searched pair on one core); "
+                             f"start of the network registers (512: about 0.3-0.7 s per searched pair on one core); "
                              f"0: never (default: {default})")
     parser.add_argument("--polish-iterations", type=polish_steps, default=None,
                         help="last, this many steps of a robust point-to-point ICP from each pair's estimate (each "
