@@ -88,7 +88,8 @@ def add_solve_options(parser, default: str) -> None:
     parser.add_argument("--rotation-search-icp-starts", type=icp_starts, default=None,
                         help="after the rotation search and the polish, register each pair the search took on by "
                              "robust ICP alone from this many rotations spread over all rotations, and keep its "
-                             "result where it brings the source nearer the target: for nearly round shapes no "
+                             "result where it brings the source clearly nearer the target (its median distance "
+                             "below 0.85 of the estimate's): for nearly round shapes no "
                              f"start of the network registers (512: about 0.3-0.7 s per searched pair on one core); "
                              f"0: never (default: {default})")
     parser.add_argument("--polish-iterations", type=polish_steps, default=None,

@@ -67,9 +67,10 @@ def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor,
 
     ICP's reach from a start is a few tens of degrees (less on nearly round shapes, where it
     converges slowly along the axis), so ``starts`` should leave no motion farther than that from
-    one of them (:func:`vrnet_ext.geometry.transforms.spread_rotations`). Cost: about S x
-    MULTISTART_FIRST small and MULTISTART_KEEP x MULTISTART_LAST full nearest-neighbour searches
-    per pair. Returns R (B, 3, 3), t (B, 3) and their :func:`nearest_median` (B,), in src's dtype.
+    one of them (:func:`vrnet_ext.geometry.transforms.spread_rotations`). Cost per pair: S x
+    MULTISTART_FIRST nearest-neighbour searches of the strided points, S of every point (the ranking)
+    and MULTISTART_KEEP x (MULTISTART_LAST + 1) more. Returns R (B, 3, 3), t (B, 3) and their
+    :func:`nearest_median` (B,), in src's dtype.
     """
     if starts.dim() != 3 or starts.shape[1:] != (3, 3) or not starts.shape[0]:
         raise ValueError(f"starts must be (S, 3, 3) rotations with S >= 1, got {tuple(starts.shape)}")
