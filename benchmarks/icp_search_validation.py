@@ -18,7 +18,10 @@ below 0.1), RMSE(R) (the paper's, on Euler angles), the median rotation error, t
 degrees off, the pairs searched and replaced, those the replacement registers (from more than 5
 degrees off to at most 5) and those it loses, and the seconds per pair (the forward, plus the ICP
 search per pair measured). Below the table every pair whose error a replacement (at share 1) would
-change by more than 5 degrees, with the ratio of the two distances: what a share is chosen on.
+change by more than 5 degrees, with the ratio of the two distances: what a share is chosen on; and
+every pair left more than 5 degrees off by the model's estimate or the ICP's, with the ground truth's
+distance over the estimate's (near 1 or above: the geometry cannot tell the estimate from the truth,
+as on a symmetric shape) and the turn of the estimate and of the truth from the identity.
 """
 from __future__ import annotations
 
@@ -56,9 +59,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def measure(name: str, args) -> tuple[list[dict], list[dict]]:
-    """One model's rows (one per share of ``--nearer``) and the pairs a replacement would move by more
-    than WRONG_DEG."""
+def measure(name: str, args) -> tuple[list[dict], list[dict], list[dict]]:
+    """One model's rows (one per share of ``--nearer``), the pairs a replacement would move by more
+    than WRONG_DEG, and the pairs left more than WRONG_DEG off (by the model's estimate or the ICP's)."""
     import numpy as np
     from torch.utils.data import DataLoader
 
@@ -80,7 +83,7 @@ def measure(name: str, args) -> tuple[list[dict], list[dict]]:
     data = ModelNet40Pairs(args.data_dir, partition="val", setting=setting, split=split, max_items=args.max_items,
                            spec=spec, val_fraction=config.get("val_fraction", 0.1))
     starts = torch.as_tensor(spread_rotations(args.starts))
-    kept = {key: [] for key in ("R", "t", "gt_R", "gt_t", "searched", "R_icp", "t_icp", "ratio")}
+    kept = {key: [] for key in ("R", "t", "gt_R", "gt_t", "searched", "R_icp", "t_icp", "ratio", "truth_ratio")}
     forward_seconds = icp_seconds = 0.0
     with torch.no_grad():
         for batch in DataLoader(data, batch_size=args.batch_size, shuffle=False):
@@ -97,9 +100,11 @@ def measure(name: str, args) -> tuple[list[dict], list[dict]]:
                 R_icp[rows], t_icp[rows] = R, t
                 ratio[rows] = distance / nearest_median(src[rows], tgt[rows], out.rotation[rows],
                                                         out.translation[rows])
+            truth_ratio = (nearest_median(src, tgt, batch["rotation"], batch["translation"])
+                           / nearest_median(src, tgt, out.rotation, out.translation))
             for key, value in (("R", out.rotation), ("t", out.translation), ("gt_R", batch["rotation"]),
                                ("gt_t", batch["translation"]), ("searched", out.searched), ("R_icp", R_icp),
-                               ("t_icp", t_icp), ("ratio", ratio)):
+                               ("t_icp", t_icp), ("ratio", ratio), ("truth_ratio", truth_ratio)):
                 kept[key].append(value)
     values = {key: torch.cat(value) for key, value in kept.items()}
     gt_R = values["gt_R"].double()
@@ -127,10 +132,16 @@ def measure(name: str, args) -> tuple[list[dict], list[dict]]:
     moved = searched & (values["ratio"] < 1) & ((before - after).abs() > WRONG_DEG)
     changes = [{"model": name, "pair": int(i), "ratio": float(values["ratio"][i]), "error_before": float(before[i]),
                 "error_after": float(after[i])} for i in np.flatnonzero(moved.numpy())]
-    return rows, changes
+    identity = torch.eye(3, dtype=torch.float64).expand_as(gt_R)
+    turn, truth_turn = rotation_error_deg(values["R"].double(), identity), rotation_error_deg(gt_R, identity)
+    wrong = [{"model": name, "pair": int(i), "searched": bool(searched[i]), "truth_ratio": float(values["truth_ratio"][i]),
+              "error_before": float(before[i]), "error_after": float(after[i]), "turn": float(turn[i]),
+              "truth_turn": float(truth_turn[i])}
+             for i in np.flatnonzero(((before > WRONG_DEG) | (after > WRONG_DEG)).numpy())]
+    return rows, changes, wrong
 
 
-def markdown(rows: list[dict], changes: list[dict], caption: str) -> str:
+def markdown(rows: list[dict], changes: list[dict], wrong: list[dict], caption: str) -> str:
     lines = [caption, "", "| model | cell | starts | nearer than | pairs | recall | RMSE(R) | RE median | > 5° | "
              "searched | replaced | registered | lost | s / pair | ICP s / searched pair |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -144,16 +155,24 @@ def markdown(rows: list[dict], changes: list[dict], caption: str) -> str:
               "|---|---:|---:|---:|---:|"]
     lines += [f"| `{c['model']}` | {c['pair']} | {c['ratio']:.3f} | {c['error_before']:.3g} | {c['error_after']:.3g} |"
               for c in sorted(changes, key=lambda c: c["ratio"])] or ["| – | | | | |"]
+    lines += ["", "Pairs more than 5 degrees off by the model's estimate or the ICP's (the truth's distance over the "
+              "estimate's: near 1 or above, the geometry cannot tell them apart; the turns from the identity in "
+              "degrees):", "", "| model | pair | searched | truth's distance ratio | error (deg) | ICP's error | "
+              "estimate's turn | truth's turn |", "|---|---:|---|---:|---:|---:|---:|---:|"]
+    lines += [f"| `{w['model']}` | {w['pair']} | {'yes' if w['searched'] else 'no'} | {w['truth_ratio']:.3f} | "
+              f"{w['error_before']:.3g} | {w['error_after']:.3g} | {w['turn']:.1f} | {w['truth_turn']:.1f} |"
+              for w in wrong] or ["| – | | | | | | | |"]
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    rows, changes = [], []
+    rows, changes, wrong = [], [], []
     for name in args.models:
-        model_rows, model_changes = measure(name, args)
+        model_rows, model_changes, model_wrong = measure(name, args)
         rows += model_rows
         changes += model_changes
+        wrong += model_wrong
     machine, date = machine_and_date()
     caption = (f"The rotation search's multi-start ICP on {args.max_items} validation shapes of each model's cell, "
                f"spread over the partition (seed 1234; never the test split), rotations {args.rotations}; each model "
@@ -164,8 +183,8 @@ def main(argv: list[str] | None = None) -> int:
                f"pairs more than 5 degrees off; registered / lost: pairs the replacement brings within 5 degrees / "
                f"takes beyond. {machine}, {date}.")
     record = {"partition": "val", "max_items": args.max_items, "rotations": args.rotations, "starts": args.starts,
-              "search_below": args.search_below, "machine": machine, "date": date, "rows": rows, "changes": changes}
-    write_outputs(markdown(rows, changes, caption), record, args.markdown, args.json)
+              "search_below": args.search_below, "machine": machine, "date": date, "rows": rows, "changes": changes, "wrong": wrong}
+    write_outputs(markdown(rows, changes, wrong, caption), record, args.markdown, args.json)
     return 0
 
 

@@ -595,4 +595,8 @@ def test_icp_search_validation_puts_each_share_beside_one_forward(tmp_path):
     assert rows[1]["replaced"] <= rows[0]["replaced"] <= 3  # a lower share replaces no more pairs
     for change in record["changes"]:
         assert change["ratio"] < 1 and abs(change["error_before"] - change["error_after"]) > 5
+    for pair in record["wrong"]:  # every pair left off by either estimate, with the truth's distance beside it
+        assert max(pair["error_before"], pair["error_after"]) > 5 and pair["truth_ratio"] > 0
+        assert 0 <= pair["truth_turn"] <= 180 and pair["searched"]
     assert "| `vrnet-pvrs-nd-rcp` | PV+RS / ND | 24 | 0.5 | 3 |" in (tmp_path / "icp.md").read_text()
+    assert "truth's distance ratio" in (tmp_path / "icp.md").read_text()
