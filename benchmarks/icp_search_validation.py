@@ -92,16 +92,15 @@ def measure(name: str, args) -> tuple[list[dict], list[dict], list[dict]]:
             out = model(src, tgt)
             forward_seconds += time.perf_counter() - started
             R_icp, t_icp, ratio = out.rotation.clone(), out.translation.clone(), torch.ones(len(src))
+            so_far = nearest_median(src, tgt, out.rotation, out.translation)  # the model's estimate's distance
+            truth_ratio = nearest_median(src, tgt, batch["rotation"], batch["translation"]) / so_far
             rows = out.searched.nonzero().squeeze(1)
             if rows.numel():
                 started = time.perf_counter()
                 R, t, distance = multistart_icp(src[rows], tgt[rows], starts.to(src.dtype))
                 icp_seconds += time.perf_counter() - started
                 R_icp[rows], t_icp[rows] = R, t
-                ratio[rows] = distance / nearest_median(src[rows], tgt[rows], out.rotation[rows],
-                                                        out.translation[rows])
-            truth_ratio = (nearest_median(src, tgt, batch["rotation"], batch["translation"])
-                           / nearest_median(src, tgt, out.rotation, out.translation))
+                ratio[rows] = distance / so_far[rows]
             for key, value in (("R", out.rotation), ("t", out.translation), ("gt_R", batch["rotation"]),
                                ("gt_t", batch["translation"]), ("searched", out.searched), ("R_icp", R_icp),
                                ("t_icp", t_icp), ("ratio", ratio), ("truth_ratio", truth_ratio)):
@@ -134,9 +133,9 @@ def measure(name: str, args) -> tuple[list[dict], list[dict], list[dict]]:
                 "error_after": float(after[i])} for i in np.flatnonzero(moved.numpy())]
     identity = torch.eye(3, dtype=torch.float64).expand_as(gt_R)
     turn, truth_turn = rotation_error_deg(values["R"].double(), identity), rotation_error_deg(gt_R, identity)
-    wrong = [{"model": name, "pair": int(i), "searched": bool(searched[i]), "truth_ratio": float(values["truth_ratio"][i]),
-              "error_before": float(before[i]), "error_after": float(after[i]), "turn": float(turn[i]),
-              "truth_turn": float(truth_turn[i])}
+    wrong = [{"model": name, "pair": int(i), "searched": bool(searched[i]),
+              "truth_ratio": float(values["truth_ratio"][i]), "error_before": float(before[i]),
+              "error_after": float(after[i]), "turn": float(turn[i]), "truth_turn": float(truth_turn[i])}
              for i in np.flatnonzero(((before > WRONG_DEG) | (after > WRONG_DEG)).numpy())]
     return rows, changes, wrong
 
@@ -183,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
                f"pairs more than 5 degrees off; registered / lost: pairs the replacement brings within 5 degrees / "
                f"takes beyond. {machine}, {date}.")
     record = {"partition": "val", "max_items": args.max_items, "rotations": args.rotations, "starts": args.starts,
-              "search_below": args.search_below, "machine": machine, "date": date, "rows": rows, "changes": changes, "wrong": wrong}
+              "search_below": args.search_below, "machine": machine, "date": date, "rows": rows, "changes": changes,
+              "wrong": wrong}
     write_outputs(markdown(rows, changes, wrong, caption), record, args.markdown, args.json)
     return 0
 

@@ -90,7 +90,7 @@ def add_solve_options(parser, default: str) -> None:
                              "robust ICP alone from this many rotations spread over all rotations, and keep its "
                              "result where it brings the source clearly nearer the target (its median distance "
                              "below 0.85 of the estimate's): for nearly round shapes no "
-                             f"start of the network registers (512: about 0.3-0.7 s per searched pair on one core); "
+                             f"start of the network registers (512: about 0.3-1.2 s per searched pair on one core); "
                              f"0: never (default: {default})")
     parser.add_argument("--polish-iterations", type=polish_steps, default=None,
                         help="last, this many steps of a robust point-to-point ICP from each pair's estimate (each "

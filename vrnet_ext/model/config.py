@@ -93,7 +93,7 @@ class VRNetConfig:
       nearest target point below 0.85 of the estimate's: on noisy partial views a flip of a round
       shape can lie a few per cent nearer than the truth); not in the paper; 0: never; eval mode only. For the nearly round shapes from
       which no start of the network registers a pair, while the geometry says the estimate is wrong.
-      512 starts cost about 0.3-0.7 s per searched pair of 768 points on one CPU core.
+      512 starts cost about 0.3-1.2 s per searched pair of 768 points on one CPU core.
     * ``polish_iterations``: last, this many steps of a robust point-to-point ICP from each pair's
       estimate (:func:`vrnet_ext.geometry.alignment.robust_icp`: the nearest target point of each
       moved source point, Cauchy-reweighted Procrustes), kept where they bring the source nearer the
