@@ -30,6 +30,7 @@ import sys
 import time
 
 import torch
+from tqdm import tqdm
 
 from outputs import machine_and_date, write_outputs  # benchmarks/, the script's folder
 from polish_validation import COLUMNS  # benchmarks/, the script's folder
@@ -86,7 +87,7 @@ def measure(name: str, args) -> tuple[list[dict], list[dict], list[dict]]:
     kept = {key: [] for key in ("R", "t", "gt_R", "gt_t", "searched", "R_icp", "t_icp", "ratio", "truth_ratio")}
     forward_seconds = icp_seconds = 0.0
     with torch.no_grad():
-        for batch in DataLoader(data, batch_size=args.batch_size, shuffle=False):
+        for batch in tqdm(DataLoader(data, batch_size=args.batch_size, shuffle=False), desc=name, leave=False):
             src, tgt = batch["src"], batch["tgt"]
             started = time.perf_counter()
             out = model(src, tgt)
