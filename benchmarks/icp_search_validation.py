@@ -3,15 +3,17 @@ pairs: what a shipped model's ICP search, and the share of the estimate's distan
 come below (``vrnet_ext.model.vrnet.ICP_SEARCH_NEARER``), are chosen on.
 
     python benchmarks/icp_search_validation.py --models vrnet-rs-nd-rcp [...] [--setting PV+RS]
-        [--starts 512] [--nearer 1 0.9 0.85 0.8] [--rotations symmetric] [--max-items 300]
+        [--starts 512] [--slides 1] [--icp robust] [--nearer 1 0.9 0.85 0.8] [--rotations symmetric]
+        [--max-items 300]
         [--json icp.json] [--markdown icp.md]
 
 Pairs: ``--max-items`` shapes spread evenly over the ``val`` partition (held out of TRAIN by every
 run, never the test split) of each model's cell (the first it serves, or ``--setting``), seed 1234,
 rotations drawn as ``--rotations`` says. Each batch goes through the model once, solved as its file
 says with the rotation search at ``--search-below`` and without the ICP search; then
-:func:`vrnet_ext.geometry.alignment.multistart_icp` from ``--starts`` spread rotations registers
-every pair the search took on (``out.searched``), as the forward would last. For each share of
+:func:`vrnet_ext.geometry.alignment.multistart_icp` from ``--starts`` spread rotations (``--slides``
+translations each, ``--icp``'s ICP) registers every pair the search took on (``out.searched``), as
+the forward would last. For each share of
 ``--nearer`` the ICP's estimate replaces the model's where its median nearest-point distance is below
 that share of the model's. Per row: recall (rotation error below 5 degrees and translation error
 below 0.1), RMSE(R) (the paper's, on Euler angles), the median rotation error, the pairs more than 5
@@ -35,9 +37,9 @@ from tqdm import tqdm
 from outputs import machine_and_date, write_outputs  # benchmarks/, the script's folder
 from polish_validation import COLUMNS  # benchmarks/, the script's folder
 from vrnet_ext.cli.common import DATA_DIR_HELP, DefaultsHelpFormatter, positive_float, positive_int, unit_interval
-from vrnet_ext.cli.training import icp_starts
+from vrnet_ext.cli.training import icp_slides, icp_starts
 from vrnet_ext.data.protocol import SETTINGS
-from vrnet_ext.names import ROTATION_RANGES
+from vrnet_ext.names import DEFAULT_SEARCH_ICP, ROTATION_RANGES, SEARCH_ICPS
 
 WRONG_DEG = 5.0  # a pair more than this many degrees off is wrong (the recall's threshold)
 
@@ -48,6 +50,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--setting", choices=SETTINGS, default=None,
                         help="the cell's setting, for a model that serves several (default: the first it serves)")
     parser.add_argument("--starts", type=icp_starts, default=512, help="the ICP search's spread rotations")
+    parser.add_argument("--slides", type=icp_slides, default=1, help="the ICP search's translations per rotation")
+    parser.add_argument("--icp", choices=SEARCH_ICPS, default=DEFAULT_SEARCH_ICP, help="the ICP search's ICP")
     parser.add_argument("--nearer", type=positive_float, nargs="+", default=[1.0, 0.9, 0.85, 0.8],
                         help="shares of the estimate's distance the ICP's must come below to replace it, a row each")
     parser.add_argument("--rotations", choices=ROTATION_RANGES, default="symmetric", help="the pairs' rotations")
@@ -98,7 +102,8 @@ def measure(name: str, args) -> tuple[list[dict], list[dict], list[dict]]:
             rows = out.searched.nonzero().squeeze(1)
             if rows.numel():
                 started = time.perf_counter()
-                R, t, distance = multistart_icp(src[rows], tgt[rows], starts.to(src.dtype))
+                R, t, distance = multistart_icp(src[rows], tgt[rows], starts.to(src.dtype), slide_count=args.slides,
+                                                icp=args.icp)
                 icp_seconds += time.perf_counter() - started
                 R_icp[rows], t_icp[rows] = R, t
                 ratio[rows] = distance / so_far[rows]
@@ -119,7 +124,8 @@ def measure(name: str, args) -> tuple[list[dict], list[dict], list[dict]]:
         errors = summarize(R.numpy(), gt_R.numpy(), t.numpy(), values["gt_t"].double().numpy())
         error = torch.where(take, after, before)
         rows.append({"model": name, "cell": f"{setting} / {split}", "rotations": args.rotations,
-                     "starts": args.starts, "nearer": share, "pairs": len(data),
+                     "starts": args.starts, "slides": args.slides, "icp": args.icp, "nearer": share,
+                     "pairs": len(data),
                      **{key: errors[column] for key, column in COLUMNS.items()},
                      "wrong": int((error > WRONG_DEG).sum()), "searched": int(searched.sum()),
                      "replaced": int(take.sum()),
@@ -142,11 +148,12 @@ def measure(name: str, args) -> tuple[list[dict], list[dict], list[dict]]:
 
 
 def markdown(rows: list[dict], changes: list[dict], wrong: list[dict], caption: str) -> str:
-    lines = [caption, "", "| model | cell | starts | nearer than | pairs | recall | RMSE(R) | RE median | > 5° | "
-             "searched | replaced | registered | lost | s / pair | ICP s / searched pair |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [caption, "", "| model | cell | ICP | starts | slides | nearer than | pairs | recall | RMSE(R) | RE median | "
+             "> 5° | searched | replaced | registered | lost | s / pair | ICP s / searched pair |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
-        lines.append(f"| `{row['model']}` | {row['cell']} | {row['starts']} | {row['nearer']:g} | {row['pairs']} | "
+        lines.append(f"| `{row['model']}` | {row['cell']} | {row.get('icp', 'robust')} | {row['starts']} | "
+                     f"{row.get('slides', 1)} | {row['nearer']:g} | {row['pairs']} | "
                      f"{100 * row['recall']:.1f} % | {row['rmse_r']:.3g} | {row['re_median']:.3g} | {row['wrong']} | "
                      f"{row['searched']} | {row['replaced']} | {row['registered']} | {row['lost']} | "
                      f"{row['seconds_per_pair']:.3f} | {row['icp_seconds_per_searched_pair']:.3f} |")
@@ -177,12 +184,14 @@ def main(argv: list[str] | None = None) -> int:
     caption = (f"The rotation search's multi-start ICP on {args.max_items} validation shapes of each model's cell, "
                f"spread over the partition (seed 1234; never the test split), rotations {args.rotations}; each model "
                f"solved as its file says with the rotation search (rotation_search_below {args.search_below:g}), then "
-               f"robust ICP from {args.starts} spread rotations on every pair the search took on, its estimate kept "
+               f"{args.icp} ICP from {args.starts} spread rotations ({args.slides} translations each) on every pair "
+               f"the search took on, its estimate kept "
                f"where its median nearest-point distance is below 'nearer than' x the estimate's. Recall: rotation "
                f"error below 5 degrees and translation error below 0.1; RMSE(R): the paper's (Euler angles); > 5°: "
                f"pairs more than 5 degrees off; registered / lost: pairs the replacement brings within 5 degrees / "
                f"takes beyond. {machine}, {date}.")
     record = {"partition": "val", "max_items": args.max_items, "rotations": args.rotations, "starts": args.starts,
+              "slides": args.slides, "icp": args.icp,
               "search_below": args.search_below, "machine": machine, "date": date, "rows": rows, "changes": changes,
               "wrong": wrong}
     write_outputs(markdown(rows, changes, wrong, caption), record, args.markdown, args.json)

@@ -116,3 +116,96 @@ def test_multistart_icp_registers_any_motion_and_is_per_pair(monkeypatch):
     for bad in (starts[:0], starts[:, :2], starts[0]):
         with pytest.raises(ValueError, match="starts"):
             multistart_icp(src, tgt, bad)
+
+
+def cut_views(B=3, seed=0, points=600, noise=0.005):
+    """src (B, points, 3) and tgt: views of an elongated, lopsided cloud (a bar with six blobs along it),
+    src cut off above x = 0.6 and tgt below x = -0.6 (their centroids lie about 0.3 apart along the
+    bar), tgt moved by a known motion (truth, shift); a little noise on both."""
+    rng = np.random.default_rng(seed)
+    blobs = np.array([[-0.9, 0.3, 0.0], [-0.55, -0.2, 0.25], [-0.2, 0.0, -0.35], [0.15, 0.35, 0.1],
+                      [0.5, -0.3, -0.1], [0.85, 0.1, 0.3]])
+    views, truths, shifts = ([], []), [], []
+    for b in range(B):
+        count = 6000
+        bar = np.stack([rng.uniform(-1, 1, count), np.zeros(count), np.zeros(count)], 1) + rng.normal(size=(count, 3)) * 0.03
+        blob = blobs[rng.integers(0, len(blobs), count)] + rng.normal(size=(count, 3)) * 0.06
+        cloud = np.where((rng.uniform(size=count) < 0.5)[:, None], blob, bar)
+        truth, shift = Rotation.random(random_state=seed * 10 + b).as_matrix(), rng.normal(size=3) * 0.2
+        for view, kept, moved in ((views[0], cloud[:, 0] < 0.6, False), (views[1], cloud[:, 0] > -0.6, True)):
+            part = cloud[kept][rng.choice(int(kept.sum()), points, replace=False)] + noise * rng.normal(size=(points, 3))
+            view.append(part @ truth.T + shift if moved else part)
+        truths.append(truth)
+        shifts.append(shift)
+    src, tgt, truth, shift = (torch.as_tensor(np.stack(x), dtype=torch.float32) for x in (*views, truths, shifts))
+    return src, tgt, truth, shift
+
+
+def test_multistart_icp_slides_reach_views_whose_centroids_lie_apart():
+    """Two views cut from opposite ends of a lopsided bar: from the centroids' translation no start
+    registers any pair, with either ICP; with 17 slides along the target's longest axis trimmed ICP
+    registers every pair, robust ICP two of three (it drifts off the truth of partial views), each
+    nearer the target than without the slides."""
+    from vrnet_ext.geometry.transforms import spread_rotations
+
+    src, tgt, truth, shift = cut_views(seed=1)
+    starts = torch.as_tensor(spread_rotations(128))
+    registered = {}
+    for icp in ("robust", "trimmed"):
+        centroids = multistart_icp(src, tgt, starts, slide_count=1, icp=icp)
+        assert (rotation_error_deg(centroids[0], truth) > 20).all(), rotation_error_deg(centroids[0], truth)
+        rotation, translation, distance = multistart_icp(src, tgt, starts, slide_count=17, icp=icp)
+        right = (rotation_error_deg(rotation, truth) < 5) & ((translation - shift).norm(dim=-1) < 0.05)
+        registered[icp] = int(right.sum())
+        torch.testing.assert_close(distance.double(), brute_nearest_median(src, tgt, rotation, translation),
+                                   rtol=0, atol=1e-6)
+        assert (distance[right] < centroids[2][right]).all()
+    assert registered == {"robust": 2, "trimmed": 3}, registered
+
+
+def test_slides_spread_along_the_longest_axis():
+    """One slide: none; an odd count: evenly over +- SEARCH_ICP_SLIDE_REACH standard deviations along
+    the target's longest axis, none among them; the same for any translation of the target; bad
+    counts refused."""
+    from vrnet_ext.names import MAX_SEARCH_ICP_SLIDES, SEARCH_ICP_SLIDE_REACH
+
+    rng = np.random.default_rng(3)
+    axis = np.array([2.0, 1.0, -2.0]) / 3
+    tgt = torch.from_numpy(rng.normal(size=(500, 1)) * 0.4 * axis + rng.normal(size=(500, 3)) * 0.05)
+    assert torch.equal(alignment.slides(tgt, 1), torch.zeros(1, 3, dtype=tgt.dtype))
+    offsets = alignment.slides(tgt, 5)
+    sd = float((tgt - tgt.mean(0)).double().matmul(torch.from_numpy(axis)).pow(2).mean().sqrt())
+    along = offsets.double() @ torch.from_numpy(axis)
+    along = along * torch.sign(along[-1])
+    torch.testing.assert_close(along, torch.linspace(-1, 1, 5, dtype=torch.float64) * SEARCH_ICP_SLIDE_REACH * sd,
+                               rtol=0.02, atol=1e-3)
+    assert float(offsets[2].norm()) < 1e-12
+    torch.testing.assert_close(alignment.slides(tgt + 7.0, 5).abs(), offsets.abs(), rtol=1e-6, atol=1e-9)
+    for bad in (0, MAX_SEARCH_ICP_SLIDES + 1, 2.0, True):
+        with pytest.raises(ValueError, match="slides"):
+            alignment.slides(tgt, bad)
+    src = tgt[None, :50].float()
+    with pytest.raises(ValueError, match="icp"):
+        multistart_icp(src, src, torch.eye(3)[None], icp="point_to_plane")
+    with pytest.raises(ValueError, match="slides"):
+        multistart_icp(src[:0], src[:0], torch.eye(3)[None], slide_count=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_trimmed_icp_polishes_and_holds_an_exact_estimate(dtype):
+    """Trimmed ICP brings an estimate 8 degrees off a partial, noisy pair within 1 degree (as robust
+    ICP does), leaves an exact estimate of an exact pair exact, is per pair, and both backends agree."""
+    src, tgt, truth, shift, rotation, translation = partial_pairs(dtype=dtype)
+    R, t = alignment.trimmed_icp(src, tgt, rotation, translation, 30)
+    assert (rotation_error_deg(R, truth) < 1).all(), rotation_error_deg(R, truth)
+    alone = [alignment.trimmed_icp(src[i:i + 1], tgt[i:i + 1], rotation[i:i + 1], translation[i:i + 1], 30)
+             for i in range(src.shape[0])]
+    torch.testing.assert_close(torch.cat([a[0] for a in alone]), R, rtol=1e-4, atol=1e-4)
+    exact = move(src, truth, shift)
+    R0, t0 = alignment.trimmed_icp(src, exact, truth, shift, 3)
+    torch.testing.assert_close(R0, truth, rtol=0, atol=1e-4 if dtype == torch.float32 else 1e-9)
+    reference = alignment.trimmed_icp(src, tgt, rotation, translation, 4, backend="torch")
+    ext = alignment.trimmed_icp(src, tgt, rotation, translation, 4, backend="ext")
+    torch.testing.assert_close(ext[0], reference[0], rtol=0, atol=1e-4 if dtype == torch.float32 else 1e-9)
+    with pytest.raises(ValueError, match="steps"):
+        alignment.trimmed_icp(src, tgt, rotation, translation, -1)

@@ -66,7 +66,8 @@ def test_files_that_are_not_checkpoints_raise_a_clear_error(tmp_path, capsys):
                                           ("irls_iterations", 10**9), ("irls_scale", float("nan")),
                                           ("irls_kernel", "tukey"), ("polish_iterations", 10**9),
                                           ("polish_iterations", "many"), ("rotation_search_polish", -1),
-                                          ("rotation_search_icp_starts", 10**6)])
+                                          ("rotation_search_icp_starts", 10**6), ("rotation_search_icp_slides", 10**6),
+                                          ("rotation_search_icp", "gicp")])
 def test_config_outside_the_limits_is_refused_before_anything_is_built(tmp_path, field, value):
     config = VRNetConfig.small(**TINY).to_dict()
     config[field] = value
@@ -183,10 +184,13 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     # the search's own options, where the file does not search: its estimates and its test table stand
     assert main(["export", shipped_path, "tiny-sp", "--out-dir", str(tmp_path / "weights"),
                  "--rotation-search-polish", "3", "--rotation-search-centre", "10", "0", "0",
-                 "--rotation-search-icp-starts", "64"]) == 0
+                 "--rotation-search-icp-starts", "64", "--rotation-search-icp-slides", "5",
+                 "--rotation-search-icp", "trimmed"]) == 0
     searching = read_checkpoint(tmp_path / "weights" / "tiny-sp.pt")
     assert searching["config"]["model"]["rotation_search_polish"] == 3
     assert searching["config"]["model"]["rotation_search_icp_starts"] == 64
+    assert searching["config"]["model"]["rotation_search_icp_slides"] == 5
+    assert searching["config"]["model"]["rotation_search_icp"] == "trimmed"
     assert searching["card"]["test"] == shipped["card"]["test"]
     assert main(["export", shipped_path, "tiny-sp2", "--out-dir", str(tmp_path / "weights"),
                  "--rotation-search-polish", "3", "--rotation-search-below", "0.1"]) == 2  # it searches: test it

@@ -543,14 +543,18 @@ def test_the_search_polish_compares_every_start_after_its_icp():
             <= _nearest_median(src, tgt, unpolished.rotation, unpolished.translation) + 1e-6).all()
 
 
-def test_the_icp_search_replaces_a_searched_pair_where_it_brings_the_source_nearer(monkeypatch):
+@pytest.mark.parametrize("slides, icp, share", [(1, "robust", None), (3, "trimmed", 1.0)])
+def test_the_icp_search_replaces_a_searched_pair_where_it_brings_the_source_nearer(monkeypatch, slides, icp, share):
     """After the search and the polish, the searched pairs (all but the two most consistent) get
-    multistart_icp's estimate where it is clearly nearer (ICP_SEARCH_NEARER), marked icp_search; the pair not searched and
-    the training forward never."""
+    multistart_icp's estimate (with the config's slides and ICP) where it is clearly nearer
+    (ICP_SEARCH_NEARER; ``share`` replaces it where not None), marked icp_search; the pair not searched
+    and the training forward never."""
     from vrnet_ext.geometry.alignment import multistart_icp
     from vrnet_ext.geometry.transforms import spread_rotations
     from vrnet_ext.model import vrnet as vrnet_module
-    from vrnet_ext.model.vrnet import ICP_SEARCH_NEARER
+    if share is not None:
+        monkeypatch.setattr(vrnet_module, "ICP_SEARCH_NEARER", share)
+    ICP_SEARCH_NEARER = vrnet_module.ICP_SEARCH_NEARER
 
     src, tgt = turned_pairs(B=4, N=64)
     plain = small_model(consistency_radius=1.0).eval()
@@ -558,11 +562,12 @@ def test_the_icp_search_replaces_a_searched_pair_where_it_brings_the_source_near
         below = float(plain(src, tgt).consistency.sort().values[-2])
     options = dict(consistency_radius=1.0, rotation_search_below=below, polish_iterations=2)
     searched_only = small_model(**options).eval()
-    model = small_model(**options, rotation_search_icp_starts=48).eval()
+    model = small_model(**options, rotation_search_icp_starts=48, rotation_search_icp_slides=slides,
+                        rotation_search_icp=icp).eval()
     with torch.no_grad():
         before = searched_only(src, tgt)
         out = model(src, tgt)
-        R, t, distance = multistart_icp(src, tgt, torch.as_tensor(spread_rotations(48)))
+        R, t, distance = multistart_icp(src, tgt, torch.as_tensor(spread_rotations(48)), slide_count=slides, icp=icp)
         searched = plain(src, tgt).consistency < below
     so_far = _nearest_median(src, tgt, before.rotation, before.translation)
     nearer = searched & (distance.double() < ICP_SEARCH_NEARER * so_far)
@@ -684,7 +689,9 @@ def test_the_polish_sharpens_the_shipped_model_on_noisy_pairs():
                                           ("polish_iterations", True), ("rotation_search_polish", -2),
                                           ("rotation_search_polish", 1001), ("rotation_search_polish", False),
                                           ("rotation_search_icp_starts", -1), ("rotation_search_icp_starts", 4097),
-                                          ("rotation_search_icp_starts", 8.0), ("rotation_search_icp_starts", True)])
+                                          ("rotation_search_icp_starts", 8.0), ("rotation_search_icp_starts", True),
+                                          ("rotation_search_icp_slides", 0), ("rotation_search_icp_slides", 65),
+                                          ("rotation_search_icp_slides", 2.0), ("rotation_search_icp", "gicp")])
 def test_second_pass_options_are_checked(field, value):
     with pytest.raises(ValueError, match=field):
         VRNetConfig(**{field: value})

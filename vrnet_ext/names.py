@@ -26,6 +26,12 @@ DEFAULT_SPLIT = "UPC"
 ROTATION_RANGES = ("protocol", "symmetric", "so3", "cube_residual")
 DEFAULT_ROTATION_RANGE = "protocol"
 DEFAULT_MAX_ANGLE = 45.0  # the protocol's largest Euler angle, in degrees
+# The ICP of the rotation search's multi-start ICP (vrnet_ext.geometry.alignment.ICPS): robust (Cauchy
+# weights at the median residual) or trimmed (the nearer half of the nearest-point pairs).
+SEARCH_ICPS = ("robust", "trimmed")
+DEFAULT_SEARCH_ICP = "robust"
+MAX_SEARCH_ICP_SLIDES = 64  # the most translations per rotation of that multi-start ICP (geometry.alignment.slides)
+SEARCH_ICP_SLIDE_REACH = 1.5  # they span +- this many standard deviations of the target along its longest axis
 
 DEFAULT_MODEL = "vrnet-pv-upc-rcp"  # the shipped ModelNet40 model of the paper's main cell
 DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-real"  # the shipped scene model (vrnet register --method vrnet)

@@ -13,8 +13,8 @@ from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFo
                                   writable_path, write_json)
 from vrnet_ext.data.protocol import FAR_POINTS
 from vrnet_ext.names import (AUTO_DEVICE, BACKENDS, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING,
-                             DEFAULT_SPLIT, MIXED, PROCRUSTES_POINTS, ROTATION_RANGES, SETTINGS, SPLITS,
-                             TRANSFORMER_PRECISIONS)
+                             DEFAULT_SPLIT, MAX_SEARCH_ICP_SLIDES, MIXED, PROCRUSTES_POINTS, ROTATION_RANGES,
+                             SEARCH_ICP_SLIDE_REACH, SEARCH_ICPS, SETTINGS, SPLITS, TRANSFORMER_PRECISIONS)
 
 
 ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0, 45] degrees (the paper's); "
@@ -24,8 +24,8 @@ ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0,
 EVAL_PARTITIONS = ("test", "val")  # vrnet eval --partition (ModelNet40Pairs partitions a model is measured on)
 # The estimate's inference-time options: the robust solve, the second pass, the rotation search and the polish.
 SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "rotation_search_below",
-              "rotation_search_centre", "rotation_search_polish", "rotation_search_icp_starts", "polish_iterations",
-              "consistency_radius")
+              "rotation_search_centre", "rotation_search_polish", "rotation_search_icp_starts",
+              "rotation_search_icp_slides", "rotation_search_icp", "polish_iterations", "consistency_radius")
 
 
 def polish_steps(text: str) -> int:
@@ -49,10 +49,19 @@ def icp_starts(text: str) -> int:
     return value
 
 
+def icp_slides(text: str) -> int:
+    """An argparse type: ``--rotation-search-icp-slides``, an integer in [1, MAX_SEARCH_ICP_SLIDES]."""
+    value = positive_int(text)
+    if value > MAX_SEARCH_ICP_SLIDES:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_SEARCH_ICP_SLIDES} slides, got {value}")
+    return value
+
+
 def add_solve_options(parser, default: str) -> None:
     """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale``, ``--second-pass-below``,
     ``--rotation-search-below``, ``--rotation-search-centre``, ``--rotation-search-polish``,
-    ``--rotation-search-icp-starts``, ``--polish-iterations``, ``--consistency-radius``
+    ``--rotation-search-icp-starts``, ``--rotation-search-icp-slides``, ``--rotation-search-icp``,
+    ``--polish-iterations``, ``--consistency-radius``
     (VRNetConfig's fields of these names); ``default`` says what applies when a flag is not given."""
     from vrnet_ext.model.config import IRLS_KERNELS
 
@@ -92,6 +101,15 @@ def add_solve_options(parser, default: str) -> None:
                              "below 0.85 of the estimate's): for nearly round shapes no "
                              f"start of the network registers (512: about 0.3-1.2 s per searched pair on one core); "
                              f"0: never (default: {default})")
+    parser.add_argument("--rotation-search-icp-slides", type=icp_slides, default=None,
+                        help="the ICP search's translations per rotation: 1, the one that puts the centroids "
+                             f"together; more, also spread along the target's longest axis (+-{SEARCH_ICP_SLIDE_REACH:g} "
+                             "standard deviations of its points): for partial views cut from different sides; the "
+                             f"ICP search's cost grows with them (default: {default})")
+    parser.add_argument("--rotation-search-icp", choices=SEARCH_ICPS, default=None,
+                        help="the ICP search's ICP: robust (Cauchy weights, the polish's) or trimmed (each step on "
+                             "the nearer half of the nearest-point pairs: holds the truth of noisy partial views "
+                             f"where robust ICP drifts) (default: {default})")
     parser.add_argument("--polish-iterations", type=polish_steps, default=None,
                         help="last, this many steps of a robust point-to-point ICP from each pair's estimate (each "
                              "source point paired with its nearest target point), kept where they bring the source "

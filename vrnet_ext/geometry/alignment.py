@@ -1,4 +1,4 @@
-"""How near an estimate brings two clouds, and a robust point-to-point ICP that brings them nearer.
+"""How near an estimate brings two clouds, and the point-to-point ICPs that bring them nearer.
 
 Batched over pairs: src (B, N, 3), tgt (B, M, 3), an estimate R (B, 3, 3), t (B, 3) with
 R src + t ~ tgt (:mod:`vrnet_ext.geometry.transforms`). Neither needs correspondences: each moved
@@ -6,18 +6,22 @@ source point is compared with its nearest target point.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
 from vrnet_ext.geometry.transforms import move
-from vrnet_ext.ops import knn, robust_kabsch
+from vrnet_ext.names import MAX_SEARCH_ICP_SLIDES, SEARCH_ICP_SLIDE_REACH, SEARCH_ICPS
+from vrnet_ext.ops import kabsch, knn, robust_kabsch
 
 ICP_KERNEL = "cauchy"  # robust_icp: the robust weight of a nearest-point residual
 ICP_SCALE = 1.0        # robust_icp: its scale, in medians of the pair's nearest-point distances
 ICP_REWEIGHTING = 3    # robust_icp: reweighting steps of each Procrustes solve
+ICP_TRIM = 0.5         # trimmed_icp: the share of the nearest-point pairs (the nearer ones) each step solves on
 MULTISTART_POINTS = 128  # multistart_icp: source points (evenly strided) of every start's first steps
-MULTISTART_FIRST = 10    # multistart_icp: robust_icp steps of every start on them
+MULTISTART_FIRST = 10    # multistart_icp: ICP steps of every start on them
 MULTISTART_KEEP = 16     # multistart_icp: the starts nearest after them, taken on
-MULTISTART_LAST = 40     # multistart_icp: robust_icp steps of those on every source point
+MULTISTART_LAST = 40     # multistart_icp: ICP steps of those on every source point
 MULTISTART_BATCH = 2 ** 20  # multistart_icp: target points held at once (bounds its memory)
 
 
@@ -44,61 +48,113 @@ def robust_icp(src: torch.Tensor, tgt: torch.Tensor, rotation: torch.Tensor, tra
     degrees off), and does not rescue one that is far off. Returns R (B, 3, 3), t (B, 3) in src's dtype.
     ``backend``: that of the ops (:func:`vrnet_ext.ops.knn`, :func:`vrnet_ext.ops.robust_kabsch`).
     """
+    def solve(points: torch.Tensor, matched: torch.Tensor, _: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return robust_kabsch(points, matched, None, iterations=ICP_REWEIGHTING, kernel=ICP_KERNEL, scale=ICP_SCALE,
+                             backend=backend)
+    return _icp(src, tgt, rotation, translation, steps, backend=backend, solve=solve)
+
+
+def trimmed_icp(src: torch.Tensor, tgt: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor,
+                steps: int, backend: str = "ext") -> tuple[torch.Tensor, torch.Tensor]:
+    """``steps`` steps of trimmed point-to-point ICP from (R, t), every pair at once: each step pairs
+    every moved source point with its nearest target point and solves a Procrustes
+    (:func:`vrnet_ext.ops.kabsch`) on the :data:`ICP_TRIM` nearer share of those pairs (ties at the
+    bound all kept): the objective :func:`nearest_median` measures. On two noisy partial views of a
+    nearly round shape it holds the truth where :func:`robust_icp`, whose optimum weighs every pair,
+    drifts off it. Returns R (B, 3, 3), t (B, 3) in src's dtype. ``backend``: that of the ops."""
+    def solve(points: torch.Tensor, matched: torch.Tensor, dist2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        bound = dist2.kthvalue(max(3, math.ceil(ICP_TRIM * dist2.shape[1])), dim=1).values[:, None]
+        return kabsch(points, matched, (dist2 <= bound).to(points.dtype), backend=backend)
+    return _icp(src, tgt, rotation, translation, steps, backend=backend, solve=solve)
+
+
+ICPS = {"robust": robust_icp, "trimmed": trimmed_icp}  # the ICP of each name of vrnet_ext.names.SEARCH_ICPS
+
+
+def _icp(src: torch.Tensor, tgt: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor, steps: int, *,
+         backend: str, solve) -> tuple[torch.Tensor, torch.Tensor]:
+    """``steps`` ICP steps: each pairs every moved source point with its nearest target point and
+    takes ``solve(src, matched (B, N, 3), squared distances (B, N))``'s (R, t)."""
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
     with torch.autocast(src.device.type, enabled=False):
         src, tgt = src.contiguous(), tgt.to(src.dtype).contiguous()
         for _ in range(steps):
             moved = move(src, rotation, translation).contiguous()
-            _, nearest = knn(moved, tgt, 1, backend=backend)
+            dist2, nearest = knn(moved, tgt, 1, backend=backend)
             matched = tgt.gather(1, nearest.expand(-1, -1, 3))
-            rotation, translation = robust_kabsch(src, matched, None, iterations=ICP_REWEIGHTING, kernel=ICP_KERNEL,
-                                                  scale=ICP_SCALE, backend=backend)
+            rotation, translation = solve(src, matched, dist2[..., 0])
     return rotation, translation
 
 
-def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor,
-                   backend: str = "ext") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """A global registration by :func:`robust_icp` alone: for each pair, ICP from every rotation of
-    ``starts`` (S, 3, 3) (with the translation that puts the turned source's centroid on the
-    target's), :data:`MULTISTART_FIRST` steps on :data:`MULTISTART_POINTS` of the source's points,
-    then :data:`MULTISTART_LAST` steps on all of them from the :data:`MULTISTART_KEEP` starts that
-    brought the source nearest the target; the nearest of those is each pair's result.
+def slides(tgt: torch.Tensor, count: int) -> torch.Tensor:
+    """(count, 3) offsets of a start's translation for the target cloud ``tgt`` (M, 3): with one, none;
+    with more, spread evenly along the target's longest axis over +- :data:`vrnet_ext.names.SEARCH_ICP_SLIDE_REACH` standard
+    deviations of its points along it (an odd count includes none). Two partial views of an elongated
+    shape, each cut from its own side, put their centroids apart along it."""
+    if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_SEARCH_ICP_SLIDES:
+        raise ValueError(f"slides must be an integer in [1, {MAX_SEARCH_ICP_SLIDES}], got {count!r}")
+    if count == 1:
+        return tgt.new_zeros(1, 3)
+    centred = tgt - tgt.mean(0)
+    _, spread, axes = torch.linalg.svd(centred, full_matrices=False)
+    reach = SEARCH_ICP_SLIDE_REACH * spread[0] / math.sqrt(tgt.shape[0])
+    return torch.linspace(-1, 1, count, dtype=tgt.dtype, device=tgt.device)[:, None] * reach * axes[0]
+
+
+def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor, backend: str = "ext",
+                   slide_count: int = 1, icp: str = "robust") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A global registration by ICP alone (``icp``: a name of :data:`ICPS`): for each pair, ICP from
+    every rotation of ``starts`` (S, 3, 3), each with ``slide_count`` translations (that which puts
+    the turned source's centroid on the target's, moved by each of :func:`slides`), first
+    :data:`MULTISTART_FIRST` steps on :data:`MULTISTART_POINTS` of the source's points, then
+    :data:`MULTISTART_LAST` steps on all of them from the :data:`MULTISTART_KEEP` starts that brought
+    the source nearest the target; the nearest of those is each pair's result.
 
     ICP's reach from a start is a few tens of degrees (less on nearly round shapes, where it
-    converges slowly along the axis), so ``starts`` should leave no motion farther than that from
-    one of them (:func:`vrnet_ext.geometry.transforms.spread_rotations`). Cost per pair: S x
-    MULTISTART_FIRST nearest-neighbour searches of the strided points, S of every point (the ranking)
+    converges slowly along the axis) and a tenth or so of the shape's size, so ``starts`` should
+    leave no motion farther than that from one of them
+    (:func:`vrnet_ext.geometry.transforms.spread_rotations`), and the slides cover partial views
+    whose centroids lie apart. Cost per pair, with C = S x ``slide_count`` starts: C x
+    MULTISTART_FIRST nearest-neighbour searches of the strided points, C of every point (the ranking)
     and MULTISTART_KEEP x (MULTISTART_LAST + 1) more. Returns R (B, 3, 3), t (B, 3) and their
     :func:`nearest_median` (B,), in src's dtype.
     """
     if starts.dim() != 3 or starts.shape[1:] != (3, 3) or not starts.shape[0]:
         raise ValueError(f"starts must be (S, 3, 3) rotations with S >= 1, got {tuple(starts.shape)}")
+    if icp not in ICPS:
+        raise ValueError(f"icp must be one of {SEARCH_ICPS}, got {icp!r}")
+    step = ICPS[icp]
     if not src.shape[0]:
+        slides(tgt.new_zeros(1, 3), slide_count)  # the count's check
         return src.new_zeros(0, 3, 3), src.new_zeros(0, 3), src.new_zeros(0)
-    count, points = starts.shape[0], src.shape[1]
+    count, points = starts.shape[0] * slide_count, src.shape[1]
     stride = max(1, points // MULTISTART_POINTS)
     keep = min(MULTISTART_KEEP, count)
+    at_once = max(1, MULTISTART_BATCH // tgt.shape[1])  # starts held at once
     results = []
     with torch.autocast(src.device.type, enabled=False):
         starts = starts.to(src.dtype)
-        per_batch = max(1, MULTISTART_BATCH // (count * tgt.shape[1]))
-        for first in range(0, src.shape[0], per_batch):
-            cloud, target = src[first:first + per_batch], tgt[first:first + per_batch].to(src.dtype)
-            many = cloud.shape[0]
-            turns = starts.repeat(many, 1, 1)  # (pairs x S, 3, 3), start fastest
-            every_src = cloud.repeat_interleave(count, dim=0)
-            every_tgt = target.repeat_interleave(count, dim=0)
-            shift = every_tgt.mean(1) - (turns @ every_src.mean(1, keepdim=True).transpose(1, 2))[..., 0]
-            rotation, translation = robust_icp(every_src[:, ::stride][:, :MULTISTART_POINTS], every_tgt, turns,
-                                               shift, MULTISTART_FIRST, backend)
-            distance = nearest_median(every_src, every_tgt, rotation, translation, backend).view(many, count)
-            kept = (distance.topk(keep, dim=1, largest=False).indices
-                    + torch.arange(many, device=src.device)[:, None] * count).flatten()
-            rotation, translation = robust_icp(every_src[kept], every_tgt[kept], rotation[kept], translation[kept],
-                                               MULTISTART_LAST, backend)
-            distance = nearest_median(every_src[kept], every_tgt[kept], rotation, translation, backend).view(many, keep)
-            best = distance.argmin(dim=1) + torch.arange(many, device=src.device) * keep
-            results.append((rotation[best], translation[best], distance.flatten()[best]))
-    rotation, translation, distance = (torch.cat(values) for values in zip(*results))
+        for cloud, target in zip(src, tgt.to(src.dtype)):
+            turns = starts.repeat(slide_count, 1, 1)  # (C, 3, 3), the start fastest, the slide slowest
+            shift = (target.mean(0) - turns @ cloud.mean(0)
+                     + slides(target, slide_count).repeat_interleave(starts.shape[0], dim=0))
+            found = []
+            for first in range(0, count, at_once):
+                many = min(at_once, count - first)
+                every_src, every_tgt = cloud.expand(many, -1, -1), target.expand(many, -1, -1)
+                rotation, translation = step(every_src[:, ::stride][:, :MULTISTART_POINTS], every_tgt,
+                                             turns[first:first + many], shift[first:first + many], MULTISTART_FIRST,
+                                             backend)
+                found.append((rotation, translation, nearest_median(every_src, every_tgt, rotation, translation,
+                                                                    backend)))
+            rotation, translation, distance = (torch.cat(values) for values in zip(*found))
+            kept = distance.topk(keep, largest=False).indices
+            every_src, every_tgt = cloud.expand(keep, -1, -1), target.expand(keep, -1, -1)
+            rotation, translation = step(every_src, every_tgt, rotation[kept], translation[kept], MULTISTART_LAST,
+                                         backend)
+            distance = nearest_median(every_src, every_tgt, rotation, translation, backend)
+            best = distance.argmin()
+            results.append((rotation[best], translation[best], distance[best]))
+    rotation, translation, distance = (torch.stack(values) for values in zip(*results))
     return rotation, translation, distance

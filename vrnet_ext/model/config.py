@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from vrnet_ext.names import BACKENDS, PROCRUSTES_POINTS, ROTATION_RANGES, TRANSFORMER_PRECISIONS
+from vrnet_ext.names import (BACKENDS, DEFAULT_SEARCH_ICP, MAX_SEARCH_ICP_SLIDES, PROCRUSTES_POINTS, ROTATION_RANGES,
+                             SEARCH_ICPS, TRANSFORMER_PRECISIONS)
 
 # The robust weights of the IRLS steps (vrnet_ext.ops.kabsch.ROBUST_KERNELS, named here too so that
 # this module stays free of torch: the CLI builds its parsers from it).
@@ -94,6 +95,15 @@ class VRNetConfig:
       shape can lie a few per cent nearer than the truth); not in the paper; 0: never; eval mode only. For the nearly round shapes from
       which no start of the network registers a pair, while the geometry says the estimate is wrong.
       512 starts cost about 0.3-1.2 s per searched pair of 768 points on one CPU core.
+    * ``rotation_search_icp_slides`` and ``rotation_search_icp``: the multi-start ICP above starts
+      from each rotation with this many translations (1: the one that puts the centroids together;
+      more: spread along the target's longest axis, :func:`vrnet_ext.geometry.alignment.slides`), and
+      runs this ICP (:data:`vrnet_ext.names.SEARCH_ICPS`: ``"robust"``, the polish's, or
+      ``"trimmed"``, on the nearer half of the nearest-point pairs). Two partial views of an
+      elongated shape cut from different sides put their centroids apart along it, beyond ICP's
+      reach; on such noisy views robust ICP drifts off the truth where trimmed ICP holds it. The
+      cost grows with the slides (17 slides of 512 starts: about 10-15 s per searched pair of 768
+      points on one core).
     * ``polish_iterations``: last, this many steps of a robust point-to-point ICP from each pair's
       estimate (:func:`vrnet_ext.geometry.alignment.robust_icp`: the nearest target point of each
       moved source point, Cauchy-reweighted Procrustes), kept where they bring the source nearer the
@@ -145,6 +155,8 @@ class VRNetConfig:
     rotation_search_centre: tuple[float, float, float] = (0.0, 0.0, 0.0)
     rotation_search_polish: int = 0
     rotation_search_icp_starts: int = 0
+    rotation_search_icp_slides: int = 1
+    rotation_search_icp: str = DEFAULT_SEARCH_ICP
     polish_iterations: int = 0
     consistency_radius: float = 0.02
     backend: str = "ext"
@@ -179,6 +191,11 @@ class VRNetConfig:
         starts = self.rotation_search_icp_starts
         if isinstance(starts, bool) or not isinstance(starts, int) or not 0 <= starts <= MAX_ICP_STARTS:
             raise ValueError(f"rotation_search_icp_starts must be an integer in [0, {MAX_ICP_STARTS}], got {starts!r}")
+        slides = self.rotation_search_icp_slides
+        if isinstance(slides, bool) or not isinstance(slides, int) or not 1 <= slides <= MAX_SEARCH_ICP_SLIDES:
+            raise ValueError(f"rotation_search_icp_slides must be an integer in [1, {MAX_SEARCH_ICP_SLIDES}], got {slides!r}")
+        if self.rotation_search_icp not in SEARCH_ICPS:
+            raise ValueError(f"rotation_search_icp must be one of {SEARCH_ICPS}, got {self.rotation_search_icp!r}")
         if not 0 <= self.rotation_search_below <= 1:
             raise ValueError(f"rotation_search_below must be in [0, 1], got {self.rotation_search_below}")
         if self.irls_kernel not in IRLS_KERNELS:

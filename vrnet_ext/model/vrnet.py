@@ -291,14 +291,17 @@ class VRNet(nn.Module):
     def _icp_search(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, rows: torch.Tensor,
                     backend: str) -> None:
         """The rows ``rows`` (the pairs the rotation search took on) registered by :func:`multistart_icp`
-        from ``rotation_search_icp_starts`` rotations spread over SO(3); its result replaces ``out``'s
+        from ``rotation_search_icp_starts`` rotations spread over SO(3) (``rotation_search_icp_slides``
+        translations each, ``rotation_search_icp``'s ICP); its result replaces ``out``'s
         rows (in place) where it brings the source clearly nearer the target (:data:`ICP_SEARCH_NEARER`),
         marked ``icp_search``."""
         starts = torch.as_tensor(spread_rotations(self.config.rotation_search_icp_starts), dtype=src.dtype,
                                  device=src.device)
         own = _rows_of(out, rows)
         with torch.autocast(src.device.type, enabled=False):
-            rotation, translation, distance = multistart_icp(src[rows], tgt[rows], starts, backend)
+            rotation, translation, distance = multistart_icp(src[rows], tgt[rows], starts, backend,
+                                                             self.config.rotation_search_icp_slides,
+                                                             self.config.rotation_search_icp)
             so_far = nearest_median(src[rows], tgt[rows], own.rotation, own.translation, backend)
         found = replace(own, rotation=rotation, translation=translation,
                         consistency=self._consistency(src[rows], rotation, translation, own.rcp), second_pass=torch.zeros_like(own.second_pass), polished=torch.zeros_like(own.polished),
