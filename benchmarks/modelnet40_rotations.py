@@ -12,8 +12,8 @@ serves the cell, the pairs, and per estimate (alone, with the search) the share 
 (recall: rotation error below 5 degrees and translation error below 0.1), RMSE(R) in degrees and the
 seconds per pair, the geometric polish's steps of each (``VRNetConfig.polish_iterations``; alone /
 with the search), the steps the search polishes each start with (``rotation_search_polish``) and
-the starts of its multi-start ICP (``rotation_search_icp_starts``). The paper's VRNet RMSE(R) (its
-protocol) stands beside them.
+the starts of its multi-start ICP (``rotation_search_icp_starts``; x its slides and its ICP where
+not 1 and robust). The paper's VRNet RMSE(R) (its protocol) stands beside them.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from modelnet40_tables import PAPER  # benchmarks/, the script's folder
 from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data.protocol import SETTINGS
 from vrnet_ext.data.modelnet import SPLITS
-from vrnet_ext.names import DEFAULT_ROTATION_RANGE
+from vrnet_ext.names import DEFAULT_ROTATION_RANGE, DEFAULT_SEARCH_ICP
 
 RECALL = "recall(RE<5,TE<0.1)"
 ESTIMATES = ("alone", "search")
@@ -61,7 +61,7 @@ def collect(folders: list[Path]) -> list[dict]:
                     "search_below": cell["solve"].get("rotation_search_below", 0),
                     "polish_iterations": cell["solve"].get("polish_iterations", 0),
                     "search_polish": cell["solve"].get("rotation_search_polish", 0),
-                    "icp_starts": cell["solve"].get("rotation_search_icp_starts", 0),
+                    "icp_starts": icp_search(cell["solve"]),
                     "source": str(path.relative_to(folder.parent))}
     rows = []
     for (setting, split, pairs_of), measured in estimates.items():
@@ -79,6 +79,13 @@ def collect(folders: list[Path]) -> list[dict]:
         rows.append(row)
     order = {(s, p): i for i, (s, p) in enumerate((s, p) for p in SPLITS for s in SETTINGS)}
     return sorted(rows, key=lambda r: (r["pairs_of"], order[(r["setting"], r["split"])]))
+
+
+def icp_search(solve: dict) -> int | str:
+    """A recorded solve's multi-start ICP: its starts (0: none), with its slides and ICP where not 1 and robust."""
+    starts = solve.get("rotation_search_icp_starts", 0)
+    slides, icp = solve.get("rotation_search_icp_slides", 1), solve.get("rotation_search_icp", DEFAULT_SEARCH_ICP)
+    return starts if not starts or (slides, icp) == (1, DEFAULT_SEARCH_ICP) else f"{starts} × {slides}, {icp}"
 
 
 def markdown(rows: list[dict], note: str) -> str:
