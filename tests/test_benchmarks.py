@@ -586,16 +586,20 @@ def test_polish_validation_polishes_one_forward_per_set_on_validation_pairs(tmp_
 @requires_modelnet
 def test_icp_search_validation_puts_each_share_beside_one_forward(tmp_path):
     run([str(ROOT / "benchmarks" / "icp_search_validation.py"), "--models", "vrnet-pvrs-nd-rcp", "--starts", "24",
-         "--slides", "3", "--icp", "trimmed", "--nearer", "1", "0.5", "--rotations", "so3", "--search-below", "1", "--max-items", "3", "--batch-size", "2",
+         "--slides", "3", "--icp", "robust", "trimmed", "--nearer", "1", "0.5", "--rotations", "so3", "--search-below", "1", "--max-items", "3", "--batch-size", "2",
          "--data-dir", str(MODELNET_DIR), "--json", "icp.json", "--markdown", "icp.md"], tmp_path)
     record = json.loads((tmp_path / "icp.json").read_text())
     assert record["partition"] == "val" and record["starts"] == 24 and record["slides"] == 3
     rows = record["rows"]
-    assert [r["nearer"] for r in rows] == [1.0, 0.5] and all(r["cell"] == "PV+RS / ND" for r in rows)
+    assert [(r["icp"], r["nearer"]) for r in rows] == [("robust", 1.0), ("robust", 0.5), ("trimmed", 1.0),
+                                                         ("trimmed", 0.5)]
+    assert all(r["cell"] == "PV+RS / ND" for r in rows)
     assert all(r["searched"] == 3 and r["pairs"] == 3 for r in rows)  # below 1: every pair searched
     assert rows[1]["replaced"] <= rows[0]["replaced"] <= 3  # a lower share replaces no more pairs
+    assert rows[3]["replaced"] <= rows[2]["replaced"] <= 3
     for change in record["changes"]:
         assert change["ratio"] < 1 and abs(change["error_before"] - change["error_after"]) > 5
+    assert all(entry["icp"] in ("robust", "trimmed") for entry in record["changes"] + record["wrong"])
     for pair in record["wrong"]:  # every pair left off by either estimate, with the truth's distance beside it
         assert max(pair["error_before"], pair["error_after"]) > 5 and pair["truth_ratio"] > 0
         assert 0 <= pair["truth_turn"] <= 180 and pair["searched"]
