@@ -96,8 +96,8 @@ def add_solve_options(parser, default: str) -> None:
                              f"can win; 0: none (default: {default})")
     parser.add_argument("--rotation-search-icp-starts", type=icp_starts, default=None,
                         help="after the rotation search and the polish, register each pair the search took on by "
-                             "robust ICP alone from this many rotations spread over all rotations, and keep its "
-                             "result where it brings the source clearly nearer the target (its median distance "
+                             "ICP alone (--rotation-search-icp) from this many rotations spread over all rotations, "
+                             "and keep its result where it brings the source clearly nearer the target (its median distance "
                              "below 0.85 of the estimate's): for nearly round shapes no "
                              f"start of the network registers (512: about 0.3-1.2 s per searched pair on one core); "
                              f"0: never (default: {default})")

@@ -92,14 +92,18 @@ def slides(tgt: torch.Tensor, count: int) -> torch.Tensor:
     with more, spread evenly along the target's longest axis over +- :data:`vrnet_ext.names.SEARCH_ICP_SLIDE_REACH` standard
     deviations of its points along it (an odd count includes none). Two partial views of an elongated
     shape, each cut from its own side, put their centroids apart along it."""
-    if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_SEARCH_ICP_SLIDES:
-        raise ValueError(f"slides must be an integer in [1, {MAX_SEARCH_ICP_SLIDES}], got {count!r}")
+    _check_slide_count(count)
     if count == 1:
         return tgt.new_zeros(1, 3)
     centred = tgt - tgt.mean(0)
     _, spread, axes = torch.linalg.svd(centred, full_matrices=False)
     reach = SEARCH_ICP_SLIDE_REACH * spread[0] / math.sqrt(tgt.shape[0])
     return torch.linspace(-1, 1, count, dtype=tgt.dtype, device=tgt.device)[:, None] * reach * axes[0]
+
+
+def _check_slide_count(count: int) -> None:
+    if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_SEARCH_ICP_SLIDES:
+        raise ValueError(f"slides must be an integer in [1, {MAX_SEARCH_ICP_SLIDES}], got {count!r}")
 
 
 def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor, backend: str = "ext",
@@ -124,9 +128,9 @@ def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor, b
         raise ValueError(f"starts must be (S, 3, 3) rotations with S >= 1, got {tuple(starts.shape)}")
     if icp not in ICPS:
         raise ValueError(f"icp must be one of {SEARCH_ICPS}, got {icp!r}")
+    _check_slide_count(slide_count)
     step = ICPS[icp]
     if not src.shape[0]:
-        slides(tgt.new_zeros(1, 3), slide_count)  # the count's check
         return src.new_zeros(0, 3, 3), src.new_zeros(0, 3), src.new_zeros(0)
     count, points = starts.shape[0] * slide_count, src.shape[1]
     stride = max(1, points // MULTISTART_POINTS)

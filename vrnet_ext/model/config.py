@@ -87,8 +87,8 @@ class VRNetConfig:
       as the polished truth: choose it on validation. Each step costs a nearest-neighbour search per
       start of each searched pair.
     * ``rotation_search_icp_starts``: after the rotation search (and the polish below), each pair
-      the search took on is also registered by robust ICP alone from this many rotations spread
-      evenly over SO(3) (:func:`vrnet_ext.geometry.alignment.multistart_icp`,
+      the search took on is also registered by ICP alone (robust unless ``rotation_search_icp``
+      says) from this many rotations spread evenly over SO(3) (:func:`vrnet_ext.geometry.alignment.multistart_icp`,
       :func:`vrnet_ext.geometry.transforms.spread_rotations`), and the nearest result replaces the
       estimate where it brings the source clearly nearer the target (the median distance to the
       nearest target point below 0.85 of the estimate's: on noisy partial views a flip of a round
