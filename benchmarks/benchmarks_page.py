@@ -92,6 +92,8 @@ TITLES = {  # file stem (without a numbered suffix) -> what wrote it
                                      "vrnet-pv-nd-rcp --max-items 984 --nearer 1 0.85"),
                                     ("pv_nd_slides", "PV / ND, the whole partition, trimmed ICP with 17 slides",
                                      "vrnet-pv-nd-rcp --max-items 984 --slides 17 --icp trimmed"),
+                                    ("pv_nd_slides9", "PV / ND, the whole partition, trimmed ICP with 9 slides",
+                                     "vrnet-pv-nd-rcp --max-items 984 --slides 9 --icp trimmed"),
                                     ("rs_nd_trimmed", "RS / ND, the whole partition, robust and trimmed ICP",
                                      "vrnet-rs-nd-rcp --max-items 984 --icp robust trimmed"),
                                     ("pvrs_nd_whole", "PV+RS / ND, the whole partition, robust and trimmed ICP",
