@@ -6,7 +6,8 @@ Reads every JSON that ``modelnet40_tables.py`` wrote into each DIR (in order: a 
 estimate of a cell replaces an earlier one's, e.g. a re-run with another search), each run with its own
 ``--rotation-range`` (``symmetric``: each Euler angle in [-45, 45] degrees; ``so3``: uniform over
 all rotations), ``--swap`` (every pair registered the other way round: the protocol's motions
-inverted) and ``--rotation-search-below`` (0: the model alone; else the search of
+inverted), ``--max-rotation`` (a bound on the motion given to the search: rows of their own) and
+``--rotation-search-below`` (0: the model alone; else the search of
 ``VRNetConfig.rotation_search_below``). One row per cell and kind of pair: the shipped model that
 serves the cell, the pairs, and per estimate (alone, with the search) the share of pairs registered
 (recall: rotation error below 5 degrees and translation error below 0.1), RMSE(R) in degrees and the
@@ -26,16 +27,18 @@ from modelnet40_tables import PAPER  # benchmarks/, the script's folder
 from vrnet_ext.cli.common import DefaultsHelpFormatter
 from vrnet_ext.data.protocol import SETTINGS
 from vrnet_ext.data.modelnet import SPLITS
-from vrnet_ext.names import DEFAULT_ROTATION_RANGE, DEFAULT_SEARCH_ICP
+from vrnet_ext.names import ANY_ROTATION, DEFAULT_ROTATION_RANGE, DEFAULT_SEARCH_ICP
 
 RECALL = "recall(RE<5,TE<0.1)"
 ESTIMATES = ("alone", "search")
 
 
 def pair_kind(cell: dict) -> str:
-    """What a measured cell's pairs were: their rotations, and whether registered the other way round."""
-    rotations = cell.get("rotations", DEFAULT_ROTATION_RANGE)
-    return f"{rotations}, swapped" if cell.get("swapped") else rotations
+    """What a measured cell's pairs were: their rotations, whether registered the other way round, and
+    the bound on their motion the caller gave (``VRNetConfig.max_rotation``, where below 180)."""
+    kind = cell.get("rotations", DEFAULT_ROTATION_RANGE) + (", swapped" if cell.get("swapped") else "")
+    bound = cell["solve"].get("max_rotation", ANY_ROTATION)
+    return f"{kind}, bound {bound:g}°" if bound < ANY_ROTATION else kind
 
 
 def collect(folders: list[Path]) -> list[dict]:

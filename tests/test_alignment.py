@@ -118,6 +118,34 @@ def test_multistart_icp_registers_any_motion_and_is_per_pair(monkeypatch):
             multistart_icp(src, tgt, bad)
 
 
+def test_multistart_icp_under_a_bound_keeps_only_estimates_within_it():
+    """With ``max_turn``, the pairs whose motion turns within the bound are registered as without
+    it; a pair whose motion turns further gets an estimate within the bound or the distance inf,
+    never one beyond; 180 is no bound; a bound outside (0, 180] is refused."""
+    from vrnet_ext.geometry.metrics import turn_deg
+    from vrnet_ext.geometry.transforms import spread_rotations
+
+    src, tgt, truth, shift, _, _ = partial_pairs(B=3, N=160, seed=4)  # motions of 116, 142 and 173 degrees
+    starts = torch.as_tensor(spread_rotations(128), dtype=src.dtype)
+    free = multistart_icp(src, tgt, starts)
+    assert (rotation_error_deg(free[0], truth) < 1).all()
+    bound = 150.0
+    within = turn_deg(truth) <= bound
+    assert within.tolist() == [True, True, False]
+    rotation, translation, distance = multistart_icp(src, tgt, starts, max_turn=bound)
+    assert (rotation_error_deg(rotation, truth)[within] < 1).all(), rotation_error_deg(rotation, truth)
+    finite = torch.isfinite(distance)
+    assert (turn_deg(rotation)[finite] <= bound + 1e-6).all() and finite[within].all()
+    assert rotation_error_deg(rotation[~within], truth[~within]).min() > 5  # the truth is beyond it
+    torch.testing.assert_close(distance[finite].double(),
+                               brute_nearest_median(src, tgt, rotation, translation)[finite], rtol=0, atol=1e-6)
+    for got, want in zip(multistart_icp(src, tgt, starts, max_turn=180.0), free):
+        torch.testing.assert_close(got, want)
+    for bad in (0.0, -5.0, 180.5, float("nan")):
+        with pytest.raises(ValueError, match="max_turn"):
+            multistart_icp(src, tgt, starts, max_turn=bad)
+
+
 def cut_views(B=3, seed=0, points=600, noise=0.005):
     """src (B, points, 3) and tgt: views of an elongated, lopsided cloud (a bar with six blobs along it),
     src cut off above x = 0.6 and tgt below x = -0.6 (their centroids lie about 0.3 apart along the

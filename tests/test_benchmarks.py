@@ -360,6 +360,16 @@ def test_modelnet40_rotations_puts_each_cells_estimates_side_by_side(tmp_path):
     assert rows["so3"]["search"]["search_polish"] == 30 and rows["so3"]["alone"]["search_polish"] == 0
     assert "| 0 / 10 | 30 | 512 × 17, trimmed |" in (tmp_path / "r2.md").read_text()
     assert rows["so3"]["alone"]["recall"] == 0.2 and rows["protocol, swapped"]["search"]["recall"] == 0.99
+    bounded = tmp_path / "bounded"  # a search given a bound on the motion: a row of its own
+    bounded.mkdir()
+    told = cell("m", "so3", False, 0.1, 0.95)
+    told["solve"]["max_rotation"] = 90.0
+    (bounded / "a.json").write_text(json.dumps({"results": [told]}))
+    run([str(ROOT / "benchmarks" / "modelnet40_rotations.py"), "--tables", str(tables), str(bounded), "--json",
+         "r3.json", "--markdown", "r3.md"], tmp_path)
+    rows = {row["pairs_of"]: row for row in json.loads((tmp_path / "r3.json").read_text())["rows"]}
+    assert rows["so3, bound 90°"]["search"]["recall"] == 0.95 and "alone" not in rows["so3, bound 90°"]
+    assert rows["so3"]["search"]["recall"] == 1.0
 
     def refused(*folders):
         result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "modelnet40_rotations.py"), "--tables",

@@ -67,7 +67,8 @@ def test_files_that_are_not_checkpoints_raise_a_clear_error(tmp_path, capsys):
                                           ("irls_kernel", "tukey"), ("polish_iterations", 10**9),
                                           ("polish_iterations", "many"), ("rotation_search_polish", -1),
                                           ("rotation_search_icp_starts", 10**6), ("rotation_search_icp_slides", 10**6),
-                                          ("rotation_search_icp", "gicp")])
+                                          ("rotation_search_icp", "gicp"), ("max_rotation", 0.0),
+                                          ("max_rotation", 270.0), ("max_rotation", "wide")])
 def test_config_outside_the_limits_is_refused_before_anything_is_built(tmp_path, field, value):
     config = VRNetConfig.small(**TINY).to_dict()
     config[field] = value
@@ -185,12 +186,13 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert main(["export", shipped_path, "tiny-sp", "--out-dir", str(tmp_path / "weights"),
                  "--rotation-search-polish", "3", "--rotation-search-centre", "10", "0", "0",
                  "--rotation-search-icp-starts", "64", "--rotation-search-icp-slides", "5",
-                 "--rotation-search-icp", "trimmed"]) == 0
+                 "--rotation-search-icp", "trimmed", "--max-rotation", "90"]) == 0
     searching = read_checkpoint(tmp_path / "weights" / "tiny-sp.pt")
     assert searching["config"]["model"]["rotation_search_polish"] == 3
     assert searching["config"]["model"]["rotation_search_icp_starts"] == 64
     assert searching["config"]["model"]["rotation_search_icp_slides"] == 5
     assert searching["config"]["model"]["rotation_search_icp"] == "trimmed"
+    assert searching["config"]["model"]["max_rotation"] == 90.0
     assert searching["card"]["test"] == shipped["card"]["test"]
     assert main(["export", shipped_path, "tiny-sp2", "--out-dir", str(tmp_path / "weights"),
                  "--rotation-search-polish", "3", "--rotation-search-below", "0.1"]) == 2  # it searches: test it
@@ -322,3 +324,12 @@ def test_a_bad_search_centre_or_training_range_is_refused_naming_the_file(tmp_pa
     torch.save({"model": {}, "config": {"model": config, **training}}, tmp_path / "odd.pt")
     with pytest.raises(CheckpointError, match=str(tmp_path / "odd.pt")):
         load_model(tmp_path / "odd.pt")
+
+
+@pytest.mark.parametrize("value", ["0", "-3", "181", "nan", "wide"])
+def test_a_bound_on_the_motion_outside_0_to_180_degrees_is_refused_by_the_command_line(value, capsys):
+    from vrnet_ext.cli import main
+
+    with pytest.raises(SystemExit) as info:
+        main(["eval", "--max-rotation", value])
+    assert info.value.code == 2 and "--max-rotation" in capsys.readouterr().err

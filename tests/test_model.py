@@ -585,6 +585,49 @@ def test_the_icp_search_replaces_a_searched_pair_where_it_brings_the_source_near
         assert not model(src, tgt).icp_search.any()
 
 
+def test_a_bound_on_the_motion_keeps_the_search_and_its_icp_within_it():
+    """With max_rotation, a pair whose estimate turns further is searched whatever its consistency,
+    and the search keeps the nearest of the estimates within the bound (the pair's own among them,
+    where it is); a pair with none within keeps its own; the others are left as they are. The ICP
+    search that follows replaces an estimate only with one within the bound."""
+    from vrnet_ext.geometry.metrics import turn_deg
+    from vrnet_ext.geometry.transforms import search_starts
+
+    src, tgt = turned_pairs(B=8)
+    starts = torch.as_tensor(search_starts((0.0, 0.0, 0.0)), dtype=src.dtype)
+    plain = small_model(consistency_radius=1.0).eval()
+    with torch.no_grad():
+        first = plain(src, tgt)
+        runs = [_looked_twice(plain, src, tgt, g) for g in starts]
+    first_turn = turn_deg(first.rotation)
+    bound = float(first_turn.median())
+    below = 0.5 * float(first.consistency.min())  # no pair is doubtful by its consistency
+    assert below > 0
+    searched = first_turn > bound
+    assert searched.any() and (~searched).any()
+    distance = torch.stack([_nearest_median(src, tgt, R, t).masked_fill(turn_deg(R) > bound, float("inf"))
+                            for R, t, _ in runs], dim=1)  # (B, S)
+    best = distance.argmin(dim=1)
+    taken = searched & torch.isfinite(distance.min(dim=1).values)  # the pair's own is beyond the bound
+    found_R = torch.stack([runs[int(b)][0][i] for i, b in enumerate(best)])
+    model = small_model(consistency_radius=1.0, rotation_search_below=below, max_rotation=bound).eval()
+    with torch.no_grad():
+        out = model(src, tgt)
+    assert torch.equal(out.searched, searched)
+    torch.testing.assert_close(out.rotation, torch.where(taken[:, None, None], found_R, first.rotation),
+                               rtol=1e-4, atol=1e-5)
+    assert (turn_deg(out.rotation)[taken] <= bound + 1e-6).all()
+    unbounded = small_model(consistency_radius=1.0, rotation_search_below=below).eval()
+    with torch.no_grad():
+        assert not unbounded(src, tgt).searched.any()
+    with_icp = small_model(consistency_radius=1.0, rotation_search_below=below, max_rotation=bound,
+                           rotation_search_icp_starts=48).eval()
+    with torch.no_grad():
+        icp_out = with_icp(src, tgt)
+    assert (turn_deg(icp_out.rotation)[icp_out.icp_search] <= bound + 1e-6).all()
+    assert (turn_deg(icp_out.rotation)[taken] <= bound + 1e-6).all()
+
+
 def test_the_rotation_search_takes_only_the_pairs_the_second_pass_left_doubtful():
     src, tgt = turned_pairs()
     looked = small_model(consistency_radius=1.0, second_pass_below=1.0).eval()

@@ -12,9 +12,10 @@ from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFo
                                   output_folder, positive_float, positive_int, report_to, unit_interval, view_points,
                                   writable_path, write_json)
 from vrnet_ext.data.protocol import FAR_POINTS
-from vrnet_ext.names import (AUTO_DEVICE, BACKENDS, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE, DEFAULT_SETTING,
-                             DEFAULT_SPLIT, MAX_SEARCH_ICP_SLIDES, MIXED, PROCRUSTES_POINTS, ROTATION_RANGES,
-                             SEARCH_ICP_SLIDE_REACH, SEARCH_ICPS, SETTINGS, SPLITS, TRANSFORMER_PRECISIONS)
+from vrnet_ext.names import (ANY_ROTATION, AUTO_DEVICE, BACKENDS, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE,
+                             DEFAULT_SETTING, DEFAULT_SPLIT, MAX_SEARCH_ICP_SLIDES, MIXED, PROCRUSTES_POINTS,
+                             ROTATION_RANGES, SEARCH_ICP_SLIDE_REACH, SEARCH_ICPS, SETTINGS, SPLITS,
+                             TRANSFORMER_PRECISIONS)
 
 
 ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0, 45] degrees (the paper's); "
@@ -25,7 +26,8 @@ EVAL_PARTITIONS = ("test", "val")  # vrnet eval --partition (ModelNet40Pairs par
 # The estimate's inference-time options: the robust solve, the second pass, the rotation search and the polish.
 SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "rotation_search_below",
               "rotation_search_centre", "rotation_search_polish", "rotation_search_icp_starts",
-              "rotation_search_icp_slides", "rotation_search_icp", "polish_iterations", "consistency_radius")
+              "rotation_search_icp_slides", "rotation_search_icp", "max_rotation", "polish_iterations",
+              "consistency_radius")
 
 
 def polish_steps(text: str) -> int:
@@ -57,11 +59,19 @@ def icp_slides(text: str) -> int:
     return value
 
 
+def turn_bound(text: str) -> float:
+    """An argparse type: ``--max-rotation``, degrees in (0, ANY_ROTATION]."""
+    value = positive_float(text)
+    if value > ANY_ROTATION:
+        raise argparse.ArgumentTypeError(f"expected at most {ANY_ROTATION:g} degrees, got {value:g}")
+    return value
+
+
 def add_solve_options(parser, default: str) -> None:
     """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale``, ``--second-pass-below``,
     ``--rotation-search-below``, ``--rotation-search-centre``, ``--rotation-search-polish``,
     ``--rotation-search-icp-starts``, ``--rotation-search-icp-slides``, ``--rotation-search-icp``,
-    ``--polish-iterations``, ``--consistency-radius``
+    ``--max-rotation``, ``--polish-iterations``, ``--consistency-radius``
     (VRNetConfig's fields of these names); ``default`` says what applies when a flag is not given."""
     from vrnet_ext.model.config import IRLS_KERNELS
 
@@ -110,6 +120,11 @@ def add_solve_options(parser, default: str) -> None:
                         help="the ICP search's ICP: robust (Cauchy weights, the polish's) or trimmed (each step on "
                              "the nearer half of the nearest-point pairs: holds the truth of noisy partial views "
                              f"where robust ICP drifts) (default: {default})")
+    parser.add_argument("--max-rotation", type=turn_bound, default=None, metavar="DEGREES",
+                        help="a bound you know on the motion: the angle by which it turns the source (each Euler "
+                             "angle within 45 degrees: at most 85.8); with the rotation search, an estimate turning "
+                             "further is searched and the search keeps only estimates within it (a flip of a nearly "
+                             f"round shape is then not taken); {ANY_ROTATION:g}: no bound (default: {default})")
     parser.add_argument("--polish-iterations", type=polish_steps, default=None,
                         help="last, this many steps of a robust point-to-point ICP from each pair's estimate (each "
                              "source point paired with its nearest target point), kept where they bring the source "

@@ -10,8 +10,9 @@ import math
 
 import torch
 
+from vrnet_ext.geometry.metrics import turn_deg
 from vrnet_ext.geometry.transforms import move
-from vrnet_ext.names import MAX_SEARCH_ICP_SLIDES, SEARCH_ICP_SLIDE_REACH, SEARCH_ICPS
+from vrnet_ext.names import ANY_ROTATION, MAX_SEARCH_ICP_SLIDES, SEARCH_ICP_SLIDE_REACH, SEARCH_ICPS
 from vrnet_ext.ops import kabsch, knn, robust_kabsch
 
 ICP_KERNEL = "cauchy"  # robust_icp: the robust weight of a nearest-point residual
@@ -23,6 +24,9 @@ MULTISTART_FIRST = 10    # multistart_icp: ICP steps of every start on them
 MULTISTART_KEEP = 16     # multistart_icp: the starts nearest after them, taken on
 MULTISTART_LAST = 40     # multistart_icp: ICP steps of those on every source point
 MULTISTART_BATCH = 2 ** 20  # multistart_icp: target points held at once (bounds its memory)
+# multistart_icp with a bound on the turn: starts up to this many degrees beyond it are taken too (ICP moves a
+# start by up to a few tens of degrees; 512 spread rotations leave every rotation within 28 degrees of one).
+MULTISTART_BOUND_MARGIN = 30.0
 
 
 def nearest_median(src: torch.Tensor, tgt: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor,
@@ -107,7 +111,8 @@ def _check_slide_count(count: int) -> None:
 
 
 def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor, backend: str = "ext",
-                   slide_count: int = 1, icp: str = "robust") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   slide_count: int = 1, icp: str = "robust", *,
+                   max_turn: float = ANY_ROTATION) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A global registration by ICP alone (``icp``: a name of :data:`ICPS`): for each pair, ICP from
     every rotation of ``starts`` (S, 3, 3), each with ``slide_count`` translations (that which puts
     the turned source's centroid on the target's, moved by each of :func:`slides`), first
@@ -121,17 +126,28 @@ def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor, b
     (:func:`vrnet_ext.geometry.transforms.spread_rotations`), and the slides cover partial views
     whose centroids lie apart. Cost per pair, with C = S x ``slide_count`` starts: C x
     MULTISTART_FIRST nearest-neighbour searches of the strided points, C of every point (the ranking)
-    and MULTISTART_KEEP x (MULTISTART_LAST + 1) more. Returns R (B, 3, 3), t (B, 3) and their
-    :func:`nearest_median` (B,), in src's dtype.
+    and MULTISTART_KEEP x (MULTISTART_LAST + 1) more.
+
+    ``max_turn`` (degrees, below 180: a bound the caller knows on the motion): only estimates that
+    turn the source by at most this much (:func:`turn_deg`) are kept, and only the starts within
+    :data:`MULTISTART_BOUND_MARGIN` beyond it are run (at least the start nearest the identity); a
+    pair none of whose estimates is within the bound gets the distance ``inf``.
+
+    Returns R (B, 3, 3), t (B, 3) and their :func:`nearest_median` (B,), in src's dtype.
     """
     if starts.dim() != 3 or starts.shape[1:] != (3, 3) or not starts.shape[0]:
         raise ValueError(f"starts must be (S, 3, 3) rotations with S >= 1, got {tuple(starts.shape)}")
     if icp not in ICPS:
         raise ValueError(f"icp must be one of {SEARCH_ICPS}, got {icp!r}")
     _check_slide_count(slide_count)
+    if not 0 < max_turn <= ANY_ROTATION:
+        raise ValueError(f"max_turn must be in (0, {ANY_ROTATION:g}] degrees, got {max_turn!r}")
     step = ICPS[icp]
     if not src.shape[0]:
         return src.new_zeros(0, 3, 3), src.new_zeros(0, 3), src.new_zeros(0)
+    if max_turn < ANY_ROTATION:
+        start_turns = turn_deg(starts)
+        starts = starts[(start_turns <= max_turn + MULTISTART_BOUND_MARGIN) | (start_turns == start_turns.min())]
     count, points = starts.shape[0] * slide_count, src.shape[1]
     stride = max(1, points // MULTISTART_POINTS)
     keep = min(MULTISTART_KEEP, count)
@@ -150,15 +166,22 @@ def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor, b
                 rotation, translation = step(every_src[:, ::stride][:, :MULTISTART_POINTS], every_tgt,
                                              turns[first:first + many], shift[first:first + many], MULTISTART_FIRST,
                                              backend)
-                found.append((rotation, translation, nearest_median(every_src, every_tgt, rotation, translation,
-                                                                    backend)))
+                found.append((rotation, translation, _within(rotation, max_turn, nearest_median(
+                    every_src, every_tgt, rotation, translation, backend))))
             rotation, translation, distance = (torch.cat(values) for values in zip(*found))
             kept = distance.topk(keep, largest=False).indices
             every_src, every_tgt = cloud.expand(keep, -1, -1), target.expand(keep, -1, -1)
             rotation, translation = step(every_src, every_tgt, rotation[kept], translation[kept], MULTISTART_LAST,
                                          backend)
-            distance = nearest_median(every_src, every_tgt, rotation, translation, backend)
+            distance = _within(rotation, max_turn, nearest_median(every_src, every_tgt, rotation, translation, backend))
             best = distance.argmin()
             results.append((rotation[best], translation[best], distance[best]))
     rotation, translation, distance = (torch.stack(values) for values in zip(*results))
     return rotation, translation, distance
+
+
+def _within(rotation: torch.Tensor, max_turn: float, distance: torch.Tensor) -> torch.Tensor:
+    """``distance`` (B,) with ``inf`` where the rotation (B, 3, 3) turns by more than ``max_turn`` degrees."""
+    if max_turn >= ANY_ROTATION:
+        return distance
+    return distance.masked_fill(turn_deg(rotation) > max_turn, math.inf)

@@ -30,6 +30,11 @@ def rotation_error_deg(rotation: torch.Tensor, gt_rotation: torch.Tensor) -> tor
     return torch.rad2deg(torch.atan2(sin, cos))
 
 
+def turn_deg(rotation: torch.Tensor) -> torch.Tensor:
+    """(B,) float64 angle in degrees by which each rotation (B, 3, 3) turns: its distance from the identity."""
+    return rotation_error_deg(rotation, torch.eye(3, dtype=torch.float64, device=rotation.device))
+
+
 def translation_error(translation: torch.Tensor, gt_translation: torch.Tensor) -> torch.Tensor:
     """(B,) Euclidean distance |t - t_gt|."""
     return (translation.double() - gt_translation.double()).norm(dim=-1)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from vrnet_ext.names import (BACKENDS, DEFAULT_SEARCH_ICP, MAX_SEARCH_ICP_SLIDES, PROCRUSTES_POINTS, ROTATION_RANGES,
+from vrnet_ext.names import (ANY_ROTATION, BACKENDS, DEFAULT_SEARCH_ICP, MAX_SEARCH_ICP_SLIDES, PROCRUSTES_POINTS, ROTATION_RANGES,
                              SEARCH_ICPS, TRANSFORMER_PRECISIONS)
 
 # The robust weights of the IRLS steps (vrnet_ext.ops.kabsch.ROBUST_KERNELS, named here too so that
@@ -104,6 +104,14 @@ class VRNetConfig:
       reach; on such noisy views robust ICP drifts off the truth where trimmed ICP holds it. The
       cost grows with the slides (17 slides of 512 starts, trimmed: 4.5-4.9 s per searched pair of
       768 points on two CPU threads).
+    * ``max_rotation``: a bound the caller knows on the motion, in degrees (the angle by which R turns
+      the source; 180, the default: none). With the rotation search, a pair whose estimate turns
+      further is searched whatever its consistency, and the search, its polish and its ICP search
+      keep only estimates within the bound (the ICP search runs only its starts near it); a pair none
+      of whose estimates is within it keeps the nearest it had. Not in the paper; eval mode only. For
+      motions known to be moderate (e.g. each Euler angle within 45 degrees turns by at most 85.8):
+      a flip of a nearly round shape, which the geometry cannot tell from the truth under noise, is
+      then not taken.
     * ``polish_iterations``: last, this many steps of a robust point-to-point ICP from each pair's
       estimate (:func:`vrnet_ext.geometry.alignment.robust_icp`: the nearest target point of each
       moved source point, Cauchy-reweighted Procrustes), kept where they bring the source nearer the
@@ -157,6 +165,7 @@ class VRNetConfig:
     rotation_search_icp_starts: int = 0
     rotation_search_icp_slides: int = 1
     rotation_search_icp: str = DEFAULT_SEARCH_ICP
+    max_rotation: float = ANY_ROTATION
     polish_iterations: int = 0
     consistency_radius: float = 0.02
     backend: str = "ext"
@@ -195,6 +204,10 @@ class VRNetConfig:
             raise ValueError(f"rotation_search_icp must be one of {SEARCH_ICPS}, got {self.rotation_search_icp!r}")
         if not 0 <= self.rotation_search_below <= 1:
             raise ValueError(f"rotation_search_below must be in [0, 1], got {self.rotation_search_below}")
+        if (isinstance(self.max_rotation, bool) or not isinstance(self.max_rotation, (int, float))
+                or not 0 < self.max_rotation <= ANY_ROTATION):
+            raise ValueError(f"max_rotation must be in (0, {ANY_ROTATION:g}] degrees, got {self.max_rotation!r}")
+        self.max_rotation = float(self.max_rotation)
         if self.irls_kernel not in IRLS_KERNELS:
             raise ValueError(f"irls_kernel must be one of {IRLS_KERNELS}, got {self.irls_kernel!r}")
         if self.backend not in BACKENDS:
