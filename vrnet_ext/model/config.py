@@ -108,7 +108,7 @@ class VRNetConfig:
       the source; 180, the default: none). With the rotation search, a pair whose estimate turns
       further is searched whatever its consistency, and the search, its polish and its ICP search
       keep only estimates within the bound (the ICP search runs only its starts near it); a pair none
-      of whose estimates is within it keeps the nearest it had. Not in the paper; eval mode only. For
+      of whose estimates is within it keeps the one it had. Not in the paper; eval mode only. For
       motions known to be moderate (e.g. each Euler angle within 45 degrees turns by at most 85.8):
       a flip of a nearly round shape, which the geometry cannot tell from the truth under noise, is
       then not taken.
