@@ -166,22 +166,28 @@ def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor, b
                 rotation, translation = step(every_src[:, ::stride][:, :MULTISTART_POINTS], every_tgt,
                                              turns[first:first + many], shift[first:first + many], MULTISTART_FIRST,
                                              backend)
-                found.append((rotation, translation, _within(rotation, max_turn, nearest_median(
+                found.append((rotation, translation, within_turn(rotation, max_turn, nearest_median(
                     every_src, every_tgt, rotation, translation, backend))))
             rotation, translation, distance = (torch.cat(values) for values in zip(*found))
             kept = distance.topk(keep, largest=False).indices
             every_src, every_tgt = cloud.expand(keep, -1, -1), target.expand(keep, -1, -1)
             rotation, translation = step(every_src, every_tgt, rotation[kept], translation[kept], MULTISTART_LAST,
                                          backend)
-            distance = _within(rotation, max_turn, nearest_median(every_src, every_tgt, rotation, translation, backend))
+            distance = within_turn(rotation, max_turn, nearest_median(every_src, every_tgt, rotation, translation, backend))
             best = distance.argmin()
             results.append((rotation[best], translation[best], distance[best]))
     rotation, translation, distance = (torch.stack(values) for values in zip(*results))
     return rotation, translation, distance
 
 
-def _within(rotation: torch.Tensor, max_turn: float, distance: torch.Tensor) -> torch.Tensor:
-    """``distance`` (B,) with ``inf`` where the rotation (B, 3, 3) turns by more than ``max_turn`` degrees."""
+def beyond_turn(rotation: torch.Tensor, max_turn: float) -> torch.Tensor:
+    """(B,) bool: the rotations (B, 3, 3) that turn by more than ``max_turn`` degrees (none where it is
+    ANY_ROTATION, the bound that is none)."""
     if max_turn >= ANY_ROTATION:
-        return distance
-    return distance.masked_fill(turn_deg(rotation) > max_turn, math.inf)
+        return torch.zeros(rotation.shape[0], dtype=torch.bool, device=rotation.device)
+    return turn_deg(rotation) > max_turn
+
+
+def within_turn(rotation: torch.Tensor, max_turn: float, distance: torch.Tensor) -> torch.Tensor:
+    """``distance`` (B,) with ``inf`` where the rotation (B, 3, 3) turns by more than ``max_turn`` degrees."""
+    return distance.masked_fill(beyond_turn(rotation, max_turn), math.inf)

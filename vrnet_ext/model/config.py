@@ -3,8 +3,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from vrnet_ext.names import (ANY_ROTATION, BACKENDS, DEFAULT_SEARCH_ICP, MAX_SEARCH_ICP_SLIDES, PROCRUSTES_POINTS, ROTATION_RANGES,
-                             SEARCH_ICPS, TRANSFORMER_PRECISIONS)
+from vrnet_ext.names import (ANY_ROTATION, BACKENDS, DEFAULT_SEARCH_ICP, MAX_SEARCH_ICP_SLIDES, PROCRUSTES_POINTS,
+                             ROTATION_RANGES, SEARCH_ICPS, TRANSFORMER_PRECISIONS)
 
 # The robust weights of the IRLS steps (vrnet_ext.ops.kabsch.ROBUST_KERNELS, named here too so that
 # this module stays free of torch: the CLI builds its parsers from it).

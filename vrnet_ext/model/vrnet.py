@@ -8,14 +8,13 @@ from dataclasses import dataclass, fields, replace
 import torch
 from torch import nn
 
-from vrnet_ext.geometry.alignment import multistart_icp, nearest_median, robust_icp
-from vrnet_ext.geometry.metrics import correct_match_ratio, turn_deg
+from vrnet_ext.geometry.alignment import beyond_turn, multistart_icp, nearest_median, robust_icp, within_turn
+from vrnet_ext.geometry.metrics import correct_match_ratio
 from vrnet_ext.geometry.transforms import compose, move, search_starts, spread_rotations
 from vrnet_ext.model.config import VRNetConfig
 from vrnet_ext.model.correction_walk import CorrectionWalk
 from vrnet_ext.model.dgcnn import DGCNN
 from vrnet_ext.model.transformer import Transformer
-from vrnet_ext.names import ANY_ROTATION
 from vrnet_ext.ops import robust_kabsch, soft_match
 from vrnet_ext.ops._checks import check_all_finite, check_float, check_same, check_shape, trusted_values
 from vrnet_ext.runtime import cpu_has_native_bf16
@@ -255,7 +254,8 @@ class VRNet(nn.Module):
         start's estimate and the pair's own are polished (:meth:`polished`) before they are compared.
         Under ``max_rotation`` a pair whose estimate turns further is searched too, and estimates that
         turn further count as infinitely far. ``searched`` marks the pairs it takes on."""
-        out.searched = (out.consistency < self.config.rotation_search_below) | self._beyond_bound(out.rotation)
+        out.searched = ((out.consistency < self.config.rotation_search_below)
+                        | beyond_turn(out.rotation, self.config.max_rotation))
         retry = out.searched.nonzero().squeeze(1)
         if not retry.numel():
             return
@@ -286,17 +286,11 @@ class VRNet(nn.Module):
             else:
                 distance = nearest_median(src[rows], tgt[rows], found.rotation, found.translation, backend)
                 so_far = nearest_median(src[chunk], tgt[chunk], own.rotation, own.translation, backend)
-            distance = distance.masked_fill(self._beyond_bound(found.rotation), math.inf)
-            so_far = so_far.masked_fill(self._beyond_bound(own.rotation), math.inf)
+            distance = within_turn(found.rotation, self.config.max_rotation, distance)
+            so_far = within_turn(own.rotation, self.config.max_rotation, so_far)
             best = distance.view(chunk.numel(), count).argmin(dim=1)
             chosen = torch.arange(chunk.numel(), device=src.device) * count + best
             _replace_rows(out, chunk, _rows_of(found, chosen), better=distance[chosen] < so_far)
-
-    def _beyond_bound(self, rotation: torch.Tensor) -> torch.Tensor:
-        """(B,) bool: the rotations (B, 3, 3) that turn by more than ``max_rotation`` degrees."""
-        if self.config.max_rotation >= ANY_ROTATION:
-            return torch.zeros(rotation.shape[0], dtype=torch.bool, device=rotation.device)
-        return turn_deg(rotation) > self.config.max_rotation
 
     def _icp_search(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, rows: torch.Tensor,
                     backend: str) -> None:
@@ -313,8 +307,8 @@ class VRNet(nn.Module):
                                                              self.config.rotation_search_icp_slides,
                                                              self.config.rotation_search_icp,
                                                              max_turn=self.config.max_rotation)
-            so_far = nearest_median(src[rows], tgt[rows], own.rotation, own.translation, backend)
-            so_far = so_far.masked_fill(self._beyond_bound(own.rotation), math.inf)
+            so_far = within_turn(own.rotation, self.config.max_rotation,
+                                 nearest_median(src[rows], tgt[rows], own.rotation, own.translation, backend))
         found = replace(own, rotation=rotation, translation=translation,
                         consistency=self._consistency(src[rows], rotation, translation, own.rcp), second_pass=torch.zeros_like(own.second_pass), polished=torch.zeros_like(own.polished),
                         icp_search=torch.ones_like(own.icp_search))
