@@ -14,7 +14,8 @@ serves the cell, the pairs, and per estimate (alone, with the search) the share 
 seconds per pair, the geometric polish's steps of each (``VRNetConfig.polish_iterations``; alone /
 with the search), the steps the search polishes each start with (``rotation_search_polish``) and
 the starts of its multi-start ICP (``rotation_search_icp_starts``; x its slides and its ICP where
-not 1 and robust). The paper's VRNet RMSE(R) (its protocol) stands beside them.
+not 1 and robust) and the penalty on the turn its choices weigh distances by
+(``rotation_search_turn_penalty``). The paper's VRNet RMSE(R) (its protocol) stands beside them.
 """
 from __future__ import annotations
 
@@ -65,6 +66,7 @@ def collect(folders: list[Path]) -> list[dict]:
                     "polish_iterations": cell["solve"].get("polish_iterations", 0),
                     "search_polish": cell["solve"].get("rotation_search_polish", 0),
                     "icp_starts": icp_search(cell["solve"]),
+                    "turn_penalty": cell["solve"].get("rotation_search_turn_penalty", 0.0),
                     "source": str(path.relative_to(folder.parent))}
     rows = []
     for (setting, split, pairs_of), measured in estimates.items():
@@ -78,7 +80,7 @@ def collect(folders: list[Path]) -> list[dict]:
         for estimate, value in measured.items():
             row[estimate] = {field: value[field] for field in
                              ("recall", "RMSE(R)", "seconds_per_pair", "search_below", "polish_iterations",
-                              "search_polish", "icp_starts", "source")}
+                              "search_polish", "icp_starts", "turn_penalty", "source")}
         rows.append(row)
     order = {(s, p): i for i, (s, p) in enumerate((s, p) for p in SPLITS for s in SETTINGS)}
     return sorted(rows, key=lambda r: (r["pairs_of"], order[(r["setting"], r["split"])]))
@@ -94,8 +96,8 @@ def icp_search(solve: dict) -> int | str:
 def markdown(rows: list[dict], note: str) -> str:
     lines = [note, "", "| pairs | cell | model | pairs measured | recall alone | recall with search | "
              "RMSE(R) alone | RMSE(R) with search | paper RMSE(R) (protocol) | s / pair alone | s / pair with search | "
-             "polish steps | search polish steps | search ICP starts |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "polish steps | search polish steps | search ICP starts | search turn penalty |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
         paper = PAPER.get((row["setting"], row["split"]), {}).get("VRNet", ("–",))[0]
         cells = []
@@ -106,7 +108,8 @@ def markdown(rows: list[dict], note: str) -> str:
                      f"{cells[0][0]} | {cells[0][1]} | {cells[1][0]} | {cells[1][1]} | {paper} | "
                      f"{cells[2][0]} | {cells[2][1]} | {' / '.join(cells[3])} | "
                      f"{row['search']['search_polish'] if 'search' in row else '–'} | "
-                     f"{row['search']['icp_starts'] if 'search' in row else '–'} |")
+                     f"{row['search']['icp_starts'] if 'search' in row else '–'} | "
+                     f"{format(row['search']['turn_penalty'], 'g') if 'search' in row else '–'} |")
     return "\n".join(lines) + "\n"
 
 

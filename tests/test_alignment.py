@@ -6,7 +6,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from vrnet_ext.geometry import alignment
-from vrnet_ext.geometry.alignment import multistart_icp, nearest_median, robust_icp
+from vrnet_ext.geometry.alignment import TurnPrior, multistart_icp, nearest_median, robust_icp
 from vrnet_ext.geometry.metrics import rotation_error_deg
 from vrnet_ext.geometry.transforms import move
 
@@ -132,18 +132,60 @@ def test_multistart_icp_under_a_bound_keeps_only_estimates_within_it():
     bound = 150.0
     within = turn_deg(truth) <= bound
     assert within.tolist() == [True, True, False]
-    rotation, translation, distance = multistart_icp(src, tgt, starts, max_turn=bound)
+    rotation, translation, distance = multistart_icp(src, tgt, starts, prior=TurnPrior(max_turn=bound))
     assert (rotation_error_deg(rotation, truth)[within] < 1).all(), rotation_error_deg(rotation, truth)
     finite = torch.isfinite(distance)
     assert (turn_deg(rotation)[finite] <= bound + 1e-6).all() and finite[within].all()
     assert rotation_error_deg(rotation[~within], truth[~within]).min() > 5  # the truth is beyond it
     torch.testing.assert_close(distance[finite].double(),
                                brute_nearest_median(src, tgt, rotation, translation)[finite], rtol=0, atol=1e-6)
-    for got, want in zip(multistart_icp(src, tgt, starts, max_turn=180.0), free):
+    for got, want in zip(multistart_icp(src, tgt, starts, prior=TurnPrior(max_turn=180.0)), free):
         torch.testing.assert_close(got, want)
-    for bad in (0.0, -5.0, 180.5, float("nan")):
+
+
+def test_a_turn_prior_weighs_a_distance_by_the_turn_and_refuses_bad_values():
+    """TurnPrior.score: the distance times (1 + penalty x turn / 180), inf beyond the bound; the default
+    prior leaves it as it is; values outside the ranges are refused by name."""
+    angles = torch.tensor([0.0, 45.0, 90.0, 135.0, 180.0], dtype=torch.float64)
+    rotation = torch.from_numpy(Rotation.from_rotvec(np.deg2rad(angles.numpy())[:, None] * [[0.6, 0.0, 0.8]]).as_matrix())
+    distance = torch.tensor([1.0, 2.0, 0.5, 1.5, 3.0], dtype=torch.float64)
+    torch.testing.assert_close(TurnPrior().score(rotation, distance), distance)
+    torch.testing.assert_close(TurnPrior(penalty=0.5).score(rotation, distance), distance * (1 + 0.5 * angles / 180))
+    bounded = TurnPrior(max_turn=100.0, penalty=0.5)
+    assert bounded.beyond(rotation).tolist() == [False, False, False, True, True]
+    torch.testing.assert_close(bounded.score(rotation, distance)[:3], (distance * (1 + 0.5 * angles / 180))[:3])
+    assert torch.isinf(bounded.score(rotation, distance)[3:]).all()
+    assert TurnPrior(max_turn=180.0).beyond(rotation).sum() == 0
+    for bad in (0.0, -5.0, 180.5, float("nan"), True):
         with pytest.raises(ValueError, match="max_turn"):
-            multistart_icp(src, tgt, starts, max_turn=bad)
+            TurnPrior(max_turn=bad)
+    for bad in (-0.1, 10.5, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="penalty"):
+            TurnPrior(penalty=bad)
+
+
+def test_multistart_icp_with_a_turn_penalty_takes_the_smaller_of_two_equal_fits():
+    """A shape the same after a half turn about its shortest axis fits its target equally well by the
+    truth and by the truth after that half turn; with a penalty on the turn multistart_icp returns the
+    one that turns less (here the truth), its distance weighed by the penalty; without it some pairs
+    get the other."""
+    from vrnet_ext.geometry.metrics import turn_deg
+    from vrnet_ext.geometry.transforms import spread_rotations
+
+    rng = np.random.default_rng(7)
+    half = rng.normal(size=(4, 80, 3)) * [1.0, 0.6, 0.3]
+    src = torch.from_numpy(np.concatenate([half, half * [-1.0, -1.0, 1.0]], axis=1)).float()  # Rz(180) src = src
+    truth = torch.from_numpy(Rotation.from_rotvec(rng.normal(size=(4, 3)) * 0.35).as_matrix()).float()  # ~20-40 deg
+    tgt = move(src, truth, torch.zeros(4, 3)) + 0.002 * torch.randn(4, 160, 3, generator=torch.Generator().manual_seed(0))
+    flip = truth @ torch.diag(torch.tensor([-1.0, -1.0, 1.0]))
+    assert (turn_deg(flip) > turn_deg(truth) + 60).all()
+    starts = torch.as_tensor(spread_rotations(128), dtype=src.dtype)
+    plain_R, _, _ = multistart_icp(src, tgt, starts)
+    assert (rotation_error_deg(plain_R, flip) < 1).any(), "without a penalty some pair takes the flip"
+    rotation, translation, distance = multistart_icp(src, tgt, starts, prior=TurnPrior(penalty=0.2))
+    assert (rotation_error_deg(rotation, truth) < 1).all(), rotation_error_deg(rotation, truth)
+    torch.testing.assert_close(distance.double(), brute_nearest_median(src, tgt, rotation, translation)
+                               * (1 + 0.2 * turn_deg(rotation) / 180), rtol=0, atol=1e-6)
 
 
 def cut_views(B=3, seed=0, points=600, noise=0.005):

@@ -350,7 +350,8 @@ def test_modelnet40_rotations_puts_each_cells_estimates_side_by_side(tmp_path):
     later.mkdir()
     polished = cell("m", "so3", False, 0.2, 0.9)
     polished["solve"].update(polish_iterations=10, rotation_search_polish=30, rotation_search_icp_starts=512,
-                             rotation_search_icp_slides=17, rotation_search_icp="trimmed")
+                             rotation_search_icp_slides=17, rotation_search_icp="trimmed",
+                             rotation_search_turn_penalty=0.25)
     (later / "a.json").write_text(json.dumps({"results": [polished]}))
     run([str(ROOT / "benchmarks" / "modelnet40_rotations.py"), "--tables", str(tables), str(later), "--json", "r2.json",
          "--markdown", "r2.md"], tmp_path)
@@ -358,7 +359,8 @@ def test_modelnet40_rotations_puts_each_cells_estimates_side_by_side(tmp_path):
     assert rows["so3"]["search"]["recall"] == 0.9 and rows["so3"]["search"]["source"] == "later/a.json"
     assert rows["so3"]["search"]["polish_iterations"] == 10 and rows["so3"]["alone"]["polish_iterations"] == 0
     assert rows["so3"]["search"]["search_polish"] == 30 and rows["so3"]["alone"]["search_polish"] == 0
-    assert "| 0 / 10 | 30 | 512 × 17, trimmed |" in (tmp_path / "r2.md").read_text()
+    assert "| 0 / 10 | 30 | 512 × 17, trimmed | 0.25 |" in (tmp_path / "r2.md").read_text()
+    assert rows["so3"]["search"]["turn_penalty"] == 0.25 and rows["so3"]["alone"]["turn_penalty"] == 0
     assert rows["so3"]["alone"]["recall"] == 0.2 and rows["protocol, swapped"]["search"]["recall"] == 0.99
     bounded = tmp_path / "bounded"  # a search given a bound on the motion: a row of its own
     bounded.mkdir()

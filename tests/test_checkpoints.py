@@ -68,7 +68,10 @@ def test_files_that_are_not_checkpoints_raise_a_clear_error(tmp_path, capsys):
                                           ("polish_iterations", "many"), ("rotation_search_polish", -1),
                                           ("rotation_search_icp_starts", 10**6), ("rotation_search_icp_slides", 10**6),
                                           ("rotation_search_icp", "gicp"), ("max_rotation", 0.0),
-                                          ("max_rotation", 270.0), ("max_rotation", "wide")])
+                                          ("max_rotation", 270.0), ("max_rotation", "wide"),
+                                          ("rotation_search_turn_penalty", -0.5),
+                                          ("rotation_search_turn_penalty", float("inf")),
+                                          ("rotation_search_turn_penalty", "some")])
 def test_config_outside_the_limits_is_refused_before_anything_is_built(tmp_path, field, value):
     config = VRNetConfig.small(**TINY).to_dict()
     config[field] = value
@@ -186,13 +189,15 @@ def test_cli_export_writes_float16_weights_and_a_model_card(tmp_path):
     assert main(["export", shipped_path, "tiny-sp", "--out-dir", str(tmp_path / "weights"),
                  "--rotation-search-polish", "3", "--rotation-search-centre", "10", "0", "0",
                  "--rotation-search-icp-starts", "64", "--rotation-search-icp-slides", "5",
-                 "--rotation-search-icp", "trimmed", "--max-rotation", "90"]) == 0
+                 "--rotation-search-icp", "trimmed", "--max-rotation", "90",
+                 "--rotation-search-turn-penalty", "0.25"]) == 0
     searching = read_checkpoint(tmp_path / "weights" / "tiny-sp.pt")
     assert searching["config"]["model"]["rotation_search_polish"] == 3
     assert searching["config"]["model"]["rotation_search_icp_starts"] == 64
     assert searching["config"]["model"]["rotation_search_icp_slides"] == 5
     assert searching["config"]["model"]["rotation_search_icp"] == "trimmed"
     assert searching["config"]["model"]["max_rotation"] == 90.0
+    assert searching["config"]["model"]["rotation_search_turn_penalty"] == 0.25
     assert searching["card"]["test"] == shipped["card"]["test"]
     assert main(["export", shipped_path, "tiny-sp2", "--out-dir", str(tmp_path / "weights"),
                  "--rotation-search-polish", "3", "--rotation-search-below", "0.1"]) == 2  # it searches: test it
@@ -333,3 +338,12 @@ def test_a_bound_on_the_motion_outside_0_to_180_degrees_is_refused_by_the_comman
     with pytest.raises(SystemExit) as info:
         main(["eval", "--max-rotation", value])
     assert info.value.code == 2 and "--max-rotation" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value", ["-0.1", "10.5", "nan", "inf", "heavy"])
+def test_a_turn_penalty_outside_0_to_10_is_refused_by_the_command_line(value, capsys):
+    from vrnet_ext.cli import main
+
+    with pytest.raises(SystemExit) as info:
+        main(["eval", "--rotation-search-turn-penalty", value])
+    assert info.value.code == 2 and "--rotation-search-turn-penalty" in capsys.readouterr().err

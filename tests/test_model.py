@@ -628,6 +628,55 @@ def test_a_bound_on_the_motion_keeps_the_search_and_its_icp_within_it():
     assert (turn_deg(icp_out.rotation)[taken] <= bound + 1e-6).all()
 
 
+@pytest.mark.parametrize("penalty", [0.5, 10.0])
+def test_a_turn_penalty_weighs_the_search_s_distances_by_the_turn(monkeypatch, penalty):
+    """With rotation_search_turn_penalty p, the search compares (1 + p x turn / 180) x each estimate's
+    nearest-point median (the pair's own among them): a brute-force reference of its choice, which
+    differs from the choice without the penalty for some pair; the ICP search weighs its results
+    and the estimate it would replace the same way."""
+    from vrnet_ext.geometry.alignment import TurnPrior, multistart_icp
+    from vrnet_ext.geometry.metrics import turn_deg
+    from vrnet_ext.geometry.transforms import search_starts, spread_rotations
+    from vrnet_ext.model import vrnet as vrnet_module
+
+    src, tgt = turned_pairs(B=8)
+    starts = torch.as_tensor(search_starts((0.0, 0.0, 0.0)), dtype=src.dtype)
+    plain = small_model(consistency_radius=1.0).eval()
+    with torch.no_grad():
+        first = plain(src, tgt)
+        runs = [_looked_twice(plain, src, tgt, g) for g in starts]
+    candidates = [(first.rotation, first.translation)] + [(R, t) for R, t, _ in runs]  # the pair's own first
+    distance = torch.stack([_nearest_median(src, tgt, R, t) for R, t in candidates], dim=1)  # (B, 1 + S)
+    turn = torch.stack([turn_deg(R) for R, _ in candidates], dim=1)
+    weighed = distance * (1 + penalty * turn / 180)
+    below = 1.1 * float(first.consistency.max())  # every pair is searched
+    choice, plain_choice = weighed.argmin(dim=1), distance.argmin(dim=1)
+    assert (choice != plain_choice).any(), "the penalty must change some pair's choice"
+    model = small_model(consistency_radius=1.0, rotation_search_below=min(below, 1.0),
+                        rotation_search_turn_penalty=penalty).eval()
+    with torch.no_grad():
+        out = model(src, tgt)
+    assert out.searched.all()
+    want = torch.stack([candidates[int(c)][0][i] for i, c in enumerate(choice)])
+    torch.testing.assert_close(out.rotation, want, rtol=1e-4, atol=1e-5)
+    with torch.no_grad():
+        R, t, icp_weighed = multistart_icp(src, tgt, torch.as_tensor(spread_rotations(48)),
+                                           prior=TurnPrior(penalty=penalty))
+    share_weighed = icp_weighed.double() / weighed.min(dim=1).values  # what the ICP search compares ...
+    share_plain = _nearest_median(src, tgt, R, t) / distance.gather(1, choice[:, None])[:, 0]  # ... not this
+    apart = (share_weighed - share_plain).abs().argmax()
+    assert (share_weighed - share_plain).abs().max() > 1e-3
+    monkeypatch.setattr(vrnet_module, "ICP_SEARCH_NEARER", float(share_weighed[apart] + share_plain[apart]) / 2)
+    nearer = share_weighed < vrnet_module.ICP_SEARCH_NEARER
+    assert not torch.equal(nearer, share_plain < vrnet_module.ICP_SEARCH_NEARER)
+    with_icp = small_model(consistency_radius=1.0, rotation_search_below=min(below, 1.0),
+                           rotation_search_icp_starts=48, rotation_search_turn_penalty=penalty).eval()
+    with torch.no_grad():
+        icp_out = with_icp(src, tgt)
+    assert torch.equal(icp_out.icp_search, nearer)
+    torch.testing.assert_close(icp_out.rotation, torch.where(nearer[:, None, None], R, out.rotation), rtol=1e-4, atol=1e-5)
+
+
 def test_the_rotation_search_takes_only_the_pairs_the_second_pass_left_doubtful():
     src, tgt = turned_pairs()
     looked = small_model(consistency_radius=1.0, second_pass_below=1.0).eval()

@@ -33,6 +33,7 @@ DEFAULT_SEARCH_ICP = "robust"
 MAX_SEARCH_ICP_SLIDES = 64  # the most translations per rotation of that multi-start ICP (geometry.alignment.slides)
 SEARCH_ICP_SLIDE_REACH = 1.5  # they span +- this many standard deviations of the target along its longest axis
 ANY_ROTATION = 180.0  # VRNetConfig.max_rotation's default (degrees): the motion may turn the source by any angle
+MAX_TURN_PENALTY = 10.0  # the largest VRNetConfig.rotation_search_turn_penalty (geometry.alignment.TurnPrior)
 
 DEFAULT_MODEL = "vrnet-pv-upc-rcp"  # the shipped ModelNet40 model of the paper's main cell
 DEFAULT_SCENE_MODEL = "scene-fpfh-vrnet-real"  # the shipped scene model (vrnet register --method vrnet)

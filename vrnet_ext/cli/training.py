@@ -13,9 +13,9 @@ from vrnet_ext.cli.common import (DATA_DIR_HELP, MAX_VIEW_POINTS, DefaultsHelpFo
                                   writable_path, write_json)
 from vrnet_ext.data.protocol import FAR_POINTS
 from vrnet_ext.names import (ANY_ROTATION, AUTO_DEVICE, BACKENDS, DEFAULT_BACKEND, DEFAULT_ROTATION_RANGE,
-                             DEFAULT_SETTING, DEFAULT_SPLIT, MAX_SEARCH_ICP_SLIDES, MIXED, PROCRUSTES_POINTS,
-                             ROTATION_RANGES, SEARCH_ICP_SLIDE_REACH, SEARCH_ICPS, SETTINGS, SPLITS,
-                             TRANSFORMER_PRECISIONS)
+                             DEFAULT_SETTING, DEFAULT_SPLIT, MAX_SEARCH_ICP_SLIDES, MAX_TURN_PENALTY, MIXED,
+                             PROCRUSTES_POINTS, ROTATION_RANGES, SEARCH_ICP_SLIDE_REACH, SEARCH_ICPS, SETTINGS,
+                             SPLITS, TRANSFORMER_PRECISIONS)
 
 
 ROTATION_RANGE_HELP = ("the pairs' rotations: protocol = each Euler angle in [0, 45] degrees (the paper's); "
@@ -26,8 +26,8 @@ EVAL_PARTITIONS = ("test", "val")  # vrnet eval --partition (ModelNet40Pairs par
 # The estimate's inference-time options: the robust solve, the second pass, the rotation search and the polish.
 SOLVE_KEYS = ("irls_iterations", "irls_kernel", "irls_scale", "second_pass_below", "rotation_search_below",
               "rotation_search_centre", "rotation_search_polish", "rotation_search_icp_starts",
-              "rotation_search_icp_slides", "rotation_search_icp", "max_rotation", "polish_iterations",
-              "consistency_radius")
+              "rotation_search_icp_slides", "rotation_search_icp", "max_rotation", "rotation_search_turn_penalty",
+              "polish_iterations", "consistency_radius")
 
 
 def polish_steps(text: str) -> int:
@@ -67,11 +67,22 @@ def turn_bound(text: str) -> float:
     return value
 
 
+def turn_penalty(text: str) -> float:
+    """An argparse type: ``--rotation-search-turn-penalty``, in [0, MAX_TURN_PENALTY]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, {MAX_TURN_PENALTY:g}], got {text!r}") from None
+    if not 0 <= value <= MAX_TURN_PENALTY:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, {MAX_TURN_PENALTY:g}], got {text}")
+    return value
+
+
 def add_solve_options(parser, default: str) -> None:
     """``--irls-iterations``, ``--irls-kernel``, ``--irls-scale``, ``--second-pass-below``,
     ``--rotation-search-below``, ``--rotation-search-centre``, ``--rotation-search-polish``,
     ``--rotation-search-icp-starts``, ``--rotation-search-icp-slides``, ``--rotation-search-icp``,
-    ``--max-rotation``, ``--polish-iterations``, ``--consistency-radius``
+    ``--max-rotation``, ``--rotation-search-turn-penalty``, ``--polish-iterations``, ``--consistency-radius``
     (VRNetConfig's fields of these names); ``default`` says what applies when a flag is not given."""
     from vrnet_ext.model.config import IRLS_KERNELS
 
@@ -125,6 +136,11 @@ def add_solve_options(parser, default: str) -> None:
                              "angle within 45 degrees: at most 85.8); with the rotation search, an estimate turning "
                              "further is searched and the search keeps only estimates within it (a flip of a nearly "
                              f"round shape is then not taken); {ANY_ROTATION:g}: no bound (default: {default})")
+    parser.add_argument("--rotation-search-turn-penalty", type=turn_penalty, default=None, metavar="P",
+                        help="the rotation search and its ICP search count an estimate's distance (1 + P x turn / "
+                             "180) times as far, the turn in degrees: of two estimates the geometry can hardly tell "
+                             "apart (a flip of a nearly round shape under noise) the smaller motion is kept, one "
+                             f"clearly nearer still wins; not a bound; 0: every turn alike (default: {default})")
     parser.add_argument("--polish-iterations", type=polish_steps, default=None,
                         help="last, this many steps of a robust point-to-point ICP from each pair's estimate (each "
                              "source point paired with its nearest target point), kept where they bring the source "

@@ -7,12 +7,13 @@ source point is compared with its nearest target point.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
 from vrnet_ext.geometry.metrics import turn_deg
 from vrnet_ext.geometry.transforms import move
-from vrnet_ext.names import ANY_ROTATION, MAX_SEARCH_ICP_SLIDES, SEARCH_ICP_SLIDE_REACH, SEARCH_ICPS
+from vrnet_ext.names import ANY_ROTATION, MAX_SEARCH_ICP_SLIDES, MAX_TURN_PENALTY, SEARCH_ICP_SLIDE_REACH, SEARCH_ICPS
 from vrnet_ext.ops import kabsch, knn, robust_kabsch
 
 ICP_KERNEL = "cauchy"  # robust_icp: the robust weight of a nearest-point residual
@@ -110,15 +111,52 @@ def _check_slide_count(count: int) -> None:
         raise ValueError(f"slides must be an integer in [1, {MAX_SEARCH_ICP_SLIDES}], got {count!r}")
 
 
+@dataclass(frozen=True)
+class TurnPrior:
+    """How the searches weigh the turn of an estimate (the angle in degrees by which it turns the source,
+    :func:`turn_deg`) beside how near it brings the source to the target.
+
+    ``max_turn``: a bound the caller knows on the motion (:data:`ANY_ROTATION`, the default: none);
+    estimates that turn further count as infinitely far. ``penalty`` p: an estimate's distance counts
+    (1 + p x turn / 180) times as far (0, the default: every turn alike), so that of two estimates the
+    geometry can hardly tell apart (a flip of a nearly round shape under noise) the smaller motion is
+    taken, while one clearly nearer still wins: a 180-degree turn must come 1 / (1 + p) as near as no turn.
+    """
+    max_turn: float = ANY_ROTATION
+    penalty: float = 0.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.max_turn, bool) or not isinstance(self.max_turn, (int, float)) \
+                or not 0 < self.max_turn <= ANY_ROTATION:
+            raise ValueError(f"max_turn must be in (0, {ANY_ROTATION:g}] degrees, got {self.max_turn!r}")
+        if isinstance(self.penalty, bool) or not isinstance(self.penalty, (int, float)) \
+                or not 0 <= self.penalty <= MAX_TURN_PENALTY:
+            raise ValueError(f"penalty must be in [0, {MAX_TURN_PENALTY:g}], got {self.penalty!r}")
+
+    def beyond(self, rotation: torch.Tensor) -> torch.Tensor:
+        """(B,) bool: the rotations (B, 3, 3) that turn by more than ``max_turn`` (none without a bound)."""
+        if self.max_turn >= ANY_ROTATION:
+            return torch.zeros(rotation.shape[0], dtype=torch.bool, device=rotation.device)
+        return turn_deg(rotation) > self.max_turn
+
+    def score(self, rotation: torch.Tensor, distance: torch.Tensor) -> torch.Tensor:
+        """``distance`` (B,) of the estimates turning by ``rotation`` (B, 3, 3), weighed by the prior:
+        scaled by (1 + penalty x turn / 180), ``inf`` beyond the bound (``distance`` itself without either)."""
+        if self.penalty:
+            distance = distance * (1 + self.penalty * turn_deg(rotation) / ANY_ROTATION).to(distance.dtype)
+        return distance.masked_fill(self.beyond(rotation), math.inf)
+
+
 def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor, backend: str = "ext",
                    slide_count: int = 1, icp: str = "robust", *,
-                   max_turn: float = ANY_ROTATION) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   prior: TurnPrior = TurnPrior()) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A global registration by ICP alone (``icp``: a name of :data:`ICPS`): for each pair, ICP from
     every rotation of ``starts`` (S, 3, 3), each with ``slide_count`` translations (that which puts
     the turned source's centroid on the target's, moved by each of :func:`slides`), first
     :data:`MULTISTART_FIRST` steps on :data:`MULTISTART_POINTS` of the source's points, then
     :data:`MULTISTART_LAST` steps on all of them from the :data:`MULTISTART_KEEP` starts that brought
-    the source nearest the target; the nearest of those is each pair's result.
+    the source nearest the target; the nearest of those is each pair's result (nearest as ``prior``
+    weighs it: :meth:`TurnPrior.score`).
 
     ICP's reach from a start is a few tens of degrees (less on nearly round shapes, where it
     converges slowly along the axis) and a tenth or so of the shape's size, so ``starts`` should
@@ -128,26 +166,25 @@ def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor, b
     MULTISTART_FIRST nearest-neighbour searches of the strided points, C of every point (the ranking)
     and MULTISTART_KEEP x (MULTISTART_LAST + 1) more.
 
-    ``max_turn`` (degrees, below 180: a bound the caller knows on the motion): only estimates that
-    turn the source by at most this much (:func:`turn_deg`) are kept, and only the starts within
+    With a bound in ``prior`` (``max_turn`` below 180 degrees) only estimates that turn the source by at
+    most this much (:func:`turn_deg`) are kept, and only the starts within
     :data:`MULTISTART_BOUND_MARGIN` beyond it are run (at least the start nearest the identity); a
     pair none of whose estimates is within the bound gets the distance ``inf``.
 
-    Returns R (B, 3, 3), t (B, 3) and their :func:`nearest_median` (B,), in src's dtype.
+    Returns R (B, 3, 3), t (B, 3) and their :func:`nearest_median` weighed by ``prior`` (B,; the
+    median itself with the default prior), in src's dtype.
     """
     if starts.dim() != 3 or starts.shape[1:] != (3, 3) or not starts.shape[0]:
         raise ValueError(f"starts must be (S, 3, 3) rotations with S >= 1, got {tuple(starts.shape)}")
     if icp not in ICPS:
         raise ValueError(f"icp must be one of {SEARCH_ICPS}, got {icp!r}")
     _check_slide_count(slide_count)
-    if not 0 < max_turn <= ANY_ROTATION:
-        raise ValueError(f"max_turn must be in (0, {ANY_ROTATION:g}] degrees, got {max_turn!r}")
     step = ICPS[icp]
     if not src.shape[0]:
         return src.new_zeros(0, 3, 3), src.new_zeros(0, 3), src.new_zeros(0)
-    if max_turn < ANY_ROTATION:
+    if prior.max_turn < ANY_ROTATION:
         start_turns = turn_deg(starts)
-        starts = starts[(start_turns <= max_turn + MULTISTART_BOUND_MARGIN) | (start_turns == start_turns.min())]
+        starts = starts[(start_turns <= prior.max_turn + MULTISTART_BOUND_MARGIN) | (start_turns == start_turns.min())]
     count, points = starts.shape[0] * slide_count, src.shape[1]
     stride = max(1, points // MULTISTART_POINTS)
     keep = min(MULTISTART_KEEP, count)
@@ -166,28 +203,15 @@ def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor, b
                 rotation, translation = step(every_src[:, ::stride][:, :MULTISTART_POINTS], every_tgt,
                                              turns[first:first + many], shift[first:first + many], MULTISTART_FIRST,
                                              backend)
-                found.append((rotation, translation, within_turn(rotation, max_turn, nearest_median(
+                found.append((rotation, translation, prior.score(rotation, nearest_median(
                     every_src, every_tgt, rotation, translation, backend))))
             rotation, translation, distance = (torch.cat(values) for values in zip(*found))
             kept = distance.topk(keep, largest=False).indices
             every_src, every_tgt = cloud.expand(keep, -1, -1), target.expand(keep, -1, -1)
             rotation, translation = step(every_src, every_tgt, rotation[kept], translation[kept], MULTISTART_LAST,
                                          backend)
-            distance = within_turn(rotation, max_turn, nearest_median(every_src, every_tgt, rotation, translation, backend))
+            distance = prior.score(rotation, nearest_median(every_src, every_tgt, rotation, translation, backend))
             best = distance.argmin()
             results.append((rotation[best], translation[best], distance[best]))
     rotation, translation, distance = (torch.stack(values) for values in zip(*results))
     return rotation, translation, distance
-
-
-def beyond_turn(rotation: torch.Tensor, max_turn: float) -> torch.Tensor:
-    """(B,) bool: the rotations (B, 3, 3) that turn by more than ``max_turn`` degrees (none where it is
-    ANY_ROTATION, the bound that is none)."""
-    if max_turn >= ANY_ROTATION:
-        return torch.zeros(rotation.shape[0], dtype=torch.bool, device=rotation.device)
-    return turn_deg(rotation) > max_turn
-
-
-def within_turn(rotation: torch.Tensor, max_turn: float, distance: torch.Tensor) -> torch.Tensor:
-    """``distance`` (B,) with ``inf`` where the rotation (B, 3, 3) turns by more than ``max_turn`` degrees."""
-    return distance.masked_fill(beyond_turn(rotation, max_turn), math.inf)

@@ -19,10 +19,11 @@ from vrnet_ext.names import DEFAULT_MAX_ANGLE, DEFAULT_ROTATION_RANGE
 INFERENCE_FIELDS = ("procrustes_points", "irls_iterations", "irls_kernel", "irls_scale", "second_pass_below",
                     "rotation_search_below", "rotation_search_centre", "rotation_search_polish",
                     "rotation_search_icp_starts", "rotation_search_icp_slides", "rotation_search_icp",
-                    "max_rotation", "polish_iterations", "consistency_radius")
+                    "max_rotation", "rotation_search_turn_penalty", "polish_iterations", "consistency_radius")
 # Inference-time fields that act only inside the rotation search: moot where a file does not search.
 SEARCH_ONLY_FIELDS = ("rotation_search_centre", "rotation_search_polish", "rotation_search_icp_starts",
-                      "rotation_search_icp_slides", "rotation_search_icp", "max_rotation")
+                      "rotation_search_icp_slides", "rotation_search_icp", "max_rotation",
+                      "rotation_search_turn_penalty")
 # How a card names the rotations of the ranges without a largest angle.
 UNIFORM_ROTATIONS = {"so3": "so3: uniform over all rotations",
                      "cube_residual": "cube_residual: uniform over all rotations, each turned back by the cube "

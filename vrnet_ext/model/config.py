@@ -3,8 +3,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from vrnet_ext.names import (ANY_ROTATION, BACKENDS, DEFAULT_SEARCH_ICP, MAX_SEARCH_ICP_SLIDES, PROCRUSTES_POINTS,
-                             ROTATION_RANGES, SEARCH_ICPS, TRANSFORMER_PRECISIONS)
+from vrnet_ext.names import (ANY_ROTATION, BACKENDS, DEFAULT_SEARCH_ICP, MAX_SEARCH_ICP_SLIDES, MAX_TURN_PENALTY,
+                             PROCRUSTES_POINTS, ROTATION_RANGES, SEARCH_ICPS, TRANSFORMER_PRECISIONS)
 
 # The robust weights of the IRLS steps (vrnet_ext.ops.kabsch.ROBUST_KERNELS, named here too so that
 # this module stays free of torch: the CLI builds its parsers from it).
@@ -112,6 +112,12 @@ class VRNetConfig:
       motions known to be moderate (e.g. each Euler angle within 45 degrees turns by at most 85.8):
       a flip of a nearly round shape, which the geometry cannot tell from the truth under noise, is
       then not taken.
+    * ``rotation_search_turn_penalty`` p: the rotation search and its ICP search weigh each
+      estimate's distance by (1 + p x turn / 180), the turn in degrees by which it turns the source
+      (:class:`vrnet_ext.geometry.alignment.TurnPrior`; 0, the default: every turn alike): of two
+      estimates the geometry can hardly tell apart the smaller motion is kept, while one clearly
+      nearer still wins, whatever the turn. Not a bound: no motion is ruled out. Not in the paper;
+      eval mode only.
     * ``polish_iterations``: last, this many steps of a robust point-to-point ICP from each pair's
       estimate (:func:`vrnet_ext.geometry.alignment.robust_icp`: the nearest target point of each
       moved source point, Cauchy-reweighted Procrustes), kept where they bring the source nearer the
@@ -166,6 +172,7 @@ class VRNetConfig:
     rotation_search_icp_slides: int = 1
     rotation_search_icp: str = DEFAULT_SEARCH_ICP
     max_rotation: float = ANY_ROTATION
+    rotation_search_turn_penalty: float = 0.0
     polish_iterations: int = 0
     consistency_radius: float = 0.02
     backend: str = "ext"
@@ -208,6 +215,10 @@ class VRNetConfig:
                 or not 0 < self.max_rotation <= ANY_ROTATION):
             raise ValueError(f"max_rotation must be in (0, {ANY_ROTATION:g}] degrees, got {self.max_rotation!r}")
         self.max_rotation = float(self.max_rotation)
+        penalty = self.rotation_search_turn_penalty
+        if isinstance(penalty, bool) or not isinstance(penalty, (int, float)) or not 0 <= penalty <= MAX_TURN_PENALTY:
+            raise ValueError(f"rotation_search_turn_penalty must be in [0, {MAX_TURN_PENALTY:g}], got {penalty!r}")
+        self.rotation_search_turn_penalty = float(penalty)
         if self.irls_kernel not in IRLS_KERNELS:
             raise ValueError(f"irls_kernel must be one of {IRLS_KERNELS}, got {self.irls_kernel!r}")
         if self.backend not in BACKENDS:

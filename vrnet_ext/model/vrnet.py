@@ -8,7 +8,7 @@ from dataclasses import dataclass, fields, replace
 import torch
 from torch import nn
 
-from vrnet_ext.geometry.alignment import beyond_turn, multistart_icp, nearest_median, robust_icp, within_turn
+from vrnet_ext.geometry.alignment import TurnPrior, multistart_icp, nearest_median, robust_icp
 from vrnet_ext.geometry.metrics import correct_match_ratio
 from vrnet_ext.geometry.transforms import compose, move, search_starts, spread_rotations
 from vrnet_ext.model.config import VRNetConfig
@@ -252,10 +252,11 @@ class VRNet(nn.Module):
         replaces ``out``'s rows (in place) where it brings it closer than ``out``'s (between starts,
         the RCPs' agreement misjudges noisy pairs). With ``rotation_search_polish`` steps, every
         start's estimate and the pair's own are polished (:meth:`polished`) before they are compared.
-        Under ``max_rotation`` a pair whose estimate turns further is searched too, and estimates that
-        turn further count as infinitely far. ``searched`` marks the pairs it takes on."""
-        out.searched = ((out.consistency < self.config.rotation_search_below)
-                        | beyond_turn(out.rotation, self.config.max_rotation))
+        The distances are weighed by :meth:`turn_prior`: under ``max_rotation`` a pair whose estimate
+        turns further is searched too, and estimates that turn further count as infinitely far.
+        ``searched`` marks the pairs it takes on."""
+        prior = self.turn_prior()
+        out.searched = (out.consistency < self.config.rotation_search_below) | prior.beyond(out.rotation)
         retry = out.searched.nonzero().squeeze(1)
         if not retry.numel():
             return
@@ -286,19 +287,24 @@ class VRNet(nn.Module):
             else:
                 distance = nearest_median(src[rows], tgt[rows], found.rotation, found.translation, backend)
                 so_far = nearest_median(src[chunk], tgt[chunk], own.rotation, own.translation, backend)
-            distance = within_turn(found.rotation, self.config.max_rotation, distance)
-            so_far = within_turn(own.rotation, self.config.max_rotation, so_far)
+            distance, so_far = prior.score(found.rotation, distance), prior.score(own.rotation, so_far)
             best = distance.view(chunk.numel(), count).argmin(dim=1)
             chosen = torch.arange(chunk.numel(), device=src.device) * count + best
             _replace_rows(out, chunk, _rows_of(found, chosen), better=distance[chosen] < so_far)
+
+    def turn_prior(self) -> TurnPrior:
+        """How the rotation search and its ICP search weigh an estimate's turn: ``max_rotation`` and
+        ``rotation_search_turn_penalty``."""
+        return TurnPrior(self.config.max_rotation, self.config.rotation_search_turn_penalty)
 
     def _icp_search(self, src: torch.Tensor, tgt: torch.Tensor, out: VRNetOutput, rows: torch.Tensor,
                     backend: str) -> None:
         """The rows ``rows`` (the pairs the rotation search took on) registered by :func:`multistart_icp`
         from ``rotation_search_icp_starts`` rotations spread over SO(3) (``rotation_search_icp_slides``
         translations each, ``rotation_search_icp``'s ICP); its result replaces ``out``'s
-        rows (in place) where it brings the source clearly nearer the target (:data:`ICP_SEARCH_NEARER`),
-        marked ``icp_search``."""
+        rows (in place) where it brings the source clearly nearer the target (:data:`ICP_SEARCH_NEARER`;
+        both distances weighed by :meth:`turn_prior`), marked ``icp_search``."""
+        prior = self.turn_prior()
         starts = torch.as_tensor(spread_rotations(self.config.rotation_search_icp_starts), dtype=src.dtype,
                                  device=src.device)
         own = _rows_of(out, rows)
@@ -306,9 +312,9 @@ class VRNet(nn.Module):
             rotation, translation, distance = multistart_icp(src[rows], tgt[rows], starts, backend,
                                                              self.config.rotation_search_icp_slides,
                                                              self.config.rotation_search_icp,
-                                                             max_turn=self.config.max_rotation)
-            so_far = within_turn(own.rotation, self.config.max_rotation,
-                                 nearest_median(src[rows], tgt[rows], own.rotation, own.translation, backend))
+                                                             prior=prior)
+            so_far = prior.score(own.rotation, nearest_median(src[rows], tgt[rows], own.rotation, own.translation,
+                                                              backend))
         found = replace(own, rotation=rotation, translation=translation,
                         consistency=self._consistency(src[rows], rotation, translation, own.rcp), second_pass=torch.zeros_like(own.second_pass), polished=torch.zeros_like(own.polished),
                         icp_search=torch.ones_like(own.icp_search))
