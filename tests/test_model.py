@@ -585,20 +585,26 @@ def test_the_icp_search_replaces_a_searched_pair_where_it_brings_the_source_near
         assert not model(src, tgt).icp_search.any()
 
 
+def _from_every_start(B=8):
+    """B turned pairs, a plain model's output for them and its estimate from each start of the
+    search about the identity (:func:`_looked_twice`): what the search's choices are checked against."""
+    from vrnet_ext.geometry.transforms import search_starts
+
+    src, tgt = turned_pairs(B=B)
+    starts = torch.as_tensor(search_starts((0.0, 0.0, 0.0)), dtype=src.dtype)
+    plain = small_model(consistency_radius=1.0).eval()
+    with torch.no_grad():
+        return src, tgt, plain(src, tgt), [_looked_twice(plain, src, tgt, g) for g in starts]
+
+
 def test_a_bound_on_the_motion_keeps_the_search_and_its_icp_within_it():
     """With max_rotation, a pair whose estimate turns further is searched whatever its consistency,
     and the search keeps the nearest of the estimates within the bound (the pair's own among them,
     where it is); a pair with none within keeps its own; the others are left as they are. The ICP
     search that follows replaces an estimate only with one within the bound."""
     from vrnet_ext.geometry.metrics import turn_deg
-    from vrnet_ext.geometry.transforms import search_starts
 
-    src, tgt = turned_pairs(B=8)
-    starts = torch.as_tensor(search_starts((0.0, 0.0, 0.0)), dtype=src.dtype)
-    plain = small_model(consistency_radius=1.0).eval()
-    with torch.no_grad():
-        first = plain(src, tgt)
-        runs = [_looked_twice(plain, src, tgt, g) for g in starts]
+    src, tgt, first, runs = _from_every_start()
     first_turn = turn_deg(first.rotation)
     bound = float(first_turn.median())
     below = 0.5 * float(first.consistency.min())  # no pair is doubtful by its consistency
@@ -636,15 +642,10 @@ def test_a_turn_penalty_weighs_the_search_s_distances_by_the_turn(monkeypatch, p
     and the estimate it would replace the same way."""
     from vrnet_ext.geometry.alignment import TurnPrior, multistart_icp
     from vrnet_ext.geometry.metrics import turn_deg
-    from vrnet_ext.geometry.transforms import search_starts, spread_rotations
+    from vrnet_ext.geometry.transforms import spread_rotations
     from vrnet_ext.model import vrnet as vrnet_module
 
-    src, tgt = turned_pairs(B=8)
-    starts = torch.as_tensor(search_starts((0.0, 0.0, 0.0)), dtype=src.dtype)
-    plain = small_model(consistency_radius=1.0).eval()
-    with torch.no_grad():
-        first = plain(src, tgt)
-        runs = [_looked_twice(plain, src, tgt, g) for g in starts]
+    src, tgt, first, runs = _from_every_start()
     candidates = [(first.rotation, first.translation)] + [(R, t) for R, t, _ in runs]  # the pair's own first
     distance = torch.stack([_nearest_median(src, tgt, R, t) for R, t in candidates], dim=1)  # (B, 1 + S)
     turn = torch.stack([turn_deg(R) for R, _ in candidates], dim=1)
