@@ -147,7 +147,8 @@ def test_a_turn_prior_weighs_a_distance_by_the_turn_and_refuses_bad_values():
     """TurnPrior.score: the distance times (1 + penalty x turn / 180), inf beyond the bound; the default
     prior leaves it as it is; values outside the ranges are refused by name."""
     angles = torch.tensor([0.0, 45.0, 90.0, 135.0, 180.0], dtype=torch.float64)
-    rotation = torch.from_numpy(Rotation.from_rotvec(np.deg2rad(angles.numpy())[:, None] * [[0.6, 0.0, 0.8]]).as_matrix())
+    axis_angles = np.deg2rad(angles.numpy())[:, None] * [[0.6, 0.0, 0.8]]
+    rotation = torch.from_numpy(Rotation.from_rotvec(axis_angles).as_matrix())
     distance = torch.tensor([1.0, 2.0, 0.5, 1.5, 3.0], dtype=torch.float64)
     torch.testing.assert_close(TurnPrior().score(rotation, distance), distance)
     torch.testing.assert_close(TurnPrior(penalty=0.5).score(rotation, distance), distance * (1 + 0.5 * angles / 180))
@@ -176,7 +177,8 @@ def test_multistart_icp_with_a_turn_penalty_takes_the_smaller_of_two_equal_fits(
     half = rng.normal(size=(4, 80, 3)) * [1.0, 0.6, 0.3]
     src = torch.from_numpy(np.concatenate([half, half * [-1.0, -1.0, 1.0]], axis=1)).float()  # Rz(180) src = src
     truth = torch.from_numpy(Rotation.from_rotvec(rng.normal(size=(4, 3)) * 0.35).as_matrix()).float()  # ~20-40 deg
-    tgt = move(src, truth, torch.zeros(4, 3)) + 0.002 * torch.randn(4, 160, 3, generator=torch.Generator().manual_seed(0))
+    noise = torch.randn(4, 160, 3, generator=torch.Generator().manual_seed(0))
+    tgt = move(src, truth, torch.zeros(4, 3)) + 0.002 * noise
     flip = truth @ torch.diag(torch.tensor([-1.0, -1.0, 1.0]))
     assert (turn_deg(flip) > turn_deg(truth) + 60).all()
     starts = torch.as_tensor(spread_rotations(128), dtype=src.dtype)

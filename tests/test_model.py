@@ -675,7 +675,8 @@ def test_a_turn_penalty_weighs_the_search_s_distances_by_the_turn(monkeypatch, p
     with torch.no_grad():
         icp_out = with_icp(src, tgt)
     assert torch.equal(icp_out.icp_search, nearer)
-    torch.testing.assert_close(icp_out.rotation, torch.where(nearer[:, None, None], R, out.rotation), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(icp_out.rotation, torch.where(nearer[:, None, None], R, out.rotation),
+                               rtol=1e-4, atol=1e-5)
 
 
 def test_the_rotation_search_takes_only_the_pairs_the_second_pass_left_doubtful():

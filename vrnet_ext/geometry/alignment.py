@@ -142,9 +142,12 @@ class TurnPrior:
     def score(self, rotation: torch.Tensor, distance: torch.Tensor) -> torch.Tensor:
         """``distance`` (B,) of the estimates turning by ``rotation`` (B, 3, 3), weighed by the prior:
         scaled by (1 + penalty x turn / 180), ``inf`` beyond the bound (``distance`` itself without either)."""
+        if not self.penalty and self.max_turn >= ANY_ROTATION:
+            return distance
+        turn = turn_deg(rotation)  # once, for both
         if self.penalty:
-            distance = distance * (1 + self.penalty * turn_deg(rotation) / ANY_ROTATION).to(distance.dtype)
-        return distance.masked_fill(self.beyond(rotation), math.inf)
+            distance = distance * (1 + self.penalty * turn / ANY_ROTATION).to(distance.dtype)
+        return distance.masked_fill(turn > self.max_turn, math.inf)
 
 
 def multistart_icp(src: torch.Tensor, tgt: torch.Tensor, starts: torch.Tensor, backend: str = "ext",
